@@ -1,0 +1,69 @@
+"""Morton (Z-order) codes as two 30-bit words, without 64-bit integers.
+
+A voxel ``(i, j, k)`` with ``0 <= i, j, k < 2^20`` has the 60-bit Morton code
+``sum_b i_b << 3b | j_b << (3b+1) | k_b << (3b+2)`` (x is the lowest bit of each
+triple). It is carried as two uint32 words, ``hi = code >> 30`` and
+``lo = code & (2^30 - 1)``: the lexicographic order of ``(hi, lo)`` is Morton order,
+so sorts use `jax.lax.sort` on two operands and never need ``jax_enable_x64``.
+For grids up to 1024^3 ``hi`` is zero and one word suffices.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+WORD_BITS = 10  # bits of each axis per word
+WORD_MASK = (1 << WORD_BITS) - 1
+EMPTY = np.uint32(0xFFFFFFFF)  # a key no voxel has (bit 31 set); padding sorts last
+
+
+def _spread10(x: jax.Array) -> jax.Array:
+    """Spreads the low 10 bits of uint32 `x` to every third bit (bit b -> bit 3b)."""
+    x = x & 0x3FF
+    x = (x | (x << 16)) & 0x030000FF
+    x = (x | (x << 8)) & 0x0300F00F
+    x = (x | (x << 4)) & 0x030C30C3
+    x = (x | (x << 2)) & 0x09249249
+    return x
+
+
+def _compact10(x: jax.Array) -> jax.Array:
+    """Inverse of `_spread10`: gathers every third bit of uint32 `x` into the low 10 bits."""
+    x = x & 0x09249249
+    x = (x | (x >> 2)) & 0x030C30C3
+    x = (x | (x >> 4)) & 0x0300F00F
+    x = (x | (x >> 8)) & 0x030000FF
+    x = (x | (x >> 16)) & 0x3FF
+    return x
+
+
+def encode_word(ijk: jax.Array) -> jax.Array:
+    """Interleaves the low 10 bits of each axis: int [..., 3] -> uint32 [...] (< 2^30)."""
+    u = jnp.asarray(ijk).astype(jnp.uint32)
+    return _spread10(u[..., 0]) | (_spread10(u[..., 1]) << 1) | (_spread10(u[..., 2]) << 2)
+
+
+def decode_word(word: jax.Array) -> jax.Array:
+    """Inverse of `encode_word`: uint32 [...] -> int32 [..., 3] with values < 1024."""
+    w = jnp.asarray(word, jnp.uint32)
+    return jnp.stack([_compact10(w), _compact10(w >> 1), _compact10(w >> 2)], axis=-1).astype(jnp.int32)
+
+
+def encode(ijk: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Morton code of voxel indices as ``(hi, lo)`` words.
+
+    Args:
+      ijk: [..., 3] int voxel indices, each in ``[0, 2^20)``.
+
+    Returns:
+      ``(hi, lo)``, two uint32 [...] arrays: the code's bits 30..59 and 0..29.
+    """
+    u = jnp.asarray(ijk).astype(jnp.uint32)
+    return encode_word(u >> WORD_BITS), encode_word(u & WORD_MASK)
+
+
+def decode(hi: jax.Array, lo: jax.Array) -> jax.Array:
+    """Inverse of `encode`: ``(hi, lo)`` uint32 words -> int32 [..., 3] voxel indices."""
+    return (decode_word(hi) << WORD_BITS) | decode_word(lo)
