@@ -15,8 +15,8 @@ form an interval, and for a fixed (column, row) the valid depths form an interva
 The modes differ only in the edge constants (box corner vs. inscribed diamond). Work is
 expanded in JAX with fixed-size padding: per-triangle column counts, a prefix sum and an
 expansion into a column capacity; per-column row counts, a prefix sum and an expansion
-into a row capacity; per-row depth intervals emitted into ``depth`` slots; the valid
-candidates are compacted, sorted by Morton code and made unique. No dense ``R^3`` array
+into a row capacity; per-row depth intervals, a prefix sum and an expansion into a candidate
+capacity; the candidates are sorted by Morton code and made unique. No dense ``R^3`` array
 is formed. Large triangles cost one work item per (column, row), not per bounding-box
 voxel.
 
@@ -50,9 +50,8 @@ MODES = (CONSERVATIVE, SIX_SEPARATING)
 # Overflow bits of `Voxels.overflow`: which fixed capacity was too small.
 OVERFLOW_COLUMNS = 1
 OVERFLOW_ROWS = 2
-OVERFLOW_DEPTH = 4
-OVERFLOW_CANDIDATES = 8
-OVERFLOW_VOXELS = 16
+OVERFLOW_CANDIDATES = 4
+OVERFLOW_VOXELS = 8
 
 UNUSED = -1  # value of coordinate and triangle slots past `count`
 REGION_SIZE = 1 << morton.WORD_BITS  # largest region sorted with one 32-bit key
@@ -72,18 +71,18 @@ class Capacities(NamedTuple):
 
     Attributes:
       columns: (triangle, column) work items.
-      rows: (triangle, column, row) work items.
-      depth: voxel slots per row item (4 covers every well-shaped triangle
-        conservatively, 3 in 6-separating mode).
+      rows: (triangle, column, row) work items, a multiple of `row_chunk`.
       candidates: voxels emitted before duplicates are removed.
       voxels: unique voxels in the result.
+      row_chunk: rows handled together per column (a power of two; about the mean
+        number of rows per column is fastest).
     """
 
     columns: int
     rows: int
-    depth: int
     candidates: int
     voxels: int
+    row_chunk: int = 4
 
 
 @functools.partial(jax.tree_util.register_dataclass,
@@ -140,14 +139,13 @@ class Voxels:
 # ----------------------------------------------------------------------------- setup
 
 
-class _Tables(NamedTuple):
-    """Per-triangle constants, packed so that one gather fetches a triangle's row."""
+class _Triangles(NamedTuple):
+    """Per-triangle constants (F triangles, H half-planes per projection)."""
 
     n_cols: jax.Array  # [F] int32 columns of each triangle (0 when inactive)
     col_lo: jax.Array  # [F] int32 first column (local u)
-    rows: jax.Array  # [F, 3H+2] float32 dominant half-planes (alpha, beta, gamma) + v range
-    depth: jax.Array  # [F, 6H+8] float32 side half-planes, plane and w range
-    place: jax.Array  # [F, 4] int32 base cell (u, v, w, global) and dominant axis
+    data: jax.Array  # [F, 9H+10] float32 half-planes of the 3 projections, plane, v and w ranges
+    base: jax.Array  # [F, 4] int32 base cell (permuted u, v, w) and dominant axis d
 
 
 def _half_planes(qa, qb, sigma, six_sep, tol):
@@ -215,8 +213,9 @@ def _plane_normal(q):
     return jnp.where(use_n, n, n_fake), jnp.where(use_n, dev_n, dev_fake)
 
 
+
 def _setup_triangle(p, region_lo, region_hi, six_sep):
-    """Per-triangle constants (one triangle; vmapped by `_setup`).
+    """Per-triangle constants of one triangle (vmapped by `_setup`).
 
     Args:
       p: [3, 3] float32 corners in grid units.
@@ -233,14 +232,13 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
     box_hi = jnp.clip(jnp.floor(hi_f), reg_lo - 1.0, reg_hi)
     base = jnp.clip(jnp.floor(lo_f), reg_lo - 1.0, reg_hi + 1.0)
     q = p - base
-    extent = jnp.max(hi_f - lo_f)
-    tol = _TOL * (1.0 + extent)
+    tol = _TOL * (1.0 + jnp.max(hi_f - lo_f))
 
     n_true = jnp.cross(q[1] - q[0], q[2] - q[0])
     normal, delta = _plane_normal(q)
     d = jnp.argmax(jnp.abs(normal))
     perm = (d + jnp.arange(1, 4)) % 3  # (u, v, w) = (d+1, d+2, d): a rotation of (x, y, z)
-    qp, np_, nt = q[:, perm], normal[perm], n_true[perm]
+    qp, npl, nt = q[:, perm], normal[perm], n_true[perm]
     lo_i = (box_lo - base)[perm]
     hi_i = (box_hi - base)[perm]
     sign = lambda x: jnp.where(x >= 0, 1.0, -1.0)
@@ -249,22 +247,22 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
         _half_planes(qp[:, 1], qp[:, 2], sign(nt[0]), six_sep, tol),  # side (v, w)
         _half_planes(qp[:, 2], qp[:, 0], sign(nt[1]), six_sep, tol),  # side (w, u)
     ]
-    kx, ky = -np_[0] / np_[2], -np_[1] / np_[2]
+    kx, ky = -npl[0] / npl[2], -npl[1] / npl[2]
     plane = jnp.stack([qp[0, 0], qp[0, 1], qp[0, 2], kx, ky, delta + tol])
 
     active = finite & jnp.all(hi_i >= lo_i)
     if six_sep:  # zero-area triangles bound no area and set nothing in 6-separating mode
         active &= jnp.any(n_true != 0)
     n_cols = jnp.where(active, hi_i[0] - lo_i[0] + 1.0, 0.0).astype(jnp.int32)
-    rows = jnp.concatenate([planes[0].reshape(-1), lo_i[1:2], hi_i[1:2]])
-    depth = jnp.concatenate([planes[1].reshape(-1), planes[2].reshape(-1), plane, lo_i[2:], hi_i[2:]])
+    data = jnp.concatenate([pl.reshape(-1) for pl in planes] + [plane, lo_i[1:], hi_i[1:]])
     place = jnp.concatenate([base[perm], d[None].astype(jnp.float32)]).astype(jnp.int32)
-    return n_cols, lo_i[0].astype(jnp.int32), rows, depth, place
+    return n_cols, lo_i[0].astype(jnp.int32), data, place
 
 
-def _setup(tris, region_lo, region_hi, six_sep) -> _Tables:
+def _setup(tris, region_lo, region_hi, six_sep) -> _Triangles:
+    """Per-triangle constants for F triangles [F, 3, 3] (grid units) inside a region."""
     fn = jax.vmap(_setup_triangle, in_axes=(0, None, None, None))
-    return _Tables(*fn(tris, region_lo, region_hi, six_sep))
+    return _Triangles(*fn(tris, region_lo, region_hi, six_sep))
 
 
 # ------------------------------------------------------------------------ expansion
@@ -280,18 +278,18 @@ def _expand(counts, capacity):
     Returns:
       (owner [capacity] int32 item of each slot, rank [capacity] int32 position within
       its item, valid [capacity] bool, total [] int32 = sum(counts)). Slots past
-      `total` are invalid (owner clamped to a real item).
+      `total` are invalid (their owner is a real item, their rank meaningless).
     """
+    if counts.shape[0] == 0:
+        zeros = jnp.zeros(capacity, jnp.int32)
+        return zeros, zeros, zeros > 0, jnp.int32(0)
     ends = jnp.cumsum(counts)
     starts = ends - counts
-    total = ends[-1] if counts.shape[0] else jnp.int32(0)
-    # The owner of slot s is the last item whose start is <= s: mark starts, then cummax.
-    marks = jnp.zeros(capacity, jnp.int32).at[starts].max(
-        jnp.where(counts > 0, jnp.arange(counts.shape[0], dtype=jnp.int32), 0), mode="drop")
-    owner = jax.lax.cummax(marks)
+    # The owner of slot s is the last item starting at or before s: mark starts, cummax.
+    ids = jnp.where(counts > 0, jnp.arange(counts.shape[0], dtype=jnp.int32), 0)
+    owner = jax.lax.cummax(jnp.zeros(capacity, jnp.int32).at[starts].max(ids, mode="drop"))
     slot = jnp.arange(capacity, dtype=jnp.int32)
-    rank = slot - starts[owner] if counts.shape[0] else slot
-    return owner, rank, slot < total, total
+    return owner, slot - starts[owner], slot < ends[-1], ends[-1]
 
 
 def _interval(coef, rest, lo, hi):
@@ -311,54 +309,102 @@ def _interval(coef, rest, lo, hi):
     return jnp.maximum(lo, lower.max(-1)), jnp.minimum(hi, upper.min(-1))
 
 
-def _columns(tables: _Tables, col_cap: int):
-    """Column work items and their row intervals.
+class _Columns(NamedTuple):
+    """Column work items (C slots): one (triangle, column u) each."""
 
-    Returns:
-      (tri [C] int32, cu [C] float32 local column, row_lo [C] float32, n_rows [C] int32,
-      total columns [] int32).
+    tri: jax.Array  # [C] int32 triangle
+    row_lo: jax.Array  # [C] float32 first row (local v)
+    n_rows: jax.Array  # [C] int32 rows in the column (0 for invalid slots)
+    depth: jax.Array  # [C, 5+4H] float32 per-row depth coefficients, see `_columns`
+    origin: jax.Array  # [C, 5] int32 global (i, j, k) of local (u, 0, 0), v axis, w axis
+    total: jax.Array  # [] int32 number of columns needed
+
+
+def _columns(tris: _Triangles, col_cap: int, six_sep: bool) -> _Columns:
+    """Expands triangles into columns; per column, its rows and depth coefficients.
+
+    For a column u, every constraint on a voxel (u, v, w) is linear: the dominant
+    projection and the (v, w) half-planes that do not involve w bound v; the (w, u)
+    half-planes, the w bounding box and the plane bound w by constants plus terms in v.
+    The depth coefficients are ``[w_lo, w_hi, z_lo0, z_hi0, ky, lower p (H),
+    lower q (H), upper p (H), upper q (H)]``: a row v spans
+    ``w >= max(w_lo, ceil(z_lo0 + ky v - 1), ceil(lower_p + lower_q v))`` and
+    ``w <= min(w_hi, floor(z_hi0 + ky v), floor(upper_p + upper_q v))``.
     """
-    tri, rank, valid, total = _expand(tables.n_cols, col_cap)
-    cu = (tables.col_lo[tri] + rank).astype(jnp.float32)
-    r = tables.rows[tri]
-    h = (r.shape[1] - 2) // 3
-    alpha, beta, gamma = r[:, :h], r[:, h:2 * h], r[:, 2 * h:3 * h]
-    row_lo, row_hi = _interval(beta, alpha * cu[:, None] + gamma, r[:, -2], r[:, -1])
+    tri, rank, valid, total = _expand(tris.n_cols, col_cap)
+    cu = (tris.col_lo[tri] + rank).astype(jnp.float32)
+    t = tris.data[tri]
+    h = (t.shape[1] - 10) // 9
+    dom, vw, wu = (t[:, 3 * h * i:3 * h * (i + 1)] for i in range(3))
+    u0, v0, w0, kx, ky, slack = (t[:, 9 * h + i] for i in range(6))
+    v_lo, w_lo, v_hi, w_hi = (t[:, 9 * h + 6 + i] for i in range(4))
+    # Rows: dominant (u, v) half-planes, and (v, w) half-planes parallel to w.
+    row_lo, row_hi = _interval(dom[:, h:2 * h], dom[:, :h] * cu[:, None] + dom[:, 2 * h:], v_lo, v_hi)
+    flat = vw[:, h:2 * h] == 0
+    row_lo, row_hi = _interval(jnp.where(flat, vw[:, :h], 0.0), jnp.where(flat, vw[:, 2 * h:], 1.0),
+                               row_lo, row_hi)
     n_rows = jnp.where(valid, jnp.maximum(row_hi - row_lo + 1.0, 0.0), 0.0).astype(jnp.int32)
-    return tri, cu, row_lo, n_rows, total
-
-
-def _rows(tables: _Tables, columns, row_cap: int, six_sep: bool):
-    """Row work items and their depth intervals.
-
-    Returns:
-      (tri [Rw] int32, cuvk [Rw, 3] float32 local (column, row, first depth),
-      n_depth [Rw] int32, total rows [] int32).
-    """
-    col_tri, col_u, col_row_lo, n_rows, _ = columns
-    col, rank, valid, total = _expand(n_rows, row_cap)
-    tri = col_tri[col]
-    cu = col_u[col]
-    cv = col_row_lo[col] + rank.astype(jnp.float32)
-    t = tables.depth[tri]
-    h = (t.shape[1] - 8) // 6
-    side_vw, side_wu = t[:, :3 * h], t[:, 3 * h:6 * h]
-    u0, v0, w0, kx, ky, slack = (t[:, 6 * h + i] for i in range(6))
-    w_lo, w_hi = t[:, -2], t[:, -1]
+    # Depth: (w, u) half-planes give constants; (v, w) ones give bounds linear in v.
+    w_lo, w_hi = _interval(wu[:, :h], wu[:, h:2 * h] * cu[:, None] + wu[:, 2 * h:], w_lo, w_hi)
+    beta = jnp.where(flat, 1.0, vw[:, h:2 * h])
+    p, q = -vw[:, 2 * h:] / beta, -vw[:, :h] / beta
+    lower, upper = (beta > 0) & ~flat, (beta < 0) & ~flat
     if six_sep:  # the plane crosses the centre segment along w
-        zc = w0 + kx * (cu + 0.5 - u0) + ky * (cv + 0.5 - v0)
-        z_lo, z_hi = zc - slack, zc + slack
-    else:  # the plane crosses the box: critical corners
-        z = w0 + kx * (cu - u0) + ky * (cv - v0)
+        z = w0 + kx * (cu + 0.5 - u0) + ky * (0.5 - v0)
+        z_lo, z_hi = z - slack, z + slack
+    else:  # conservative: the plane's extremes over the column-row cell (critical corners)
+        z = w0 + kx * (cu - u0) - ky * v0
         z_lo = z + jnp.minimum(kx, 0.0) + jnp.minimum(ky, 0.0) - slack
         z_hi = z + jnp.maximum(kx, 0.0) + jnp.maximum(ky, 0.0) + slack
-    lo = jnp.maximum(w_lo, jnp.ceil(z_lo - 1.0))
-    hi = jnp.minimum(w_hi, jnp.floor(z_hi))
-    # side (v, w): alpha * v + beta * w + gamma >= 0; side (w, u): alpha * w + beta * u + gamma >= 0.
-    lo, hi = _interval(side_vw[:, h:2 * h], side_vw[:, :h] * cv[:, None] + side_vw[:, 2 * h:], lo, hi)
-    lo, hi = _interval(side_wu[:, :h], side_wu[:, h:2 * h] * cu[:, None] + side_wu[:, 2 * h:], lo, hi)
-    n_depth = jnp.where(valid, jnp.maximum(hi - lo + 1.0, 0.0), 0.0).astype(jnp.int32)
-    return tri, jnp.stack([cu, cv, lo], axis=-1), n_depth, total
+    depth = jnp.concatenate([
+        jnp.stack([w_lo, w_hi, z_lo, z_hi, ky], axis=1),
+        jnp.where(lower, p, -_BIG), jnp.where(lower, q, 0.0),
+        jnp.where(upper, p, _BIG), jnp.where(upper, q, 0.0)], axis=1)
+    place = tris.base[tri]
+    d = place[:, 3]
+    origin_perm = place[:, :3] + jnp.stack([cu.astype(jnp.int32), jnp.zeros_like(d), jnp.zeros_like(d)], 1)
+    inv = (jnp.arange(3)[None, :] - d[:, None] - 1) % 3  # permuted axis p is (d + 1 + p) % 3
+    origin = jnp.concatenate([jnp.take_along_axis(origin_perm, inv, axis=1),
+                              jnp.stack([(d + 2) % 3, d], 1)], axis=1)
+    return _Columns(tri, row_lo, n_rows, depth, origin, total)
+
+
+class _Rows(NamedTuple):
+    """Row work items (Rw slots): one (triangle, column, row) each."""
+
+    place: jax.Array  # [Rw, 5] int32 global (i, j, k) of the row's first voxel, w axis, triangle
+    n_depth: jax.Array  # [Rw] int32 voxels in the row (0 for invalid slots)
+    total: jax.Array  # [] int32 number of row slots needed
+
+
+def _rows(columns: _Columns, row_cap: int, chunk: int) -> _Rows:
+    """Expands columns into rows; per row, the interval of depths that are set.
+
+    Rows are handled `chunk` at a time (one gather of the column's coefficients per
+    chunk), so `row_cap` counts slots of whole chunks.
+    """
+    n_chunks = (columns.n_rows + chunk - 1) // chunk
+    col, rank, valid, total = _expand(n_chunks, row_cap // chunk)
+    offset = rank[:, None] * chunk + jnp.arange(chunk, dtype=jnp.int32)  # [Rc, K]
+    ok = valid[:, None] & (offset < columns.n_rows[col][:, None])
+    v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
+    c = columns.depth[col]
+    h = (c.shape[1] - 5) // 4
+    vv, cc = v[:, :, None], c[:, None, :]
+    lo = jnp.maximum(c[:, :1], jnp.ceil(c[:, 2:3] + c[:, 4:5] * v - 1.0))
+    lo = jnp.maximum(lo, jnp.ceil(cc[..., 5:5 + h] + cc[..., 5 + h:5 + 2 * h] * vv).max(-1))
+    hi = jnp.minimum(c[:, 1:2], jnp.floor(c[:, 3:4] + c[:, 4:5] * v))
+    hi = jnp.minimum(hi, jnp.floor(cc[..., 5 + 2 * h:5 + 3 * h] + cc[..., 5 + 3 * h:] * vv).min(-1))
+    n_depth = jnp.where(ok, jnp.maximum(hi - lo + 1.0, 0.0), 0.0).astype(jnp.int32)
+    o = columns.origin[col][:, None, :]
+    axis = jnp.arange(3, dtype=jnp.int32)
+    lo_i = jnp.where(ok, lo, 0.0).astype(jnp.int32)
+    start = (o[..., :3] + v.astype(jnp.int32)[..., None] * (axis == o[..., 3:4])
+             + lo_i[..., None] * (axis == o[..., 4:5]))
+    tri = jnp.broadcast_to(columns.tri[col][:, None, None], ok.shape + (1,))
+    w_axis = jnp.broadcast_to(o[..., 4:5], tri.shape)
+    place = jnp.concatenate([start, w_axis, tri], axis=-1)
+    return _Rows(place.reshape(-1, 5), n_depth.reshape(-1), total * chunk)
 
 
 def _point_triangle_dist2(p, a, b, c):
@@ -387,104 +433,94 @@ def _point_triangle_dist2(p, a, b, c):
     return jnp.where(inside & (den > 0), jnp.minimum(face, edges), edges)
 
 
-def _emit(tables: _Tables, rows, depth: int, region_words: int, tris, with_ids: bool):
-    """Candidate voxels of every row item, `depth` slots each.
+
+
+def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: bool):
+    """Expands rows into candidate voxels and their sort operands.
 
     Returns:
-      (keys: tuple of uint32 [Rw * depth] sort keys (Morton words; invalid = EMPTY),
-      payload: tuple of extra sort operands (distance bits, triangle id) or (),
-      max_depth [] int32 largest depth interval seen).
+      (keys: tuple of `words` uint32 [cand_cap] Morton words (invalid = EMPTY),
+      payload: (squared-distance bits, triangle) uint32 [cand_cap] or (),
+      total [] int32 candidates needed).
     """
-    tri, cuvk, n_depth = rows
-    slot = jnp.arange(depth, dtype=jnp.float32)
-    local = jnp.broadcast_to(cuvk[:, None, :], (cuvk.shape[0], depth, 3))
-    local = local.at[:, :, 2].add(slot)
-    valid = slot[None, :] < n_depth[:, None].astype(jnp.float32)
-    place = tables.place[tri]
-    ijk_perm = local.astype(jnp.int32) + place[:, None, :3]
-    # Permuted axis p is original axis (d + 1 + p) % 3; invert the rotation.
-    inv = (jnp.arange(3)[None, :] - place[:, 3:4] - 1) % 3
-    ijk = jnp.take_along_axis(ijk_perm, inv[:, None, :], axis=2).reshape(-1, 3)
-    valid = valid.reshape(-1)
-    if region_words == 1:
+    row, rank, valid, total = _expand(rows.n_depth, cand_cap)
+    p = rows.place[row]
+    ijk = p[:, :3] + rank[:, None] * (jnp.arange(3, dtype=jnp.int32) == p[:, 3:4])
+    if words == 1:
         keys = (jnp.where(valid, morton.encode_word(ijk & morton.WORD_MASK), morton.EMPTY),)
     else:
-        hi, lo = morton.encode(ijk)
-        keys = (jnp.where(valid, hi, morton.EMPTY), jnp.where(valid, lo, morton.EMPTY))
+        keys = tuple(jnp.where(valid, k, morton.EMPTY) for k in morton.encode(ijk))
     payload = ()
     if with_ids:
-        tri_rep = jnp.repeat(tri, depth)
-        corners = tris[tri_rep]
+        tri = p[:, 4]
+        corners = tris_grid[tri]
         dist2 = _point_triangle_dist2(ijk.astype(jnp.float32) + 0.5, corners[:, 0], corners[:, 1], corners[:, 2])
-        payload = (jax.lax.bitcast_convert_type(dist2, jnp.uint32), tri_rep.astype(jnp.uint32))
-    return keys, payload, valid, n_depth.max(initial=0)
+        payload = (jax.lax.bitcast_convert_type(dist2, jnp.uint32), tri.astype(jnp.uint32))
+    return keys, payload, total
 
 
-def _compact(valid, arrays, capacity, fill):
-    """Moves entries where `valid` to the front of `capacity`-sized buffers (order kept).
+def _compact(keep, arrays, capacity, fill):
+    """Moves entries where `keep` to the front of `capacity`-sized buffers (order kept).
 
     Returns:
-      (tuple of [capacity] arrays padded with `fill`, number of valid entries [] int32).
+      (tuple of [capacity] arrays padded with `fill`, number of kept entries [] int32).
     """
-    pos = jnp.cumsum(valid) - 1
-    pos = jnp.where(valid, pos, capacity)  # invalid entries go to a dump slot, dropped
+    pos = jnp.where(keep, jnp.cumsum(keep) - 1, capacity)  # dropped entries go past the end
     out = tuple(jnp.full(capacity, fill, a.dtype).at[pos].set(a, mode="drop") for a in arrays)
-    return out, jnp.sum(valid, dtype=jnp.int32)
+    return out, jnp.sum(keep, dtype=jnp.int32)
 
 
-def _sort_unique(keys, payload, region_words: int, base_hi, vox_cap: int):
-    """Sorts candidates (padding sorts last), keeps the first of each key, decodes.
+def _sort_unique(keys, payload, words: int, region_lo, vox_cap: int):
+    """Sorts candidates (EMPTY padding sorts last), keeps the first of each key, decodes.
+
+    With a payload the sort's later keys are (distance, triangle), so the kept entry is
+    the closest triangle, ties to the lower id.
 
     Returns:
       (coords [vox_cap, 3] int32, triangle [vox_cap] int32 or None, count [] int32).
     """
     operands = keys + payload
-    ordered = jax.lax.sort(operands, num_keys=len(operands)) if len(operands) > 1 else (jnp.sort(keys[0]),)
-    k = ordered[:len(keys)]
-    real = k[-1] != morton.EMPTY
-    first = jnp.ones_like(real).at[1:].set(functools.reduce(
-        jnp.logical_or, [a[1:] != a[:-1] for a in k]))
-    keep = real & first
+    if len(operands) == 1:
+        ordered = (jnp.sort(operands[0]),)
+    else:
+        ordered = jax.lax.sort(operands, num_keys=len(operands))
+    k = ordered[:words]
+    changed = functools.reduce(jnp.logical_or, [a[1:] != a[:-1] for a in k])
+    keep = (k[-1] != morton.EMPTY) & jnp.concatenate([jnp.ones(1, bool), changed])
     extra = (ordered[-1].astype(jnp.int32),) if payload else ()
     out, count = _compact(keep, k + extra, vox_cap, 0)
-    if region_words == 1:
-        coords = morton.decode_word(out[0]) | (base_hi << morton.WORD_BITS)
+    if words == 1:  # the region is aligned and at most 1024 wide: its high word is shared
+        coords = morton.decode_word(out[0]) | ((region_lo >> morton.WORD_BITS) << morton.WORD_BITS)
     else:
         coords = morton.decode(out[0], out[1])
     used = jnp.arange(vox_cap) < count
     coords = jnp.where(used[:, None], coords, UNUSED)
     triangle = jnp.where(used, out[-1], UNUSED) if payload else None
-    return coords, triangle, count
+    return coords, triangle, jnp.minimum(count, vox_cap), count
 
 
 # ------------------------------------------------------------------- jittable core
 
 
-def _region_pipeline(tris, region_lo, region_size, six_sep, caps: Capacities, with_ids: bool):
-    """Voxelizes triangles (grid units) inside one aligned cubic region.
+def _words(region_size: int) -> int:
+    return 1 if region_size <= REGION_SIZE else 2
 
-    Returns:
-      (coords, triangle, count, overflow, sizes) where `sizes` holds the exact number
-      of columns, rows, candidates and the largest depth interval (exact only for
-      stages whose predecessors did not overflow).
-    """
+
+def _pipeline(tris_grid, region_lo, region_size: int, six_sep: bool, caps: Capacities, with_ids: bool):
+    """All stages for one aligned cubic region; returns (coords, triangle, count, overflow)."""
     region_hi = region_lo + region_size - 1
-    words = 1 if region_size <= REGION_SIZE else 2
-    tables = _setup(tris, region_lo, region_hi, six_sep)
-    columns = _columns(tables, caps.columns)
-    tri, cuvk, n_depth, n_rows = _rows(tables, columns, caps.rows, six_sep)
-    keys, payload, valid, max_depth = _emit(tables, (tri, cuvk, n_depth), caps.depth, words, tris, with_ids)
-    compacted, n_cand = _compact(valid, keys + payload, caps.candidates, morton.EMPTY)
-    keys, payload = compacted[:len(keys)], compacted[len(keys):]
-    base_hi = region_lo >> morton.WORD_BITS
-    coords, triangle, count = _sort_unique(keys, payload, words, base_hi, caps.voxels)
-    n_cols = columns[-1]
-    overflow = (jnp.where(n_cols > caps.columns, OVERFLOW_COLUMNS, 0)
-                | jnp.where(n_rows > caps.rows, OVERFLOW_ROWS, 0)
-                | jnp.where(max_depth > caps.depth, OVERFLOW_DEPTH, 0)
-                | jnp.where(n_cand > caps.candidates, OVERFLOW_CANDIDATES, 0)
-                | jnp.where(count > caps.voxels, OVERFLOW_VOXELS, 0)).astype(jnp.int32)
-    return coords, triangle, jnp.minimum(count, caps.voxels), overflow, (n_cols, n_rows, n_cand, max_depth)
+    words = _words(region_size)
+    tris = _setup(tris_grid, region_lo, region_hi, six_sep)
+    columns = _columns(tris, caps.columns, six_sep)
+    rows = _rows(columns, caps.rows, caps.row_chunk)
+    keys, payload, n_cand = _candidates(tris_grid, rows, caps.candidates, words, with_ids)
+    coords, triangle, count, n_vox = _sort_unique(keys, payload, words, region_lo, caps.voxels)
+    overflow = functools.reduce(jnp.bitwise_or, [
+        jnp.where(columns.total > caps.columns, OVERFLOW_COLUMNS, 0),
+        jnp.where(rows.total > caps.rows, OVERFLOW_ROWS, 0),
+        jnp.where(n_cand > caps.candidates, OVERFLOW_CANDIDATES, 0),
+        jnp.where(n_vox > caps.voxels, OVERFLOW_VOXELS, 0)]).astype(jnp.int32)
+    return coords, triangle, count, overflow
 
 
 def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
@@ -495,7 +531,7 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
     (``OVERFLOW_*`` bits). Get capacities that fit from `voxel_capacities`, or use the
     host-side `voxelize`, which sizes them and never returns a truncated result.
     Input validation (NaN vertices, face indices) is the caller's job here: non-finite
-    triangles are skipped, out-of-range indices are clamped by JAX's gather.
+    triangles are skipped and out-of-range indices are clamped by JAX's gather.
 
     Args:
       mesh: `Mesh` with F faces.
@@ -509,7 +545,7 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
     """
     six_sep = _check_mode(mode) == SIX_SEPARATING
     tris = grid.to_grid_units(mesh.triangles())
-    coords, triangle, count, overflow, _ = _region_pipeline(
+    coords, triangle, count, overflow = _pipeline(
         tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, Capacities(*capacities), triangle_ids)
     return Voxels(coords, count, overflow, triangle, grid, mode)
 
@@ -524,37 +560,58 @@ def _bucket(n: int, minimum: int = 256) -> int:
     return -(-n >> shift) << shift
 
 
-@functools.partial(jax.jit, static_argnames=("region_size", "six_sep", "caps", "stage", "with_ids"))
-def _staged(tris, region_lo, *, region_size, six_sep, caps, stage, with_ids=False):
-    """One host-side pass: "columns"/"rows" count work, "voxels" runs everything."""
-    region_hi = region_lo + region_size - 1
-    tables = _setup(tris, region_lo, region_hi, six_sep)
-    if stage == "columns":
-        return jnp.sum(tables.n_cols)
-    columns = _columns(tables, caps.columns)
-    if stage == "rows":
-        return jnp.sum(columns[3])
-    return _region_pipeline(tris, region_lo, region_size, six_sep, caps, with_ids)
+_STATIC = ("region_size", "six_sep")
 
 
-def _voxelize_region(tris, region_lo, region_size, six_sep, with_ids, depth):
-    """Counts work, sizes capacities, voxelizes one region; retries on overflow."""
-    kw = dict(region_size=region_size, six_sep=six_sep)
-    n_cols = int(_staged(tris, region_lo, caps=None, stage="columns", **kw))
-    caps = Capacities(_bucket(n_cols), 0, depth, 0, 0)
-    n_rows = int(_staged(tris, region_lo, caps=caps, stage="rows", **kw))
-    caps = caps._replace(rows=_bucket(n_rows))
-    caps = caps._replace(candidates=_bucket(caps.rows * 2), voxels=_bucket(caps.rows * 2))
-    for _ in range(4):
-        coords, triangle, count, overflow, sizes = _staged(
-            tris, region_lo, caps=caps, stage="voxels", with_ids=with_ids, **kw)
-        if not int(overflow):
-            return coords, triangle, int(count), caps
-        _, _, n_cand, max_depth = (int(s) for s in sizes)
-        caps = caps._replace(depth=max(caps.depth, max_depth),
-                             candidates=_bucket(max(caps.candidates, n_cand)),
-                             voxels=_bucket(max(caps.voxels, n_cand)))
-    raise JaxvoxError(f"voxelization kept overflowing (flags {int(overflow)}) with capacities {caps}")
+@functools.partial(jax.jit, static_argnames=_STATIC)
+def _count_columns(tris_grid, region_lo, *, region_size, six_sep):
+    tris = _setup(tris_grid, region_lo, region_lo + region_size - 1, six_sep)
+    return tris, jnp.sum(tris.n_cols)
+
+
+@functools.partial(jax.jit, static_argnames=("col_cap", "six_sep"))
+def _count_rows(tris, *, col_cap, six_sep):
+    columns = _columns(tris, col_cap, six_sep)
+    return columns, jnp.sum(columns.n_rows)
+
+
+@functools.partial(jax.jit, static_argnames=("chunk",))
+def _count_row_slots(n_rows, *, chunk):
+    return jnp.sum((n_rows + chunk - 1) // chunk) * chunk
+
+
+@functools.partial(jax.jit, static_argnames=("row_cap", "chunk"))
+def _count_candidates(columns, *, row_cap, chunk):
+    rows = _rows(columns, row_cap, chunk)
+    return rows, jnp.sum(rows.n_depth)
+
+
+@functools.partial(jax.jit, static_argnames=("region_size", "cand_cap", "with_ids"))
+def _emit_sorted(tris_grid, region_lo, columns, rows, *, region_size, cand_cap, with_ids):
+    words = _words(region_size)
+    keys, payload, _ = _candidates(tris_grid, rows, cand_cap, words, with_ids)
+    return _sort_unique(keys, payload, words, region_lo, cand_cap)
+
+
+def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with_ids: bool):
+    """Host-side passes for one region: each stage is sized by the previous one's count.
+
+    Returns:
+      (coords [n, 3] int32, triangle [n] int32 or None (indices into `tris_grid`),
+      capacities used).
+    """
+    tris, n_cols = _count_columns(tris_grid, region_lo, region_size=region_size, six_sep=six_sep)
+    col_cap = _bucket(int(n_cols))
+    columns, n_rows = _count_rows(tris, col_cap=col_cap, six_sep=six_sep)
+    chunk = 1 << min(4, max(0, round(math.log2(max(int(n_rows), 1) / max(int(n_cols), 1)))))
+    row_cap = _bucket(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk) * chunk
+    rows, n_cand = _count_candidates(columns, row_cap=row_cap, chunk=chunk)
+    cand_cap = _bucket(int(n_cand))
+    coords, triangle, count, _ = _emit_sorted(tris_grid, region_lo, columns, rows, region_size=region_size,
+                                              cand_cap=cand_cap, with_ids=with_ids)
+    count = int(count)
+    caps = Capacities(col_cap, row_cap, cand_cap, _bucket(count), chunk)
+    return coords[:count], (triangle[:count] if with_ids else None), caps
 
 
 def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
@@ -582,6 +639,9 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
 
 
 @jax.jit
+
+
+@jax.jit
 def _grid_triangles(mesh: Mesh, grid: Grid):
     return grid.to_grid_units(mesh.triangles())
 
@@ -592,7 +652,7 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
 
     Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
     regions, visited in Morton order, each voxelized from the triangles whose bounding
-    boxes touch it, so memory follows the surface inside one region at a time and the
+    boxes touch it, so working memory follows the surface inside one region and the
     concatenated result is already in Morton order.
 
     Args:
@@ -600,38 +660,35 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
       grid: the `Grid`; geometry outside it is clipped.
       mode: "conservative" (every voxel whose closed box touches the closed triangle)
         or "6-separating" (Schwarz & Seidel's thin, 6-separating subset).
-      triangle_ids: also record, per voxel, the id of the closest triangle to its
+      triangle_ids: also record, per voxel, the id of the triangle closest to its
         centre among those that set it (ties to the lower id).
       region_size: edge of the streaming regions, a power of two <= 1024.
       progress: show a progress bar over regions (default: when on a terminal).
 
     Returns:
-      `Voxels` with ``overflow == 0``, capacity rounded up to a few buckets.
+      `Voxels` with ``overflow == 0`` and capacity rounded up to a few buckets.
 
     Raises:
-      JaxvoxError: bad mode, resolution, region size or mesh.
+      JaxvoxError: bad mode, region size or mesh.
     """
     six_sep = _check_mode(mode) == SIX_SEPARATING
     validate_mesh(mesh)
-    if region_size & (region_size - 1) or not 1 <= region_size <= REGION_SIZE:
+    if region_size < 1 or region_size & (region_size - 1) or region_size > REGION_SIZE:
         raise JaxvoxError(f"region_size must be a power of two <= {REGION_SIZE}, got {region_size}")
     region_size = min(region_size, grid.resolution)
-    depth = 3 if six_sep else 4
     tris = _grid_triangles(mesh, grid)
-    parts, tri_parts = [], []
     regions = _regions(np.asarray(tris), grid.resolution, region_size) if mesh.num_faces else []
     from tqdm.auto import tqdm
+
+    parts, tri_parts = [], []
     disable = (len(regions) < 2) if progress is None else not progress
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        if not len(idx):
-            continue
-        padded = np.concatenate([idx, np.full(_bucket(len(idx), 64) - len(idx), idx[0])])
-        coords, triangle, count, caps = _voxelize_region(
-            tris[jnp.asarray(padded)], jnp.asarray(region_lo), region_size, six_sep, triangle_ids, depth)
-        depth = caps.depth
-        parts.append(coords[:count])
+        padded = jnp.asarray(np.concatenate([idx, np.full(_bucket(len(idx), 64) - len(idx), idx[0])]))
+        coords, triangle, _ = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
+                                               six_sep, triangle_ids)
+        parts.append(coords)
         if triangle_ids:
-            tri_parts.append(jnp.asarray(padded)[triangle[:count]])
+            tri_parts.append(padded[triangle])
     total = sum(int(p.shape[0]) for p in parts)
     cap = _bucket(total, 1)
     coords = jnp.full((cap, 3), UNUSED, jnp.int32)
@@ -644,15 +701,14 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
 
 
 def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Capacities:
-    """Capacities that fit `voxelize_fixed` for this mesh and grid (host-side counting).
+    """Capacities with which `voxelize_fixed` does not overflow for this mesh and grid.
 
-    Rounded up to a few buckets so that similar inputs share a compiled function.
+    Found by the host-side counting passes over the whole grid as one region, rounded
+    up to a few buckets so that similar inputs share a compiled function.
     """
     six_sep = _check_mode(mode) == SIX_SEPARATING
     validate_mesh(mesh)
-    tris = _grid_triangles(mesh, grid)
-    size = grid.resolution
     if mesh.num_faces == 0:
-        return Capacities(256, 256, 3 if six_sep else 4, 256, 256)
-    _, _, count, caps = _voxelize_region(tris, jnp.zeros(3, jnp.int32), size, six_sep, False, 3 if six_sep else 4)
-    return caps._replace(voxels=_bucket(count))
+        return Capacities(256, 256, 256, 256, 1)
+    tris = _grid_triangles(mesh, grid)
+    return _voxelize_region(tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, False)[2]

@@ -1,0 +1,146 @@
+"""Shared helpers for the benchmark scripts in `experiments/`.
+
+Each benchmark measures one case per fresh subprocess (a *worker*), so that the peak
+resident memory of a case is that process's own high-water mark and one case's caches,
+compiled code or leaks cannot flatter the next. This module holds the pieces every
+benchmark needs: timing, memory, running workers, machine information, and writing
+JSON, markdown and charts.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
+RESULTS_DIR = REPO_ROOT / "experiments" / "results"
+
+
+def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[dict, Any]:
+    """Times a warm-up call and then `repeats` further calls of `fn`.
+
+    `fn` must return only once its work is done (for JAX, it should call
+    `jax.block_until_ready` on its result).
+
+    Returns:
+      (timing, result): timing holds `first_s` (the warm-up call, which includes any
+      compilation), `times_s` (the repeats), `median_s`, and `compile_s` = first call
+      minus median (clipped at 0); result is the last call's return value.
+    """
+    start = time.perf_counter()
+    result = fn()
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = fn()
+        times.append(time.perf_counter() - start)
+    median = statistics.median(times) if times else first
+    timing = dict(first_s=first, times_s=times, median_s=median,
+                  compile_s=max(first - median, 0.0))
+    return timing, result
+
+
+def peak_rss_mib() -> float:
+    """This process's resident-memory high-water mark so far, in MiB (Linux: ru_maxrss is KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_worker(script: str | Path, spec: dict, *, timeout: float) -> dict:
+    """Runs `python script --worker '<spec as JSON>'` in a fresh process and returns its result.
+
+    The worker must print its result as one JSON object on the last line of stdout; its
+    stderr goes straight to ours. A crash, a kill (e.g. out of memory) or a timeout is
+    returned as ``{"error": "..."}`` so that one failed case does not end a long sweep.
+    """
+    cmd = [sys.executable, str(script), "--worker", json.dumps(spec)]
+    try:
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s"}
+    lines = proc.stdout.strip().splitlines()
+    if proc.returncode != 0 or not lines:
+        return {"error": f"worker exited with status {proc.returncode}"}
+    return json.loads(lines[-1])
+
+
+def package_versions(names: Iterable[str]) -> dict[str, str | None]:
+    """Installed versions of the given distributions (None where one is missing), without importing them."""
+    versions = {}
+    for name in names:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            versions[name] = None
+    return versions
+
+
+def machine_info(packages: Iterable[str] = ()) -> dict:
+    """The host a benchmark ran on: CPU model and count, memory, OS, Python and package versions."""
+    cpu_model = platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu_model = next(line.split(":", 1)[1].strip() for line in f
+                             if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return dict(
+        cpu_model=cpu_model,
+        cpu_count=os.cpu_count(),
+        cpus_available=len(os.sched_getaffinity(0)),
+        memory_gib=os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30,
+        platform=platform.platform(),
+        python=platform.python_version(),
+        packages=package_versions(packages),
+    )
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Writes `data` as indented JSON, creating the parent folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+
+
+def markdown_table(rows: Sequence[dict], columns: Sequence[tuple[str, str]]) -> str:
+    """A GitHub markdown table; `columns` lists (key in each row, header), missing keys print '-'."""
+    header = "| " + " | ".join(title for _, title in columns) + " |"
+    rule = "|" + "|".join("---" for _ in columns) + "|"
+    body = ["| " + " | ".join(str(row.get(key, "-")) for key, _ in columns) + " |"
+            for row in rows]
+    return "\n".join([header, rule, *body]) + "\n"
+
+
+def new_figure(ncols: int, *, width: float = 6.0, height: float = 4.5):
+    """A matplotlib figure with `ncols` side-by-side axes, drawn off-screen (Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt.subplots(1, ncols, figsize=(width * ncols, height), constrained_layout=True)
+
+
+def save_figure(fig, path: Path) -> None:
+    """Saves `fig` as a PNG and closes it."""
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def progress(iterable: Iterable, **kwargs):
+    """A tqdm progress bar that switches itself off when stderr is not a terminal."""
+    from tqdm import tqdm
+
+    return tqdm(iterable, disable=None, **kwargs)

@@ -1,0 +1,18 @@
+"""Shared pytest fixtures."""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+
+REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
+
+
+@pytest.fixture(scope="session")
+def meshes_dir() -> pathlib.Path:
+    """The shared test meshes (``../shared/meshes`` next to the repository); skips if absent."""
+    if not SHARED_MESHES.is_dir():
+        pytest.skip(f"shared test meshes not found at {SHARED_MESHES}")
+    return SHARED_MESHES
