@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
+from jaxvox._pytree import pytree_dataclass
 
 MAX_RESOLUTION = 1 << 20  # Morton keys are two 30-bit words: 20 bits per axis.
 
@@ -22,7 +23,7 @@ def check_resolution(resolution: int) -> int:
     return r
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class Grid:
     """A cubic grid of ``resolution^3`` voxels.

@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
+from jaxvox._pytree import pytree_dataclass
 
 
-@jax.tree_util.register_dataclass
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class Mesh:
     """A triangle mesh.

@@ -40,6 +40,7 @@ import numpy as np
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
+from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 
@@ -85,9 +86,7 @@ class Capacities(NamedTuple):
     row_chunk: int = 4
 
 
-@functools.partial(jax.tree_util.register_dataclass,
-                   data_fields=["coords", "count", "overflow", "triangle", "grid"],
-                   meta_fields=["mode"])
+@pytree_dataclass
 @dataclasses.dataclass(frozen=True)
 class Voxels:
     """A set of voxels in a fixed-capacity buffer, in Morton order.
@@ -111,7 +110,7 @@ class Voxels:
     overflow: jax.Array  # [] int32
     triangle: jax.Array | None  # [capacity] int32
     grid: Grid
-    mode: str
+    mode: str = dataclasses.field(metadata=dict(static=True))
 
     @property
     def capacity(self) -> int:
@@ -553,7 +552,7 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
 # ------------------------------------------------------------------ host-side API
 
 
-def _bucket(n: int, minimum: int = 256) -> int:
+def _bucket(n: int, minimum: int = 4096) -> int:
     """Rounds up to 4, 5, 6 or 7 times a power of two (at most 25% slack, few shapes)."""
     n = max(int(n), minimum)
     shift = max(n.bit_length() - 3, 0)
@@ -683,7 +682,7 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
     parts, tri_parts = [], []
     disable = (len(regions) < 2) if progress is None else not progress
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        padded = jnp.asarray(np.concatenate([idx, np.full(_bucket(len(idx), 64) - len(idx), idx[0])]))
+        padded = jnp.asarray(np.concatenate([idx, np.full(_bucket(len(idx), 256) - len(idx), idx[0])]))
         coords, triangle, _ = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
                                                six_sep, triangle_ids)
         parts.append(coords)
@@ -709,6 +708,6 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Cap
     six_sep = _check_mode(mode) == SIX_SEPARATING
     validate_mesh(mesh)
     if mesh.num_faces == 0:
-        return Capacities(256, 256, 256, 256, 1)
+        return Capacities(*(_bucket(0),) * 4, 1)
     tris = _grid_triangles(mesh, grid)
     return _voxelize_region(tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, False)[2]

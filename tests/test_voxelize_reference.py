@@ -29,8 +29,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxvox as jv
-from conftest import SHARED_MESHES
-from reference import MODES, Reference, morton_encode, morton_order, reference_voxelize
+from tests.reference import MODES, Reference, morton_encode, morton_order, reference_voxelize
 
 CONSERVATIVE, SIX_SEP = MODES
 MESHES = ("beetle", "cow", "fandisk", "spot", "stanford-bunny", "suzanne", "teapot", "woody")
@@ -39,8 +38,10 @@ MAX_EXCUSED_FRACTION = 1e-3  # excused near-tie voxels per reference voxel on re
 
 
 def _slow_resolution(resolution: int) -> int:
-    """Resolution of a slow case, shrunk by ``JAXVOX_SLOW_SCALE`` (a power of two, >= 16)."""
-    scale = float(os.environ.get("JAXVOX_SLOW_SCALE", "1"))
+    """Resolution of a slow case: ``JAXVOX_SLOW_SCALE`` is ``full`` (as written), a factor, or
+    unset (half size); rounded to a power of two, at least 16."""
+    raw = os.environ.get("JAXVOX_SLOW_SCALE", "").strip().lower()
+    scale = 1.0 if raw == "full" else float(raw) if raw else 0.5
     return max(16, 2 ** round(math.log2(max(resolution * scale, 1))))
 
 
@@ -343,8 +344,8 @@ def _rotation(seed: int = 20240601) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=None)
-def _rotated_mesh(name: str):
-    path = SHARED_MESHES / f"{name}.obj"
+def _rotated_mesh(meshes_dir, name: str):
+    path = meshes_dir / f"{name}.obj"
     if not path.is_file():
         pytest.skip(f"test mesh {path} not found (expected in ../shared/meshes)")
     m = trimesh.load(path, process=False, force="mesh")
@@ -355,8 +356,8 @@ def _rotated_mesh(name: str):
 
 
 @functools.lru_cache(maxsize=None)
-def _mesh_case(name: str, resolution: int, mode: str):
-    v, f = _rotated_mesh(name)
+def _mesh_case(meshes_dir, name: str, resolution: int, mode: str):
+    v, f = _rotated_mesh(meshes_dir, name)
     grid = jv.Grid.fit(jv.Mesh(v, f), resolution=resolution)
     return grid, _reference(v, f, grid, mode), _impl(v, f, grid, mode)
 
@@ -374,7 +375,7 @@ def _mesh_params():
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("name,resolution", _mesh_params())
 def test_mesh_matches_reference(meshes_dir, name, resolution, mode):
-    grid, ref, got = _mesh_case(name, resolution, mode)
+    grid, ref, got = _mesh_case(meshes_dir, name, resolution, mode)
     context = f"{name} at {resolution}^3, {mode}, origin {_grid_params(grid)[0]}, voxel {_grid_params(grid)[1]}"
     cmp = _assert_matches(ref, got, context, exact=False)
     assert cmp.n_excused <= MAX_EXCUSED_FRACTION * cmp.n_ref, f"{context}: too many near-ties\n{cmp.report()}"
@@ -382,8 +383,8 @@ def test_mesh_matches_reference(meshes_dir, name, resolution, mode):
 
 @pytest.mark.parametrize("name,resolution", _mesh_params())
 def test_mesh_six_separating_subset_of_conservative(meshes_dir, name, resolution):
-    _, ref_cons, cons = _mesh_case(name, resolution, CONSERVATIVE)
-    _, _, six = _mesh_case(name, resolution, SIX_SEP)
+    _, ref_cons, cons = _mesh_case(meshes_dir, name, resolution, CONSERVATIVE)
+    _, _, six = _mesh_case(meshes_dir, name, resolution, SIX_SEP)
     _assert_subset(six, cons, ref_cons, f"{name} at {resolution}^3", exact=False)
 
 
@@ -404,7 +405,7 @@ def _dense(voxels: np.ndarray, resolution: int) -> np.ndarray:
 def test_six_separating_closed_mesh_flood_fill(meshes_dir, name):
     """No 6-connected path of empty voxels leads from outside to a voxel fully inside."""
     resolution = 64
-    v, f = _rotated_mesh(name)
+    v, f = _rotated_mesh(meshes_dir, name)
     grid = _padded_grid(v, resolution)
     # voxels fully inside: empty in the reference conservative voxelization and enclosed
     cons = _dense(_reference(v, f, grid, CONSERVATIVE).voxels, resolution)

@@ -1,0 +1,36 @@
+# jaxvox: `make run` and `make test` do all the set-up on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: run test bench bench-smoke clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test]"
+	touch $(STAMP)
+
+run: $(STAMP)  ## voxelize the built-in default scene, print a report, write out/voxels.png
+	$(PY) -m jaxvox run --out out
+
+test: $(STAMP)  ## the whole test suite (slow checks run at a small size unless JAXVOX_SLOW_SCALE=full)
+	$(PY) -m pytest -q
+
+$(VENV)/.bench-installed: $(STAMP)
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
+	  else echo "Open3D needs the system library libusb-1.0: run 'sudo apt-get install libusb-1.0-0'" >&2; exit 1; fi; \
+	fi
+	$(PY) -m pip install --quiet -e ".[test,bench]"
+	touch $@
+
+bench: $(VENV)/.bench-installed  ## benchmarks against Open3D and trimesh, R=128..2048, and the bunny at 8192^3
+	$(PY) experiments/bench_voxelize.py --huge 8192
+
+bench-smoke: $(VENV)/.bench-installed  ## the same at R=64,128 (a few minutes)
+	$(PY) experiments/bench_voxelize.py --smoke
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

@@ -1,0 +1,209 @@
+"""Public API, jit/vmap, capacities and overflow, bad input, Morton codes, streaming."""
+
+from __future__ import annotations
+
+import inspect
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxvox as jv
+
+from tests.reference import morton_encode as ref_morton
+
+
+def _tetra(scale=1.0, shift=(0.0, 0.0, 0.0)):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) * scale + np.float32(shift)
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
+    return jv.Mesh(v, f)
+
+
+def test_public_api_has_docstrings():
+    for name in jv.__all__:
+        obj = getattr(jv, name)
+        if inspect.isfunction(obj) or inspect.isclass(obj):
+            assert inspect.getdoc(obj), f"jaxvox.{name} has no docstring"
+            if inspect.isclass(obj):
+                for meth_name, meth in vars(obj).items():
+                    if inspect.isfunction(meth) and not meth_name.startswith("_"):
+                        assert inspect.getdoc(meth), f"jaxvox.{name}.{meth_name} has no docstring"
+
+
+@pytest.mark.parametrize("bits", [1, 10, 16, 20])
+def test_morton_roundtrip_and_order(bits):
+    rng = np.random.default_rng(bits)
+    ijk = rng.integers(0, 1 << bits, size=(5000, 3)).astype(np.int32)
+    ijk[0] = (1 << bits) - 1
+    hi, lo = jv.morton.encode(jnp.asarray(ijk))
+    np.testing.assert_array_equal(np.asarray(jv.morton.decode(hi, lo)), ijk)
+    code = (np.asarray(hi).astype(np.uint64) << np.uint64(30)) | np.asarray(lo).astype(np.uint64)
+    np.testing.assert_array_equal(code, ref_morton(ijk))
+
+
+def test_grid_fit_and_bad_resolution():
+    mesh = _tetra()
+    grid = jv.Grid.fit(mesh, resolution=64)
+    ijk = jv.voxelize(mesh, grid).to_numpy()
+    assert ijk.min() >= 0 and ijk.max() < 64
+    for bad in (0, 1, 3, 100, 2**21, 64.5):
+        with pytest.raises(jv.JaxvoxError, match="power of two"):
+            jv.Grid.fit(mesh, resolution=bad)
+
+
+def test_eager_jit_vmap_agree():
+    meshes = [_tetra(), _tetra(0.5, (0.2, 0.1, 0.3)), _tetra(0.8, (0.1, 0.05, 0.0))]
+    grid = jv.Grid(origin=(-0.1, -0.1, -0.1), voxel_size=1.2 / 32, resolution=32)
+    expected = [jv.voxelize(m, grid).to_numpy() for m in meshes]
+    caps = jv.voxel_capacities(meshes[0], grid)
+    caps = jv.Capacities(*(c * 2 for c in caps[:4]), caps.row_chunk)
+
+    fixed = jax.jit(lambda m: jv.voxelize_fixed(m, grid, caps))
+    for m, e in zip(meshes, expected):
+        np.testing.assert_array_equal(fixed(m).to_numpy(), e)
+
+    batch = jax.tree.map(lambda *xs: jnp.stack(xs), *meshes)
+    out = jax.jit(jax.vmap(lambda m: jv.voxelize_fixed(m, grid, caps)))(batch)
+    for b, e in enumerate(expected):
+        assert int(out.overflow[b]) == 0
+        np.testing.assert_array_equal(np.asarray(out.coords[b, : int(out.count[b])]), e)
+
+
+def test_vmap_over_padded_meshes_of_different_sizes():
+    small = _tetra(0.5, (0.2, 0.2, 0.2))
+    mesh_b = jv.Mesh(np.concatenate([np.asarray(_tetra().vertices), [[0.9, 0.9, 0.9]]]).astype(np.float32),
+                     np.concatenate([np.asarray(_tetra().faces), [[1, 2, 4]]]))
+    grid = jv.Grid(origin=(-0.1, -0.1, -0.1), voxel_size=1.2 / 16, resolution=16)
+    expected = [jv.voxelize(m, grid, mode="6-separating").to_numpy() for m in (small, mesh_b)]
+    padded = [jv.pad_mesh(m, 5, 5) for m in (small, mesh_b)]
+    batch = jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
+    caps = jv.voxel_capacities(mesh_b, grid, mode="6-separating")
+    out = jax.vmap(lambda m: jv.voxelize_fixed(m, grid, caps, mode="6-separating"))(batch)
+    for b, e in enumerate(expected):
+        np.testing.assert_array_equal(np.asarray(out.coords[b, : int(out.count[b])]), e)
+
+
+@pytest.mark.parametrize("field, flag", [("columns", jv.OVERFLOW_COLUMNS), ("rows", jv.OVERFLOW_ROWS),
+                                         ("candidates", jv.OVERFLOW_CANDIDATES), ("voxels", jv.OVERFLOW_VOXELS)])
+def test_overflow_flag_and_host_retry(field, flag):
+    mesh = _tetra()
+    grid = jv.Grid.fit(mesh, resolution=64)
+    full = jv.voxelize(mesh, grid).to_numpy()
+    caps = jv.voxel_capacities(mesh, grid)
+    tiny = caps._replace(**{field: caps.row_chunk if field == "rows" else 8})
+    vox = jax.jit(lambda m: jv.voxelize_fixed(m, grid, tiny))(mesh)
+    assert int(vox.overflow) & flag
+    with pytest.raises(jv.JaxvoxError, match="overflow"):
+        vox.to_numpy()
+    assert int(vox.count) <= tiny.voxels
+    # The host-side API sizes capacities itself and returns the full set.
+    assert len(jv.voxelize(mesh, grid).to_numpy()) == len(full)
+    np.testing.assert_array_equal(jv.voxelize_fixed(mesh, grid, caps).to_numpy(), full)
+
+
+def test_bad_input_errors(tmp_path):
+    v = np.asarray(_tetra().vertices).copy()
+    f = np.asarray(_tetra().faces)
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=0.1, resolution=16)
+    v_nan = v.copy()
+    v_nan[2, 1] = np.nan
+    with pytest.raises(jv.JaxvoxError, match="NaN or inf"):
+        jv.voxelize(jv.Mesh(v_nan, f), grid)
+    v_inf = v.copy()
+    v_inf[0, 0] = np.inf
+    with pytest.raises(jv.JaxvoxError, match="NaN or inf"):
+        jv.voxelize(jv.Mesh(v_inf, f), grid)
+    with pytest.raises(jv.JaxvoxError, match="face index out of range"):
+        jv.voxelize(jv.Mesh(v, np.array([[0, 1, 7]])), grid)
+    with pytest.raises(jv.JaxvoxError, match="face index out of range"):
+        jv.voxelize(jv.Mesh(v, np.array([[0, -1, 2]])), grid)
+    with pytest.raises(jv.JaxvoxError, match="unknown voxelization mode"):
+        jv.voxelize(_tetra(), grid, mode="26-separating")
+    with pytest.raises(jv.JaxvoxError, match="not found"):
+        jv.load_mesh(tmp_path / "missing.obj")
+    corrupt = tmp_path / "corrupt.ply"
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999\n\x00\x01garbage")
+    with pytest.raises(jv.JaxvoxError, match="corrupt.ply"):
+        jv.load_mesh(corrupt)
+    empty_obj = tmp_path / "empty.obj"
+    empty_obj.write_text("# nothing here\n")
+    with pytest.raises(jv.JaxvoxError, match="no triangles"):
+        jv.load_mesh(empty_obj)
+
+
+def test_empty_mesh_gives_zero_voxels():
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=0.1, resolution=16)
+    empty = jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    for mode in jv.voxelize.__globals__["MODES"]:
+        vox = jv.voxelize(empty, grid, mode=mode)
+        assert int(vox.count) == 0 and vox.to_numpy().shape == (0, 3)
+    outside = _tetra(1.0, (5.0, 5.0, 5.0))
+    assert jv.voxelize(outside, grid).to_numpy().shape == (0, 3)
+
+
+def test_streaming_regions_match_single_pass(meshes_dir):
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, resolution=128)
+    for mode in ("conservative", "6-separating"):
+        whole = jv.voxelize(mesh, grid, mode=mode)
+        streamed = jv.voxelize(mesh, grid, mode=mode, region_size=32)
+        np.testing.assert_array_equal(streamed.to_numpy(), whole.to_numpy())
+
+
+def test_high_resolutions_use_two_word_keys():
+    tri = jv.Mesh(np.array([[0.1, 0.2, 0.3], [0.1001, 0.2, 0.3], [0.1, 0.2002, 0.3001]], np.float32),
+                  np.array([[0, 1, 2]], np.int32))
+    for bits in (16, 17, 20):
+        r = 1 << bits
+        grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / r, resolution=r)
+        streamed = jv.voxelize(tri, grid).to_numpy()
+        caps = jv.voxel_capacities(tri, grid)
+        whole = jv.voxelize_fixed(tri, grid, caps).to_numpy()
+        np.testing.assert_array_equal(streamed, whole)
+        p = np.asarray(grid.to_grid_units(tri.vertices))
+        assert (streamed >= np.floor(p.min(0)) - 1).all() and (streamed <= np.floor(p.max(0))).all()
+        order = ref_morton(streamed)
+        assert (order[1:] > order[:-1]).all()
+
+
+def test_triangle_ids_are_closest_setting_triangle():
+    mesh = _tetra()
+    grid = jv.Grid(origin=(-0.05, -0.05, -0.05), voxel_size=1.1 / 8, resolution=8)
+    vox = jv.voxelize(mesh, grid, triangle_ids=True)
+    ijk, ids = vox.to_numpy(), vox.triangle_ids()
+    streamed = jv.voxelize(mesh, grid, triangle_ids=True, region_size=2)
+    np.testing.assert_array_equal(streamed.triangle_ids(), ids)
+    tris = np.asarray(grid.to_grid_units(mesh.triangles()), np.float64)
+    for f in range(mesh.num_faces):  # every voxel's id is one of the triangles that set it
+        single = jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]), grid).to_numpy()
+        sets = {tuple(x) for x in single}
+        for (x, y, z), t in zip(ijk, ids):
+            if t == f:
+                assert (x, y, z) in sets
+    centers = ijk + 0.5
+    d = np.stack([_dist_point_triangle(centers, tris[f]) for f in range(len(tris))], 1)
+    chosen = d[np.arange(len(ids)), ids]
+    settable = np.stack([[tuple(x) in {tuple(y) for y in jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]),
+                                                                     grid).to_numpy()} for x in ijk]
+                         for f in range(mesh.num_faces)], 1)
+    best = np.where(settable, d, np.inf).min(1)
+    np.testing.assert_allclose(chosen, best, atol=1e-5)
+
+
+def _dist_point_triangle(p, tri):
+    """Distance from points [n, 3] to one triangle [3, 3] by dense sampling (test-only, float64)."""
+    s, t = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
+    keep = s + t <= 1
+    pts = tri[0] + s[keep, None] * (tri[1] - tri[0]) + t[keep, None] * (tri[2] - tri[0])
+    return np.sqrt(((p[:, None, :] - pts[None]) ** 2).sum(-1)).min(1)
+
+
+def test_cli_errors_are_one_line(capsys):
+    from jaxvox.cli import main
+
+    assert main(["voxelize", "does-not-exist.obj", "--out", "x.npz"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not found" in err[0]
+    assert main(["voxelize", "--resolution", "100"]) == 2
+    assert "power of two" in capsys.readouterr().err
