@@ -139,11 +139,17 @@ class Voxels:
 
 
 class _Triangles(NamedTuple):
-    """Per-triangle constants (F triangles, H half-planes per projection)."""
+    """Per-triangle constants (F triangles, H half-planes per projection).
+
+    Every half-plane is stored as a bound on one coordinate that is linear in another:
+    ``t >= lower_p + lower_q * s`` or ``t <= upper_p + upper_q * s`` (unused entries are
+    -/+2^30 with slope 0), so columns and rows evaluate bounds with one multiply-add.
+    """
 
     n_cols: jax.Array  # [F] int32 columns of each triangle (0 when inactive)
     col_lo: jax.Array  # [F] int32 first column (local u)
-    data: jax.Array  # [F, 9H+10] float32 half-planes of the 3 projections, plane, v and w ranges
+    col_data: jax.Array  # [F, 8H+7] float32 v bounds(u) and w bounds(u) (4H each), v range, w range, plane(u)
+    row_data: jax.Array  # [F, 4H+1] float32 w bounds(v), plane slope ky
     base: jax.Array  # [F, 4] int32 base cell (permuted u, v, w) and dominant axis d
 
 
@@ -213,6 +219,23 @@ def _plane_normal(q):
 
 
 
+def _linear_bounds(free, other, gamma):
+    """Splits half-planes ``free * t + other * s + gamma >= 0`` by the sign of `free`.
+
+    Returns:
+      ([4, H] bounds on t linear in s: lower_p, lower_q, upper_p, upper_q), and
+      ([2, H] constraints ``coef * s + rest >= 0`` on s alone from half-planes with
+      ``free == 0``; the others become the neutral ``0 * s + 1``).
+    """
+    flat = free == 0
+    safe = jnp.where(flat, 1.0, free)
+    p, q = -gamma / safe, -other / safe
+    lower, upper = free > 0, free < 0
+    bounds = jnp.stack([jnp.where(lower, p, -_BIG), jnp.where(lower, q, 0.0),
+                        jnp.where(upper, p, _BIG), jnp.where(upper, q, 0.0)])
+    return bounds, jnp.stack([jnp.where(flat, other, 0.0), jnp.where(flat, gamma, 1.0)])
+
+
 def _setup_triangle(p, region_lo, region_hi, six_sep):
     """Per-triangle constants of one triangle (vmapped by `_setup`).
 
@@ -241,21 +264,36 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
     lo_i = (box_lo - base)[perm]
     hi_i = (box_hi - base)[perm]
     sign = lambda x: jnp.where(x >= 0, 1.0, -1.0)
-    planes = [
-        _half_planes(qp[:, 0], qp[:, 1], sign(nt[2]), six_sep, tol),  # dominant (u, v)
-        _half_planes(qp[:, 1], qp[:, 2], sign(nt[0]), six_sep, tol),  # side (v, w)
-        _half_planes(qp[:, 2], qp[:, 0], sign(nt[1]), six_sep, tol),  # side (w, u)
-    ]
-    kx, ky = -npl[0] / npl[2], -npl[1] / npl[2]
-    plane = jnp.stack([qp[0, 0], qp[0, 1], qp[0, 2], kx, ky, delta + tol])
+    dom = _half_planes(qp[:, 0], qp[:, 1], sign(nt[2]), six_sep, tol)  # (u, v): alpha u + beta v
+    vw = _half_planes(qp[:, 1], qp[:, 2], sign(nt[0]), six_sep, tol)  # (v, w): alpha v + beta w
+    wu = _half_planes(qp[:, 2], qp[:, 0], sign(nt[1]), six_sep, tol)  # (w, u): alpha w + beta u
+    v_of_u, u_only_a = _linear_bounds(dom[1], dom[0], dom[2])
+    w_of_v, v_only = _linear_bounds(vw[1], vw[0], vw[2])
+    w_of_u, u_only_b = _linear_bounds(wu[0], wu[1], wu[2])
+    u_lo, u_hi = _interval(jnp.concatenate([u_only_a[0], u_only_b[0]]),
+                           jnp.concatenate([u_only_a[1], u_only_b[1]]), lo_i[0], hi_i[0])
+    v_lo, v_hi = _interval(v_only[0], v_only[1], lo_i[1], hi_i[1])
 
-    active = finite & jnp.all(hi_i >= lo_i)
+    # Depth range from the plane w = w0 + kx (u - u0) + ky (v - v0), widened by `delta`.
+    kx, ky = -npl[0] / npl[2], -npl[1] / npl[2]
+    slack = delta + tol
+    if six_sep:  # the plane crosses the centre segment along w of voxel (u, v, .)
+        z = qp[0, 2] + kx * (0.5 - qp[0, 0]) + ky * (0.5 - qp[0, 1])
+        z_lo, z_hi = z - slack, z + slack
+    else:  # the plane's extremes over the voxel's (u, v) square: critical corners
+        z = qp[0, 2] - kx * qp[0, 0] - ky * qp[0, 1]
+        z_lo = z + jnp.minimum(kx, 0.0) + jnp.minimum(ky, 0.0) - slack
+        z_hi = z + jnp.maximum(kx, 0.0) + jnp.maximum(ky, 0.0) + slack
+
+    active = finite & (u_hi >= u_lo) & (v_hi >= v_lo) & (hi_i[2] >= lo_i[2])
     if six_sep:  # zero-area triangles bound no area and set nothing in 6-separating mode
         active &= jnp.any(n_true != 0)
-    n_cols = jnp.where(active, hi_i[0] - lo_i[0] + 1.0, 0.0).astype(jnp.int32)
-    data = jnp.concatenate([pl.reshape(-1) for pl in planes] + [plane, lo_i[1:], hi_i[1:]])
+    n_cols = jnp.where(active, u_hi - u_lo + 1.0, 0.0).astype(jnp.int32)
+    col_data = jnp.concatenate([v_of_u.reshape(-1), w_of_u.reshape(-1),
+                                jnp.stack([v_lo, v_hi, lo_i[2], hi_i[2], z_lo, z_hi, kx])])
+    row_data = jnp.concatenate([w_of_v.reshape(-1), ky[None]])
     place = jnp.concatenate([base[perm], d[None].astype(jnp.float32)]).astype(jnp.int32)
-    return n_cols, lo_i[0].astype(jnp.int32), data, place
+    return n_cols, u_lo.astype(jnp.int32), col_data, row_data, place
 
 
 def _setup(tris, region_lo, region_hi, six_sep) -> _Triangles:
@@ -314,54 +352,43 @@ class _Columns(NamedTuple):
     tri: jax.Array  # [C] int32 triangle
     row_lo: jax.Array  # [C] float32 first row (local v)
     n_rows: jax.Array  # [C] int32 rows in the column (0 for invalid slots)
-    depth: jax.Array  # [C, 5+4H] float32 per-row depth coefficients, see `_columns`
+    depth: jax.Array  # [C, 4H+5] float32 w range, plane range at v = 0, w bounds(v), ky
     origin: jax.Array  # [C, 5] int32 global (i, j, k) of local (u, 0, 0), v axis, w axis
     total: jax.Array  # [] int32 number of columns needed
 
 
-def _columns(tris: _Triangles, col_cap: int, six_sep: bool) -> _Columns:
-    """Expands triangles into columns; per column, its rows and depth coefficients.
+def _eval_bounds(bounds, s, lo, hi):
+    """Intersects [lo, hi] with ``lower_p + lower_q s <= t <= upper_p + upper_q s``.
 
-    For a column u, every constraint on a voxel (u, v, w) is linear: the dominant
-    projection and the (v, w) half-planes that do not involve w bound v; the (w, u)
-    half-planes, the w bounding box and the plane bound w by constants plus terms in v.
-    The depth coefficients are ``[w_lo, w_hi, z_lo0, z_hi0, ky, lower p (H),
-    lower q (H), upper p (H), upper q (H)]``: a row v spans
-    ``w >= max(w_lo, ceil(z_lo0 + ky v - 1), ceil(lower_p + lower_q v))`` and
-    ``w <= min(w_hi, floor(z_hi0 + ky v), floor(upper_p + upper_q v))``.
+    Args:
+      bounds: [..., 4H] float32 (lower_p, lower_q, upper_p, upper_q), H each.
+      s: [...] float32; lo, hi: [...] float32 integer-valued.
+
+    Returns:
+      (lo, hi) [...] float32 integer-valued.
     """
+    h = bounds.shape[-1] // 4
+    s = s[..., None]
+    lower = jnp.ceil(bounds[..., :h] + bounds[..., h:2 * h] * s).max(-1)
+    upper = jnp.floor(bounds[..., 2 * h:3 * h] + bounds[..., 3 * h:] * s).min(-1)
+    return jnp.maximum(lo, lower), jnp.minimum(hi, upper)
+
+
+def _columns(tris: _Triangles, col_cap: int) -> _Columns:
+    """Expands triangles into columns; per column, its rows and depth coefficients."""
     tri, rank, valid, total = _expand(tris.n_cols, col_cap)
     cu = (tris.col_lo[tri] + rank).astype(jnp.float32)
-    t = tris.data[tri]
-    h = (t.shape[1] - 10) // 9
-    dom, vw, wu = (t[:, 3 * h * i:3 * h * (i + 1)] for i in range(3))
-    u0, v0, w0, kx, ky, slack = (t[:, 9 * h + i] for i in range(6))
-    v_lo, w_lo, v_hi, w_hi = (t[:, 9 * h + 6 + i] for i in range(4))
-    # Rows: dominant (u, v) half-planes, and (v, w) half-planes parallel to w.
-    row_lo, row_hi = _interval(dom[:, h:2 * h], dom[:, :h] * cu[:, None] + dom[:, 2 * h:], v_lo, v_hi)
-    flat = vw[:, h:2 * h] == 0
-    row_lo, row_hi = _interval(jnp.where(flat, vw[:, :h], 0.0), jnp.where(flat, vw[:, 2 * h:], 1.0),
-                               row_lo, row_hi)
+    c = tris.col_data[tri]
+    h4 = (c.shape[1] - 7) // 2
+    v_lo, v_hi, w_lo, w_hi, z_lo, z_hi, kx = (c[:, 2 * h4 + i] for i in range(7))
+    row_lo, row_hi = _eval_bounds(c[:, :h4], cu, v_lo, v_hi)
+    w_lo, w_hi = _eval_bounds(c[:, h4:2 * h4], cu, w_lo, w_hi)
     n_rows = jnp.where(valid, jnp.maximum(row_hi - row_lo + 1.0, 0.0), 0.0).astype(jnp.int32)
-    # Depth: (w, u) half-planes give constants; (v, w) ones give bounds linear in v.
-    w_lo, w_hi = _interval(wu[:, :h], wu[:, h:2 * h] * cu[:, None] + wu[:, 2 * h:], w_lo, w_hi)
-    beta = jnp.where(flat, 1.0, vw[:, h:2 * h])
-    p, q = -vw[:, 2 * h:] / beta, -vw[:, :h] / beta
-    lower, upper = (beta > 0) & ~flat, (beta < 0) & ~flat
-    if six_sep:  # the plane crosses the centre segment along w
-        z = w0 + kx * (cu + 0.5 - u0) + ky * (0.5 - v0)
-        z_lo, z_hi = z - slack, z + slack
-    else:  # conservative: the plane's extremes over the column-row cell (critical corners)
-        z = w0 + kx * (cu - u0) - ky * v0
-        z_lo = z + jnp.minimum(kx, 0.0) + jnp.minimum(ky, 0.0) - slack
-        z_hi = z + jnp.maximum(kx, 0.0) + jnp.maximum(ky, 0.0) + slack
-    depth = jnp.concatenate([
-        jnp.stack([w_lo, w_hi, z_lo, z_hi, ky], axis=1),
-        jnp.where(lower, p, -_BIG), jnp.where(lower, q, 0.0),
-        jnp.where(upper, p, _BIG), jnp.where(upper, q, 0.0)], axis=1)
+    depth = jnp.concatenate([jnp.stack([w_lo, w_hi, z_lo + kx * cu, z_hi + kx * cu], 1),
+                             tris.row_data[tri]], axis=1)
     place = tris.base[tri]
     d = place[:, 3]
-    origin_perm = place[:, :3] + jnp.stack([cu.astype(jnp.int32), jnp.zeros_like(d), jnp.zeros_like(d)], 1)
+    origin_perm = place[:, :3].at[:, 0].add(cu.astype(jnp.int32))
     inv = (jnp.arange(3)[None, :] - d[:, None] - 1) % 3  # permuted axis p is (d + 1 + p) % 3
     origin = jnp.concatenate([jnp.take_along_axis(origin_perm, inv, axis=1),
                               jnp.stack([(d + 2) % 3, d], 1)], axis=1)
@@ -387,13 +414,11 @@ def _rows(columns: _Columns, row_cap: int, chunk: int) -> _Rows:
     offset = rank[:, None] * chunk + jnp.arange(chunk, dtype=jnp.int32)  # [Rc, K]
     ok = valid[:, None] & (offset < columns.n_rows[col][:, None])
     v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
-    c = columns.depth[col]
-    h = (c.shape[1] - 5) // 4
-    vv, cc = v[:, :, None], c[:, None, :]
-    lo = jnp.maximum(c[:, :1], jnp.ceil(c[:, 2:3] + c[:, 4:5] * v - 1.0))
-    lo = jnp.maximum(lo, jnp.ceil(cc[..., 5:5 + h] + cc[..., 5 + h:5 + 2 * h] * vv).max(-1))
-    hi = jnp.minimum(c[:, 1:2], jnp.floor(c[:, 3:4] + c[:, 4:5] * v))
-    hi = jnp.minimum(hi, jnp.floor(cc[..., 5 + 2 * h:5 + 3 * h] + cc[..., 5 + 3 * h:] * vv).min(-1))
+    c = columns.depth[col][:, None, :]
+    ky = c[..., -1]
+    lo = jnp.maximum(c[..., 0], jnp.ceil(c[..., 2] + ky * v - 1.0))
+    hi = jnp.minimum(c[..., 1], jnp.floor(c[..., 3] + ky * v))
+    lo, hi = _eval_bounds(c[..., 4:-1], v, lo, hi)
     n_depth = jnp.where(ok, jnp.maximum(hi - lo + 1.0, 0.0), 0.0).astype(jnp.int32)
     o = columns.origin[col][:, None, :]
     axis = jnp.arange(3, dtype=jnp.int32)
@@ -510,7 +535,7 @@ def _pipeline(tris_grid, region_lo, region_size: int, six_sep: bool, caps: Capac
     region_hi = region_lo + region_size - 1
     words = _words(region_size)
     tris = _setup(tris_grid, region_lo, region_hi, six_sep)
-    columns = _columns(tris, caps.columns, six_sep)
+    columns = _columns(tris, caps.columns)
     rows = _rows(columns, caps.rows, caps.row_chunk)
     keys, payload, n_cand = _candidates(tris_grid, rows, caps.candidates, words, with_ids)
     coords, triangle, count, n_vox = _sort_unique(keys, payload, words, region_lo, caps.voxels)
@@ -568,9 +593,9 @@ def _count_columns(tris_grid, region_lo, *, region_size, six_sep):
     return tris, jnp.sum(tris.n_cols)
 
 
-@functools.partial(jax.jit, static_argnames=("col_cap", "six_sep"))
-def _count_rows(tris, *, col_cap, six_sep):
-    columns = _columns(tris, col_cap, six_sep)
+@functools.partial(jax.jit, static_argnames=("col_cap",))
+def _count_rows(tris, *, col_cap):
+    columns = _columns(tris, col_cap)
     return columns, jnp.sum(columns.n_rows)
 
 
@@ -601,7 +626,7 @@ def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with
     """
     tris, n_cols = _count_columns(tris_grid, region_lo, region_size=region_size, six_sep=six_sep)
     col_cap = _bucket(int(n_cols))
-    columns, n_rows = _count_rows(tris, col_cap=col_cap, six_sep=six_sep)
+    columns, n_rows = _count_rows(tris, col_cap=col_cap)
     chunk = 1 << min(4, max(0, round(math.log2(max(int(n_rows), 1) / max(int(n_cols), 1)))))
     row_cap = _bucket(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk) * chunk
     rows, n_cand = _count_candidates(columns, row_cap=row_cap, chunk=chunk)
