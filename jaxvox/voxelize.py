@@ -584,12 +584,9 @@ def _bucket(n: int, minimum: int = 4096) -> int:
     return -(-n >> shift) << shift
 
 
-_STATIC = ("region_size", "six_sep")
-
-
-@functools.partial(jax.jit, static_argnames=_STATIC)
-def _count_columns(tris_grid, region_lo, *, region_size, six_sep):
-    tris = _setup(tris_grid, region_lo, region_lo + region_size - 1, six_sep)
+@functools.partial(jax.jit, static_argnames=("six_sep",))
+def _count_columns(tris_grid, region_lo, region_hi, *, six_sep):
+    tris = _setup(tris_grid, region_lo, region_hi, six_sep)
     return tris, jnp.sum(tris.n_cols)
 
 
@@ -610,28 +607,37 @@ def _count_candidates(columns, *, row_cap, chunk):
     return rows, jnp.sum(rows.n_depth)
 
 
-@functools.partial(jax.jit, static_argnames=("region_size", "cand_cap", "with_ids"))
-def _emit_sorted(tris_grid, region_lo, columns, rows, *, region_size, cand_cap, with_ids):
-    words = _words(region_size)
+@functools.partial(jax.jit, static_argnames=("words", "cand_cap", "with_ids"))
+def _emit_sorted(tris_grid, region_lo, columns, rows, *, words, cand_cap, with_ids):
     keys, payload, _ = _candidates(tris_grid, rows, cand_cap, words, with_ids)
     return _sort_unique(keys, payload, words, region_lo, cand_cap)
 
 
-def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with_ids: bool):
+def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with_ids: bool,
+                     floor: Capacities | None = None):
     """Host-side passes for one region: each stage is sized by the previous one's count.
+
+    Args:
+      floor: capacities never go below these; streaming passes the previous region's,
+        so that regions share a few compiled shapes (each new maximum recompiles).
 
     Returns:
       (coords [n, 3] int32, triangle [n] int32 or None (indices into `tris_grid`),
       capacities used).
     """
-    tris, n_cols = _count_columns(tris_grid, region_lo, region_size=region_size, six_sep=six_sep)
-    col_cap = _bucket(int(n_cols))
+    floor = floor or Capacities(0, 0, 0, 0, 1)
+    size = lambda n, low: max(_bucket(int(n)), low)
+    region_hi = region_lo + jnp.int32(region_size - 1)
+    tris, n_cols = _count_columns(tris_grid, region_lo, region_hi, six_sep=six_sep)
+    col_cap = size(n_cols, floor.columns)
     columns, n_rows = _count_rows(tris, col_cap=col_cap)
-    chunk = 1 << min(4, max(0, round(math.log2(max(int(n_rows), 1) / max(int(n_cols), 1)))))
-    row_cap = _bucket(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk) * chunk
+    # Rows per chunk: 1, 4 or 16, whichever is nearest the mean rows per column.
+    chunk = 1 << 2 * min(2, max(0, round(math.log(max(int(n_rows), 1) / max(int(n_cols), 1), 4))))
+    chunk = max(chunk, floor.row_chunk)
+    row_cap = size(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk, floor.rows // chunk) * chunk
     rows, n_cand = _count_candidates(columns, row_cap=row_cap, chunk=chunk)
-    cand_cap = _bucket(int(n_cand))
-    coords, triangle, count, _ = _emit_sorted(tris_grid, region_lo, columns, rows, region_size=region_size,
+    cand_cap = size(n_cand, floor.candidates)
+    coords, triangle, count, _ = _emit_sorted(tris_grid, region_lo, columns, rows, words=_words(region_size),
                                               cand_cap=cand_cap, with_ids=with_ids)
     count = int(count)
     caps = Capacities(col_cap, row_cap, cand_cap, _bucket(count), chunk)
@@ -662,7 +668,14 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
     return out
 
 
-@jax.jit
+def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    """Concatenates int32 host arrays into a buffer of `shape` padded with `UNUSED`."""
+    out = np.full(shape, UNUSED, np.int32)
+    start = 0
+    for part in parts:
+        out[start:start + len(part)] = part
+        start += len(part)
+    return out
 
 
 @jax.jit
@@ -705,23 +718,24 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
     from tqdm.auto import tqdm
 
     parts, tri_parts = [], []
-    disable = (len(regions) < 2) if progress is None else not progress
+    streaming = len(regions) > 1
+    floor, n_tris = Capacities(0, 0, 0, 0, 1), 0
+    disable = not streaming if progress is None else not progress
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        padded = jnp.asarray(np.concatenate([idx, np.full(_bucket(len(idx), 256) - len(idx), idx[0])]))
-        coords, triangle, _ = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
-                                               six_sep, triangle_ids)
-        parts.append(coords)
+        n_tris = max(n_tris if streaming else 0, _bucket(len(idx), 256))
+        padded = jnp.asarray(np.concatenate([idx, np.full(n_tris - len(idx), idx[0])]))
+        coords, triangle, caps = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
+                                                  six_sep, triangle_ids, floor if streaming else None)
+        floor = caps
+        parts.append(np.asarray(coords))  # to host as we go: device memory holds one region
         if triangle_ids:
-            tri_parts.append(padded[triangle])
-    total = sum(int(p.shape[0]) for p in parts)
+            tri_parts.append(np.asarray(padded[triangle]))
+    total = sum(len(p) for p in parts)
     cap = _bucket(total, 1)
-    coords = jnp.full((cap, 3), UNUSED, jnp.int32)
-    triangle = jnp.full((cap,), UNUSED, jnp.int32) if triangle_ids else None
-    if parts:
-        coords = coords.at[:total].set(jnp.concatenate(parts))
-        if triangle_ids:
-            triangle = triangle.at[:total].set(jnp.concatenate(tri_parts))
-    return Voxels(coords, jnp.int32(total), jnp.int32(0), triangle, grid, mode)
+    coords = _pad_rows(parts, (cap, 3))
+    triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
+    return Voxels(jnp.asarray(coords), jnp.int32(total), jnp.int32(0),
+                  None if triangle is None else jnp.asarray(triangle), grid, mode)
 
 
 def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Capacities:

@@ -175,18 +175,12 @@ def test_triangle_ids_are_closest_setting_triangle():
     streamed = jv.voxelize(mesh, grid, triangle_ids=True, region_size=2)
     np.testing.assert_array_equal(streamed.triangle_ids(), ids)
     tris = np.asarray(grid.to_grid_units(mesh.triangles()), np.float64)
-    for f in range(mesh.num_faces):  # every voxel's id is one of the triangles that set it
-        single = jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]), grid).to_numpy()
-        sets = {tuple(x) for x in single}
-        for (x, y, z), t in zip(ijk, ids):
-            if t == f:
-                assert (x, y, z) in sets
-    centers = ijk + 0.5
-    d = np.stack([_dist_point_triangle(centers, tris[f]) for f in range(len(tris))], 1)
+    per_face = [{tuple(x) for x in jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]), grid).to_numpy()}
+                for f in range(mesh.num_faces)]
+    settable = np.array([[tuple(x) in per_face[f] for f in range(mesh.num_faces)] for x in ijk])
+    assert settable[np.arange(len(ids)), ids].all()  # each id is a triangle that sets the voxel
+    d = np.stack([_dist_point_triangle(ijk + 0.5, tris[f]) for f in range(len(tris))], 1)
     chosen = d[np.arange(len(ids)), ids]
-    settable = np.stack([[tuple(x) in {tuple(y) for y in jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]),
-                                                                     grid).to_numpy()} for x in ijk]
-                         for f in range(mesh.num_faces)], 1)
     best = np.where(settable, d, np.inf).min(1)
     np.testing.assert_allclose(chosen, best, atol=1e-5)
 
