@@ -287,7 +287,10 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
 
     active = finite & (u_hi >= u_lo) & (v_hi >= v_lo) & (hi_i[2] >= lo_i[2])
     if six_sep:  # zero-area triangles bound no area and set nothing in 6-separating mode
-        active &= jnp.any(n_true != 0)
+        # A repeated corner is tested directly: XLA may fuse the cross product's
+        # multiply-adds, so cross(a, a) need not round to exactly zero.
+        repeated = jnp.any(jnp.all(p == jnp.roll(p, 1, axis=0), axis=1))
+        active &= jnp.any(n_true != 0) & ~repeated
     n_cols = jnp.where(active, u_hi - u_lo + 1.0, 0.0).astype(jnp.int32)
     col_data = jnp.concatenate([v_of_u.reshape(-1), w_of_u.reshape(-1),
                                 jnp.stack([v_lo, v_hi, lo_i[2], hi_i[2], z_lo, z_hi, kx])])

@@ -32,7 +32,9 @@ Modes
     (c) the voxel's closed box meets the triangle's axis-aligned bounding box.
 
     Zero-area triangles (float64 cross product exactly zero) set no voxel in this mode: they
-    bound no area.
+    bound no area. (If their float32 input vertices are pairwise distinct, float32 arithmetic
+    may see a sliver instead, so the voxels their segment touches are reported as near-ties;
+    see :func:`reference_voxelize`.)
 
 Every decision is taken with *unnormalised* axes, so for vertices on a coarse dyadic lattice
 (e.g. multiples of 1/8 voxel, small coordinates, origin 0, voxel size 1) all arithmetic is
@@ -283,19 +285,8 @@ def _eval_chunk(mode, S, t, cell, R):
 # --------------------------------------------------------------------------------------------
 
 
-def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mode: str = "conservative") -> Reference:
-    """Voxelize a triangle mesh with the float64 reference (see the module docstring)."""
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    R = int(resolution)
-    p = to_grid_units(vertices, origin, voxel_size)
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    P = p[faces]  # [T,3,3]
-    tol = triangle_tolerance(P, mode)
-    if mode == "6-separating":
-        keep = np.any(_normal(P) != 0, axis=-1)  # zero-area triangles set nothing
-        P, tol = P[keep], tol[keep]
-
+def _evaluate(P, tol, mode, R):
+    """Unreduced (key, margin, relative) for every candidate (triangle, voxel) pair."""
     # Candidate cells: closed bounding-box cells, widened by the tolerance (at most one cell)
     # so that near misses get a margin too; clipped to the grid.
     widen = np.minimum(tol, 1.0)[:, None]
@@ -314,7 +305,7 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
     starts = np.concatenate([[0], np.cumsum(counts)])
     total = int(starts[-1])
 
-    keys, margins, rels = [], [], []
+    keys, margins, rels = [np.zeros(0, np.int64)], [np.zeros(0)], [np.zeros(0)]
     for s0 in range(0, total, _CHUNK):
         q = np.arange(s0, min(s0 + _CHUNK, total), dtype=np.int64)
         t = np.searchsorted(starts, q, side="right") - 1
@@ -328,18 +319,50 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
         keys.append((cell[:, 0] * R + cell[:, 1]) * R + cell[:, 2])
         margins.append(margin)
         rels.append(margin / tol[t])
+    return np.concatenate(keys), np.concatenate(margins), np.concatenate(rels)
 
-    if keys:
-        key = np.concatenate(keys)
+
+def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mode: str = "conservative") -> Reference:
+    """Voxelize a triangle mesh with the float64 reference (see the module docstring).
+
+    In 6-separating mode, a zero-area triangle sets nothing. If its three float32 input
+    vertices are pairwise distinct (collinear only after the conversion to grid units, which
+    float32 arithmetic may not reproduce) the voxels its segment touches in conservative
+    mode are reported as near-ties (margin ``-0``) so that an implementation that sees a
+    sliver there is excused; a triangle with a repeated input vertex has zero area in any
+    arithmetic and gets no such excuse.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    R = int(resolution)
+    p = to_grid_units(vertices, origin, voxel_size)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    P = p[faces]  # [T,3,3]
+    tol = triangle_tolerance(P, mode)
+    parts = []
+    if mode == "6-separating":
+        flat = ~np.any(_normal(P) != 0, axis=-1)  # zero-area triangles set nothing
+        v32 = np.asarray(vertices, dtype=np.float32)[faces]
+        distinct = ~(np.all(v32[:, 0] == v32[:, 1], -1) | np.all(v32[:, 1] == v32[:, 2], -1)
+                     | np.all(v32[:, 2] == v32[:, 0], -1))
+        ambiguous = flat & distinct
+        if ambiguous.any():
+            Pa = P[ambiguous]
+            key, margin, rel = _evaluate(Pa, triangle_tolerance(Pa, "conservative"), "conservative", R)
+            parts.append((key, np.minimum(margin, -_TINY), np.minimum(rel, -_TINY)))
+        P, tol = P[~flat], tol[~flat]
+    parts.append(_evaluate(P, tol, mode, R))
+
+    key = np.concatenate([k for k, _, _ in parts])
+    margin = np.concatenate([m for _, m, _ in parts])
+    rel = np.concatenate([r for _, _, r in parts])
+    if len(key):
         order = np.argsort(key, kind="stable")
-        key, margin, rel = key[order], np.concatenate(margins)[order], np.concatenate(rels)[order]
-        first = np.concatenate([[True], key[1:] != key[:-1]])
-        idx = np.flatnonzero(first)
+        key, margin, rel = key[order], margin[order], rel[order]
+        idx = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
         key = key[idx]
         margin = np.maximum.reduceat(margin, idx)
         rel = np.maximum.reduceat(rel, idx)
-    else:
-        key, margin, rel = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
 
     set_keys = key[margin >= 0]
     ijk = np.stack([set_keys // (R * R), (set_keys // R) % R, set_keys % R], axis=1)

@@ -363,12 +363,12 @@ def _mesh_case(meshes_dir, name: str, resolution: int, mode: str):
 
 
 def _mesh_params():
+    """Every mesh at 64^3, and at 128^3 as a slow case (run at ``_slow_resolution(128)``; at
+    the default half scale that is the 64^3 case again, which the cache makes free)."""
     out = []
     for name in MESHES:
-        for resolution in (64, 128):
-            marks = [pytest.mark.slow] if (name == "stanford-bunny" and resolution == 128) else []
-            res = _slow_resolution(resolution) if marks else resolution
-            out.append(pytest.param(name, res, marks=marks, id=f"{name}-{resolution}"))
+        out.append(pytest.param(name, 64, id=f"{name}-64"))
+        out.append(pytest.param(name, _slow_resolution(128), marks=[pytest.mark.slow], id=f"{name}-128"))
     return out
 
 
@@ -419,14 +419,16 @@ def test_six_separating_closed_mesh_flood_fill(meshes_dir, name):
     centres = origin.astype(np.float64) + (sample + 0.5) * float(h)
     assert tm.contains(centres).all(), f"{name}: enclosed voxel centres not inside the mesh"
 
-    for label, voxels in (("reference", _reference(v, f, grid, SIX_SEP).voxels), ("jaxvox", _impl(v, f, grid, SIX_SEP))):
+    candidates = (("reference", _reference(v, f, grid, SIX_SEP).voxels), ("jaxvox", _impl(v, f, grid, SIX_SEP)))
+    for label, voxels in candidates:
         occ = _dense(voxels, resolution)
         assert not occ[inside].any(), f"{name} ({label}): 6-separating voxel strictly inside the surface"
         labels6, count = scipy.ndimage.label(~occ)  # 6-connectivity
         outside = labels6 == labels6[0, 0, 0]
         leaked = np.argwhere(outside & inside)
         assert count >= 2, f"{name} ({label}): empty space is a single 6-connected component"
-        assert len(leaked) == 0, f"{name} ({label}): flood from outside reaches {len(leaked)} inside voxels, e.g. {leaked[:5].tolist()}"
+        assert len(leaked) == 0, (
+            f"{name} ({label}): flood from outside reaches {len(leaked)} inside voxels, e.g. {leaked[:5].tolist()}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -436,7 +438,7 @@ def test_six_separating_closed_mesh_flood_fill(meshes_dir, name):
 R_EXACT = 8  # exact cases: coordinates in [-1, 9], multiples of 1/8 -> exact in float32 too
 R_FLOAT = 16
 
-_HYPO = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+_HYPO = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def _dyadic(lo, hi):
@@ -556,10 +558,10 @@ def test_exact_degenerate_and_sliver_triangles_match_exactly(tri):
 
 
 @_HYPO
-@given(st.one_of(float_general(), float_sliver()), st.tuples(*[st.floats(-5, 5, width=32)] * 3),
+@given(st.one_of(float_general(), float_sliver(), exact_degenerate()), st.tuples(*[st.floats(-5, 5, width=32)] * 3),
        st.floats(0.125, 4.0, width=32))
 def test_float_triangles_match_up_to_near_ties(tri, origin, voxel_size):
-    """Random and sliver triangles (grid units) under a random grid placement."""
+    """Random, sliver and degenerate triangles (grid units) under a random grid placement."""
     origin, h = np.array(origin, np.float32), np.float32(voxel_size)
     world = (origin.astype(np.float64) + tri * np.float64(h)).astype(np.float32)
     grid = jv.Grid(origin=tuple(float(x) for x in origin), voxel_size=float(h), resolution=R_FLOAT)
@@ -570,3 +572,19 @@ def test_float_triangles_match_up_to_near_ties(tri, origin, voxel_size):
 @given(float_huge())
 def test_huge_triangles_match_up_to_near_ties(tri):
     _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
+
+
+@pytest.mark.parametrize("voxel_size", [1.0, 1.28125, 0.3])
+def test_six_separating_repeated_vertex_sets_nothing(voxel_size):
+    """A triangle with a repeated vertex has zero area in any arithmetic: no 6-separating voxel.
+
+    (A float32 cross product evaluated with fused multiply-adds, ``a*b - fma(b, a, .)``, is
+    not exactly zero for ``cross(e, e)``, so an area test must not rely on it.)
+    """
+    h = np.float32(voxel_size)
+    tri = np.array([[0.0, 0.0, 0.0], [1.28125, 0.0, 1.0], [1.28125, 0.0, 1.0]], np.float32) * h
+    grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=float(h), resolution=16)
+    for faces in ([[0, 1, 2]], [[1, 2, 0]], [[0, 0, 1]]):
+        got = _impl(tri, faces, grid, SIX_SEP)
+        assert len(got) == 0, f"faces {faces}, voxel size {h}: {got.tolist()}"
+        assert len(_reference(tri, faces, grid, SIX_SEP).voxels) == 0
