@@ -178,11 +178,12 @@ def _half_planes(qa, qb, sigma, six_sep, tol):
     gamma = -(na * qa + nb * qb) + push + tol * l1
     rows = [jnp.stack([na, nb, gamma])]
     if six_sep:
+        # The diamond's axes: a + b <= max(s) - 1/2, a + b >= min(s) - 3/2 (s = qa + qb),
+        # a - b <= max(t) + 1/2, a - b >= min(t) - 1/2 (t = qa - qb), for the corner (a, b).
         s, t = qa + qb, qa - qb
-        one = jnp.ones(4, jnp.float32)
         rows.append(jnp.stack([
-            one * jnp.array([-1.0, 1.0, -1.0, 1.0]),
-            one * jnp.array([-1.0, 1.0, 1.0, -1.0]),
+            jnp.array([-1.0, 1.0, -1.0, 1.0], jnp.float32),
+            jnp.array([-1.0, 1.0, 1.0, -1.0], jnp.float32),
             jnp.stack([s.max() - 0.5, 1.5 - s.min(), t.max() + 0.5, 0.5 - t.min()]) + tol,
         ]))
     return jnp.concatenate(rows, axis=1)
