@@ -673,10 +673,15 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
 
 
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
-    """Concatenates int32 host arrays into a buffer of `shape` padded with `UNUSED`."""
+    """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED`.
+
+    Empties `parts` as it goes, so the parts and the buffer are not all held at once.
+    """
     out = np.full(shape, UNUSED, np.int32)
     start = 0
-    for part in parts:
+    parts.reverse()
+    while parts:
+        part = parts.pop()
         out[start:start + len(part)] = part
         start += len(part)
     return out
