@@ -63,7 +63,7 @@ def cmd_run(args) -> int:
         grid, vox, seconds = _voxelize_timed(mesh, args.resolution, mode)
         results[mode] = vox.to_numpy()
         print(f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
-              f"(compiled on the first call)")
+              f"(after a warm-up call that compiles)")
     ijk = results["conservative"]
     png = os.path.join(args.out, "voxels.png")
     save_projections(png, {m: v for m, v in results.items()}, args.resolution)
@@ -71,7 +71,8 @@ def cmd_run(args) -> int:
     np.savez_compressed(npz, ijk=ijk, origin=np.asarray(grid.origin), voxel_size=np.asarray(grid.voxel_size),
                         resolution=args.resolution, mode="conservative")
     print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
-    print(f"wrote {png} (three orthographic projections per mode) and {npz}")
+    print(f"wrote {png} (rows: conservative, 6-separating; columns: views along x, y, z)")
+    print(f"wrote {npz} (conservative voxel indices and the grid)")
     return 0
 
 

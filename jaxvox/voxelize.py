@@ -613,8 +613,9 @@ def _count_candidates(columns, *, row_cap, chunk):
 
 @functools.partial(jax.jit, static_argnames=("words", "cand_cap", "with_ids"))
 def _emit_sorted(tris_grid, region_lo, columns, rows, *, words, cand_cap, with_ids):
-    keys, payload, _ = _candidates(tris_grid, rows, cand_cap, words, with_ids)
-    return _sort_unique(keys, payload, words, region_lo, cand_cap)
+    keys, payload, n_cand = _candidates(tris_grid, rows, cand_cap, words, with_ids)
+    coords, triangle, count, _ = _sort_unique(keys, payload, words, region_lo, cand_cap)
+    return coords, triangle, count, n_cand
 
 
 def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with_ids: bool,
@@ -641,9 +642,13 @@ def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with
     row_cap = size(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk, floor.rows // chunk) * chunk
     rows, n_cand = _count_candidates(columns, row_cap=row_cap, chunk=chunk)
     cand_cap = size(n_cand, floor.candidates)
-    coords, triangle, count, _ = _emit_sorted(tris_grid, region_lo, columns, rows, words=_words(region_size),
-                                              cand_cap=cand_cap, with_ids=with_ids)
+    coords, triangle, count, n_cand = _emit_sorted(tris_grid, region_lo, columns, rows, words=_words(region_size),
+                                                   cand_cap=cand_cap, with_ids=with_ids)
     count = int(count)
+    # Each pass was sized by the previous pass's exact count, so nothing can be dropped;
+    # check the last one anyway rather than trust it silently.
+    if int(n_cand) > cand_cap or count > int(n_cand):
+        raise JaxvoxError(f"internal error: {int(n_cand)} candidates for a capacity of {cand_cap}")
     caps = Capacities(col_cap, row_cap, cand_cap, _bucket(count), chunk)
     return coords[:count], (triangle[:count] if with_ids else None), caps
 
@@ -695,6 +700,10 @@ def _grid_triangles(mesh: Mesh, grid: Grid):
 def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: bool = False,
              region_size: int = REGION_SIZE, progress: bool | None = None) -> Voxels:
     """Voxelizes a triangle mesh exactly; capacities are sized by counting passes.
+
+    Each work stage (columns, rows, candidate voxels) is sized by the exact count of the
+    pass before it, so nothing is ever dropped and no retry is needed; the last count
+    is still checked, and a mismatch raises instead of returning a truncated set.
 
     Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
     regions, visited in Morton order, each voxelized from the triangles whose bounding
