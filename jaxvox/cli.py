@@ -76,6 +76,20 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _enable_compilation_cache() -> None:
+    """Keeps compiled XLA programs on disk so repeated commands skip recompiling.
+
+    The folder is ``$JAXVOX_CACHE_DIR`` or ``~/.cache/jaxvox/xla``; set
+    ``JAXVOX_CACHE_DIR=`` (empty) to turn the cache off.
+    """
+    import jax
+
+    folder = os.environ.get("JAXVOX_CACHE_DIR", os.path.expanduser("~/.cache/jaxvox/xla"))
+    if folder:
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``jaxvox`` command."""
     parser = argparse.ArgumentParser(prog="jaxvox", description="Voxel geometry in JAX.")
@@ -103,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    _enable_compilation_cache()
     from jaxvox._errors import JaxvoxError
     from jaxvox.grid import check_resolution
 
