@@ -680,15 +680,17 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED`.
 
-    Empties `parts` as it goes, so the parts and the buffer are not all held at once.
+    Empties `parts` as it goes, and the buffer's pages are only touched as they are
+    filled, so the parts and the whole buffer are never held at once.
     """
-    out = np.full(shape, UNUSED, np.int32)
+    out = np.empty(shape, np.int32)
     start = 0
     parts.reverse()
     while parts:
         part = parts.pop()
         out[start:start + len(part)] = part
         start += len(part)
+    out[start:] = UNUSED
     return out
 
 
@@ -752,8 +754,9 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
     cap = _bucket(total, 1)
     coords = _pad_rows(parts, (cap, 3))
     triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
-    return Voxels(jnp.asarray(coords), jnp.int32(total), jnp.int32(0),
-                  None if triangle is None else jnp.asarray(triangle), grid, mode)
+    to_device = functools.partial(jax.device_put, may_alias=True)  # one copy, not jnp.asarray's two
+    return Voxels(to_device(coords), jnp.int32(total), jnp.int32(0),
+                  None if triangle is None else to_device(triangle), grid, mode)
 
 
 def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Capacities:
