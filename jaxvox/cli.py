@@ -28,23 +28,30 @@ def _load(path: str | None):
     return jv.load_mesh(path), os.path.basename(path)
 
 
-def _voxelize_timed(mesh, resolution: int, mode: str):
+def _voxelize_timed(mesh, grid, mode: str):
     import jaxvox as jv
 
-    grid = jv.Grid.fit(mesh, resolution=resolution)
     start = time.perf_counter()
     vox = jv.voxelize(mesh, grid, mode=mode)
     vox.coords.block_until_ready()
-    return grid, vox, time.perf_counter() - start
+    return vox, time.perf_counter() - start
+
+
+def _save_npz(path: str, ijk: np.ndarray, grid, mode: str) -> None:
+    """Writes voxel indices with the grid that places them."""
+    np.savez_compressed(path, ijk=ijk, origin=np.asarray(grid.origin), voxel_size=np.asarray(grid.voxel_size),
+                        resolution=grid.resolution, mode=mode)
 
 
 def cmd_voxelize(args) -> int:
     """Voxelizes a mesh and writes the voxel indices (and the grid) to an .npz file."""
+    import jaxvox as jv
+
     mesh, name = _load(args.mesh)
-    grid, vox, seconds = _voxelize_timed(mesh, args.resolution, args.mode)
+    grid = jv.Grid.fit(mesh, resolution=args.resolution)
+    vox, seconds = _voxelize_timed(mesh, grid, args.mode)
     ijk = vox.to_numpy()
-    np.savez_compressed(args.out, ijk=ijk, origin=np.asarray(grid.origin), voxel_size=np.asarray(grid.voxel_size),
-                        resolution=grid.resolution, mode=args.mode)
+    _save_npz(args.out, ijk, grid, args.mode)
     print(f"{name}: {mesh.num_faces} triangles -> {len(ijk)} voxels ({args.mode}, {args.resolution}^3) "
           f"in {seconds:.2f} s; wrote {args.out}")
     return 0
@@ -52,24 +59,24 @@ def cmd_voxelize(args) -> int:
 
 def cmd_run(args) -> int:
     """The main job: voxelize a mesh (default: the built-in scene) in both modes, report, draw."""
+    import jaxvox as jv
     from jaxvox.plot import save_projections
 
     mesh, name = _load(args.mesh)
+    grid = jv.Grid.fit(mesh, resolution=args.resolution)
     os.makedirs(args.out, exist_ok=True)
     print(f"scene: {name}, {mesh.num_faces} triangles, {mesh.num_vertices} vertices")
     results = {}
     for mode in ("conservative", "6-separating"):
-        _voxelize_timed(mesh, args.resolution, mode)  # compile
-        grid, vox, seconds = _voxelize_timed(mesh, args.resolution, mode)
+        _voxelize_timed(mesh, grid, mode)  # compile
+        vox, seconds = _voxelize_timed(mesh, grid, mode)
         results[mode] = vox.to_numpy()
         print(f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
               f"(after a warm-up call that compiles)")
-    ijk = results["conservative"]
     png = os.path.join(args.out, "voxels.png")
-    save_projections(png, {m: v for m, v in results.items()}, args.resolution)
+    save_projections(png, results, args.resolution)
     npz = os.path.join(args.out, "voxels.npz")
-    np.savez_compressed(npz, ijk=ijk, origin=np.asarray(grid.origin), voxel_size=np.asarray(grid.voxel_size),
-                        resolution=args.resolution, mode="conservative")
+    _save_npz(npz, results["conservative"], grid, "conservative")
     print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
     print(f"wrote {png} (rows: conservative, 6-separating; columns: views along x, y, z)")
     print(f"wrote {npz} (conservative voxel indices and the grid)")

@@ -75,7 +75,3 @@ class Grid:
     def to_grid_units(self, points: jax.Array) -> jax.Array:
         """World points [..., 3] -> grid units [..., 3] float32 (voxel (i,j,k) spans [i, i+1] x ...)."""
         return (jnp.asarray(points, jnp.float32) - self.origin) / self.voxel_size
-
-    def voxel_centers(self, ijk: jax.Array) -> jax.Array:
-        """Voxel indices [..., 3] int -> world positions of their centres [..., 3] float32."""
-        return self.origin + (jnp.asarray(ijk, jnp.float32) + 0.5) * self.voxel_size

@@ -4,7 +4,7 @@ A voxel ``(i, j, k)`` with ``0 <= i, j, k < 2^20`` has the 60-bit Morton code
 ``sum_b i_b << 3b | j_b << (3b+1) | k_b << (3b+2)`` (x is the lowest bit of each
 triple). It is carried as two uint32 words, ``hi = code >> 30`` and
 ``lo = code & (2^30 - 1)``: the lexicographic order of ``(hi, lo)`` is Morton order,
-so sorts use `jax.lax.sort` on two operands and never need ``jax_enable_x64``.
+so sorts use `jax.lax.sort` on two operands and no 64-bit integer type is needed.
 For grids up to 1024^3 ``hi`` is zero and one word suffices.
 """
 

@@ -150,7 +150,7 @@ class _Triangles(NamedTuple):
     col_lo: jax.Array  # [F] int32 first column (local u)
     col_data: jax.Array  # [F, 8H+7] float32 v bounds(u) and w bounds(u) (4H each), v range, w range, plane(u)
     row_data: jax.Array  # [F, 4H+1] float32 w bounds(v), plane slope ky
-    base: jax.Array  # [F, 4] int32 base cell (permuted u, v, w) and dominant axis d
+    base: jax.Array  # [F, 6] int32 base cell (x, y, z) and the axes u, v, w (w dominant)
 
 
 def _half_planes(qa, qb, sigma, six_sep, tol):
@@ -218,6 +218,23 @@ def _plane_normal(q):
     use_n = dev_n <= dev_fake
     return jnp.where(use_n, n, n_fake), jnp.where(use_n, dev_n, dev_fake)
 
+
+
+def _interval(coef, rest, lo, hi):
+    """Integers t with ``coef * t + rest >= 0`` for every half-plane, within [lo, hi].
+
+    Args:
+      coef, rest: [..., H] float32.
+      lo, hi: [...] float32 integer-valued bounds.
+
+    Returns:
+      (lo [...], hi [...]) float32 integer-valued; empty when hi < lo.
+    """
+    bound = jnp.clip(-rest / jnp.where(coef == 0, 1.0, coef), -_BIG, _BIG)
+    lower = jnp.where(coef > 0, jnp.ceil(bound), -_BIG)
+    upper = jnp.where(coef < 0, jnp.floor(bound), _BIG)
+    upper = jnp.where((coef == 0) & (rest < 0), -_BIG, upper)
+    return jnp.maximum(lo, lower.max(-1)), jnp.minimum(hi, upper.min(-1))
 
 
 def _linear_bounds(free, other, gamma):
@@ -296,7 +313,7 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
     col_data = jnp.concatenate([v_of_u.reshape(-1), w_of_u.reshape(-1),
                                 jnp.stack([v_lo, v_hi, lo_i[2], hi_i[2], z_lo, z_hi, kx])])
     row_data = jnp.concatenate([w_of_v.reshape(-1), ky[None]])
-    place = jnp.concatenate([base[perm], d[None].astype(jnp.float32)]).astype(jnp.int32)
+    place = jnp.concatenate([base.astype(jnp.int32), perm.astype(jnp.int32)])
     return n_cols, u_lo.astype(jnp.int32), col_data, row_data, place
 
 
@@ -331,23 +348,6 @@ def _expand(counts, capacity):
     owner = jax.lax.cummax(jnp.zeros(capacity, jnp.int32).at[starts].max(ids, mode="drop"))
     slot = jnp.arange(capacity, dtype=jnp.int32)
     return owner, slot - starts[owner], slot < ends[-1], ends[-1]
-
-
-def _interval(coef, rest, lo, hi):
-    """Integers t with ``coef * t + rest >= 0`` for every half-plane, within [lo, hi].
-
-    Args:
-      coef, rest: [..., H] float32.
-      lo, hi: [...] float32 integer-valued bounds.
-
-    Returns:
-      (lo [...], hi [...]) float32 integer-valued; empty when hi < lo.
-    """
-    bound = jnp.clip(-rest / jnp.where(coef == 0, 1.0, coef), -_BIG, _BIG)
-    lower = jnp.where(coef > 0, jnp.ceil(bound), -_BIG)
-    upper = jnp.where(coef < 0, jnp.floor(bound), _BIG)
-    upper = jnp.where((coef == 0) & (rest < 0), -_BIG, upper)
-    return jnp.maximum(lo, lower.max(-1)), jnp.minimum(hi, upper.min(-1))
 
 
 class _Columns(NamedTuple):
@@ -391,11 +391,8 @@ def _columns(tris: _Triangles, col_cap: int) -> _Columns:
     depth = jnp.concatenate([jnp.stack([w_lo, w_hi, z_lo + kx * cu, z_hi + kx * cu], 1),
                              tris.row_data[tri]], axis=1)
     place = tris.base[tri]
-    d = place[:, 3]
-    origin_perm = place[:, :3].at[:, 0].add(cu.astype(jnp.int32))
-    inv = (jnp.arange(3)[None, :] - d[:, None] - 1) % 3  # permuted axis p is (d + 1 + p) % 3
-    origin = jnp.concatenate([jnp.take_along_axis(origin_perm, inv, axis=1),
-                              jnp.stack([(d + 2) % 3, d], 1)], axis=1)
+    u_step = cu.astype(jnp.int32)[:, None] * (jnp.arange(3, dtype=jnp.int32) == place[:, 3:4])
+    origin = jnp.concatenate([place[:, :3] + u_step, place[:, 4:]], axis=1)
     return _Columns(tri, row_lo, n_rows, depth, origin, total)
 
 

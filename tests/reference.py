@@ -339,6 +339,8 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     P = p[faces]  # [T,3,3]
     tol = triangle_tolerance(P, mode)
+    assert P.shape == (len(faces), 3, 3) and P.dtype == np.float64
+    assert np.all(tol[np.isfinite(P).all(axis=(1, 2))] > 0), "every finite triangle needs a positive tolerance"
     parts = []
     if mode == "6-separating":
         flat = ~np.any(_normal(P) != 0, axis=-1)  # zero-area triangles set nothing
@@ -364,6 +366,8 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
         margin = np.maximum.reduceat(margin, idx)
         rel = np.maximum.reduceat(rel, idx)
 
+    assert not np.isnan(margin).any(), "every examined voxel must get a decided margin"
+    assert len(key) == 0 or (key[0] >= 0 and key[-1] < R**3), "candidates must lie inside the grid"
     set_keys = key[margin >= 0]
     ijk = np.stack([set_keys // (R * R), (set_keys // R) % R, set_keys % R], axis=1)
     return Reference(voxels=morton_order(ijk), keys=key, margin=margin, relative=rel, resolution=R)
