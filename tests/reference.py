@@ -371,3 +371,30 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
     set_keys = key[margin >= 0]
     ijk = np.stack([set_keys // (R * R), (set_keys // R) % R, set_keys % R], axis=1)
     return Reference(voxels=morton_order(ijk), keys=key, margin=margin, relative=rel, resolution=R)
+
+
+def winding_number(vertices, faces, points) -> np.ndarray:
+    """Generalized winding number of a triangle mesh at each point (float64).
+
+    Sum of the signed solid angles of the triangles seen from the point, over 4 pi
+    (Van Oosterom & Strackee). About +-1 inside a closed, consistently oriented
+    surface, 0 outside; independent of vertex welding.
+
+    Args:
+      vertices: float [V, 3].
+      faces: int [F, 3].
+      points: float [P, 3].
+
+    Returns:
+      float64 [P].
+    """
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces)]  # [F, 3, 3]
+    out = np.empty(len(points))
+    for n, p in enumerate(np.asarray(points, np.float64)):
+        a, b, c = np.moveaxis(tri - p, 1, 0)
+        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+        det = np.einsum("ij,ij->i", a, np.cross(b, c))
+        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
+               + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb)
+        out[n] = np.arctan2(det, den).sum() / (2 * np.pi)
+    return out
