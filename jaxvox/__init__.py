@@ -1,13 +1,27 @@
 """jaxvox: voxel geometry in JAX.
 
-Exact conservative and 6-separating triangle voxelization with fixed-capacity,
-jittable cores and host-side APIs that size capacities by counting passes.
+Exact conservative and 6-separating triangle voxelization, sparse voxel octrees and
+DAGs with per-node prefix sums for voxel attributes, all with fixed-capacity jittable
+cores and host-side APIs that size capacities by counting passes.
 """
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
 from jaxvox.grid import Grid
+from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh
+from jaxvox.octree import (
+    EMPTY,
+    MISSING,
+    OVERFLOW_NODES,
+    Octree,
+    build_dag,
+    build_octree,
+    compact,
+    expand,
+    voxel_attributes,
+    voxel_index,
+)
 from jaxvox.scene import default_scene
 from jaxvox.voxelize import (
     CONSERVATIVE,
@@ -28,6 +42,19 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CONSERVATIVE",
+    "EMPTY",
+    "MISSING",
+    "OVERFLOW_NODES",
+    "Octree",
+    "build_dag",
+    "build_octree",
+    "compact",
+    "expand",
+    "load",
+    "load_attributes",
+    "save",
+    "voxel_attributes",
+    "voxel_index",
     "OVERFLOW_CANDIDATES",
     "OVERFLOW_COLUMNS",
     "OVERFLOW_ROWS",

@@ -18,22 +18,25 @@ from jaxvox._pytree import pytree_dataclass
 class Mesh:
     """A triangle mesh.
 
-    Both fields are array leaves, so a `Mesh` can be passed through `jax.jit` and
-    batched with `jax.vmap` (pad meshes to a common size with degenerate faces
+    All fields are array leaves (or None), so a `Mesh` can be passed through `jax.jit`
+    and batched with `jax.vmap` (pad meshes to a common size with degenerate faces
     ``(0, 0, 0)``, which add at most the voxel holding vertex 0 in conservative mode;
     see `pad_mesh`).
 
     Attributes:
       vertices: [V, 3] float32 positions in world units.
       faces: [F, 3] int32 vertex indices, counter-clockwise seen from outside.
+      colors: [V, C] float32 vertex colours in [0, 1] (C = 3 RGB or 4 RGBA), or None.
     """
 
     vertices: jax.Array  # [V, 3] float32
     faces: jax.Array  # [F, 3] int32
+    colors: jax.Array | None = None  # [V, C] float32
 
-    def __init__(self, vertices, faces):
+    def __init__(self, vertices, faces, colors=None):
         object.__setattr__(self, "vertices", jnp.asarray(vertices, jnp.float32))
         object.__setattr__(self, "faces", jnp.asarray(faces, jnp.int32))
+        object.__setattr__(self, "colors", None if colors is None else jnp.asarray(colors, jnp.float32))
 
     @property
     def num_faces(self) -> int:
@@ -53,8 +56,8 @@ class Mesh:
 def validate_mesh(mesh: Mesh) -> None:
     """Raises `JaxvoxError` naming the problem when `mesh` is malformed (host-side check).
 
-    Checks shapes, that every vertex coordinate is finite, and that every face index
-    lies in ``[0, V)``.
+    Checks shapes, that every vertex coordinate is finite, that every face index lies
+    in ``[0, V)``, and that colours (if any) are [V, 3] or [V, 4] and finite.
     """
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
@@ -73,12 +76,19 @@ def validate_mesh(mesh: Mesh) -> None:
         raise JaxvoxError(
             f"face index out of range: face {bad_face} = {f[bad_face].tolist()} "
             f"but the mesh has {len(v)} vertices")
+    if mesh.colors is not None:
+        c = np.asarray(mesh.colors)
+        if c.ndim != 2 or c.shape[0] != len(v) or c.shape[1] not in (3, 4):
+            raise JaxvoxError(f"mesh colors must have shape [V, 3] or [V, 4] with V = {len(v)}, got {c.shape}")
+        if not np.isfinite(c).all():
+            raise JaxvoxError("mesh colors hold NaN or inf")
 
 
 def load_mesh(path: str | os.PathLike) -> Mesh:
     """Loads a triangle mesh from any file format trimesh can read.
 
-    Scenes are flattened into one mesh; polygons are triangulated by trimesh.
+    Scenes are flattened into one mesh; polygons are triangulated by trimesh. Vertex
+    colours, when the file has them, become `Mesh.colors` (RGBA in [0, 1]).
 
     Args:
       path: file path (OBJ, PLY, STL, OFF, GLB, ...).
@@ -101,7 +111,10 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         raise JaxvoxError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise JaxvoxError(f"{path} holds no triangles")
-    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32))
+    colors = None
+    if getattr(loaded.visual, "kind", None) == "vertex":
+        colors = np.asarray(loaded.visual.vertex_colors, np.float32) / 255.0
+    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors)
     validate_mesh(mesh)
     return mesh
 
@@ -117,6 +130,7 @@ def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
     f = np.asarray(mesh.faces)
     if num_vertices < len(v) or num_faces < len(f):
         raise JaxvoxError("pad_mesh: target size is smaller than the mesh")
-    v_pad = np.concatenate([v, np.repeat(v[:1], num_vertices - len(v), axis=0)])
+    repeat_first = lambda a: np.concatenate([a, np.repeat(a[:1], num_vertices - len(a), axis=0)])
     f_pad = np.concatenate([f, np.zeros((num_faces - len(f), 3), np.int32)])
-    return Mesh(v_pad, f_pad)
+    colors = None if mesh.colors is None else repeat_first(np.asarray(mesh.colors))
+    return Mesh(repeat_first(v), f_pad, colors)

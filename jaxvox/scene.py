@@ -12,7 +12,8 @@ def default_scene() -> Mesh:
     """A small closed scene: a torus knot resting on a box, with a sphere beside it.
 
     Generated procedurally with trimesh (about 10k triangles), so `make run` and the
-    CLI need no mesh file. Units: roughly the cube [-1.5, 1.5]^3.
+    CLI need no mesh file. Units: roughly the cube [-1.5, 1.5]^3. Vertex colours: a
+    hue gradient along the knot, a grey box and an orange sphere.
     """
     t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
     p, q = 2, 3
@@ -25,7 +26,14 @@ def default_scene() -> Mesh:
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.35)
     ball.apply_translation([0.9, -0.9, -0.1])
     scene = trimesh.util.concatenate([knot, base, ball])
-    return Mesh(np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32))
+    hue = np.repeat(t / (2.0 * np.pi), len(knot.vertices) // len(t))
+    colors = np.concatenate([
+        0.5 + 0.45 * np.cos(2.0 * np.pi * (hue[:, None] + np.array([0.0, 1.0, 2.0]) / 3.0)),
+        np.full((len(base.vertices), 3), 0.6),
+        np.tile([0.95, 0.55, 0.15], (len(ball.vertices), 1)),
+    ])
+    return Mesh(np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32),
+                colors.astype(np.float32))
 
 
 def _tube(path: np.ndarray, radius: float, sides: int) -> trimesh.Trimesh:

@@ -39,6 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
+from jaxvox._buffers import bucket, bucket_pow2, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -116,6 +117,37 @@ class Voxels:
     def capacity(self) -> int:
         """Number of slots in the buffer."""
         return self.coords.shape[-2]
+
+    @classmethod
+    def from_coords(cls, ijk, grid: Grid, *, mode: str = CONSERVATIVE) -> "Voxels":
+        """Voxels from arbitrary voxel indices (host-side): checked, deduplicated, Morton-sorted.
+
+        Args:
+          ijk: int [N, 3] voxel indices, each in ``[0, grid.resolution)``, any order,
+            repeats allowed.
+          grid: the `Grid` they refer to.
+          mode: the mode to record (the set is taken as given).
+
+        Raises:
+          JaxvoxError: wrong shape, non-integer values or indices outside the grid.
+        """
+        a = np.asarray(ijk)
+        if a.size == 0:
+            a = a.reshape(0, 3)
+        if a.ndim != 2 or a.shape[1] != 3:
+            raise JaxvoxError(f"voxel indices must have shape [N, 3], got {a.shape}")
+        if not np.issubdtype(a.dtype, np.integer):
+            raise JaxvoxError(f"voxel indices must be integers, got dtype {a.dtype}")
+        if a.size and (a.min() < 0 or a.max() >= grid.resolution):
+            raise JaxvoxError(f"voxel indices outside [0, {grid.resolution}): "
+                              f"min {int(a.min())}, max {int(a.max())}")
+        a = a.astype(np.int32)
+        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(a))
+        codes, first = np.unique((hi << 30) | lo, return_index=True)
+        n = len(codes)
+        coords = np.full((bucket_pow2(n), 3), UNUSED, np.int32)
+        coords[:n] = a[first]
+        return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, _check_mode(mode))
 
     def to_numpy(self) -> np.ndarray:
         """The valid voxels as a host int32 [count, 3] array in Morton order.
@@ -326,30 +358,6 @@ def _setup(tris, region_lo, region_hi, six_sep) -> _Triangles:
 # ------------------------------------------------------------------------ expansion
 
 
-def _expand(counts, capacity):
-    """Expands per-item counts into `capacity` work slots.
-
-    Args:
-      counts: [n] int32 non-negative counts.
-      capacity: static int, number of slots.
-
-    Returns:
-      (owner [capacity] int32 item of each slot, rank [capacity] int32 position within
-      its item, valid [capacity] bool, total [] int32 = sum(counts)). Slots past
-      `total` are invalid (their owner is a real item, their rank meaningless).
-    """
-    if counts.shape[0] == 0:
-        zeros = jnp.zeros(capacity, jnp.int32)
-        return zeros, zeros, zeros > 0, jnp.int32(0)
-    ends = jnp.cumsum(counts)
-    starts = ends - counts
-    # The owner of slot s is the last item starting at or before s: mark starts, cummax.
-    ids = jnp.where(counts > 0, jnp.arange(counts.shape[0], dtype=jnp.int32), 0)
-    owner = jax.lax.cummax(jnp.zeros(capacity, jnp.int32).at[starts].max(ids, mode="drop"))
-    slot = jnp.arange(capacity, dtype=jnp.int32)
-    return owner, slot - starts[owner], slot < ends[-1], ends[-1]
-
-
 class _Columns(NamedTuple):
     """Column work items (C slots): one (triangle, column u) each."""
 
@@ -380,7 +388,7 @@ def _eval_bounds(bounds, s, lo, hi):
 
 def _columns(tris: _Triangles, col_cap: int) -> _Columns:
     """Expands triangles into columns; per column, its rows and depth coefficients."""
-    tri, rank, valid, total = _expand(tris.n_cols, col_cap)
+    tri, rank, valid, total = expand_counts(tris.n_cols, col_cap)
     cu = (tris.col_lo[tri] + rank).astype(jnp.float32)
     c = tris.col_data[tri]
     h4 = (c.shape[1] - 7) // 2
@@ -411,7 +419,7 @@ def _rows(columns: _Columns, row_cap: int, chunk: int) -> _Rows:
     chunk), so `row_cap` counts slots of whole chunks.
     """
     n_chunks = (columns.n_rows + chunk - 1) // chunk
-    col, rank, valid, total = _expand(n_chunks, row_cap // chunk)
+    col, rank, valid, total = expand_counts(n_chunks, row_cap // chunk)
     offset = rank[:, None] * chunk + jnp.arange(chunk, dtype=jnp.int32)  # [Rc, K]
     ok = valid[:, None] & (offset < columns.n_rows[col][:, None])
     v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
@@ -468,7 +476,7 @@ def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: boo
       payload: (squared-distance bits, triangle) uint32 [cand_cap] or (),
       total [] int32 candidates needed).
     """
-    row, rank, valid, total = _expand(rows.n_depth, cand_cap)
+    row, rank, valid, total = expand_counts(rows.n_depth, cand_cap)
     p = rows.place[row]
     ijk = p[:, :3] + rank[:, None] * (jnp.arange(3, dtype=jnp.int32) == p[:, 3:4])
     if words == 1:
@@ -578,13 +586,6 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
 # ------------------------------------------------------------------ host-side API
 
 
-def _bucket(n: int, minimum: int = 4096) -> int:
-    """Rounds up to 4, 5, 6 or 7 times a power of two (at most 25% slack, few shapes)."""
-    n = max(int(n), minimum)
-    shift = max(n.bit_length() - 3, 0)
-    return -(-n >> shift) << shift
-
-
 @functools.partial(jax.jit, static_argnames=("six_sep",))
 def _count_columns(tris_grid, region_lo, region_hi, *, six_sep):
     tris = _setup(tris_grid, region_lo, region_hi, six_sep)
@@ -628,7 +629,7 @@ def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with
       capacities used).
     """
     floor = floor or Capacities(0, 0, 0, 0, 1)
-    size = lambda n, low: max(_bucket(int(n)), low)
+    size = lambda n, low: max(bucket(int(n)), low)
     region_hi = region_lo + jnp.int32(region_size - 1)
     tris, n_cols = _count_columns(tris_grid, region_lo, region_hi, six_sep=six_sep)
     col_cap = size(n_cols, floor.columns)
@@ -646,7 +647,7 @@ def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with
     # check the last one anyway rather than trust it silently.
     if int(n_cand) > cand_cap or count > int(n_cand):
         raise JaxvoxError(f"internal error: {int(n_cand)} candidates for a capacity of {cand_cap}")
-    caps = Capacities(col_cap, row_cap, cand_cap, _bucket(count), chunk)
+    caps = Capacities(col_cap, row_cap, cand_cap, bucket(count), chunk)
     return coords[:count], (triangle[:count] if with_ids else None), caps
 
 
@@ -739,7 +740,7 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
     floor, n_tris = Capacities(0, 0, 0, 0, 1), 0
     disable = not streaming if progress is None else not progress
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        n_tris = max(n_tris if streaming else 0, _bucket(len(idx), 256))
+        n_tris = max(n_tris if streaming else 0, bucket(len(idx), 256))
         padded = jnp.asarray(np.concatenate([idx, np.full(n_tris - len(idx), idx[0])]))
         coords, triangle, caps = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
                                                   six_sep, triangle_ids, floor if streaming else None)
@@ -748,7 +749,7 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
         if triangle_ids:
             tri_parts.append(np.asarray(padded[triangle]))
     total = sum(len(p) for p in parts)
-    cap = _bucket(total, 1)
+    cap = bucket(total, 1)
     coords = _pad_rows(parts, (cap, 3))
     triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
     to_device = functools.partial(jax.device_put, may_alias=True)  # one copy, not jnp.asarray's two
@@ -765,6 +766,6 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Cap
     six_sep = _check_mode(mode) == SIX_SEPARATING
     validate_mesh(mesh)
     if mesh.num_faces == 0:
-        return Capacities(*(_bucket(0),) * 4, 1)
+        return Capacities(*(bucket(0),) * 4, 1)
     tris = _grid_triangles(mesh, grid)
     return _voxelize_region(tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, False)[2]

@@ -84,6 +84,7 @@ __all__ = [
     "reference_voxelize",
     "to_grid_units",
     "triangle_tolerance",
+    "winding_number",
 ]
 
 MODES = ("conservative", "6-separating")

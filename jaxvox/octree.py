@@ -1,0 +1,568 @@
+"""Sparse voxel octrees and DAGs: bottom-up build, expansion, voxel indexing, attributes.
+
+A grid of resolution ``R = 2^D`` has node levels ``0`` (the root, one node covering the
+grid) to ``D - 1``; a node at level ``l`` covers ``2^(D-l)`` voxels per axis. Child slot
+``s`` in ``0..7`` of a node is ``x | y << 1 | z << 2`` with x, y, z the next bit of the
+voxel index on each axis, so children in slot order are in Morton order. The children of
+level ``D - 1`` nodes are voxels: that level stores masks only.
+
+Layout (as in Kampe et al. 2013 and the talk in ``shared/seeds``): all nodes live in one
+table, level by level, root first; level ``l`` occupies rows
+``[level_offsets[l], level_offsets[l] + level_capacity[l])``. Every node has
+
+* ``mask``: uint8, bit ``s`` set when child ``s`` is non-empty;
+* ``child``: 8 uint32 absolute row indices of the children (`EMPTY` where absent),
+  for nodes above level ``D - 1`` only;
+* ``prefix``: 8 uint32, the number of voxels in the children before slot ``s``
+  ("dynamic voxel indexing" with the prefix sums stored in the parent), again above
+  level ``D - 1`` only. At level ``D - 1`` the prefix is the popcount of the mask bits
+  below ``s``, computed on the fly.
+
+A root-to-leaf walk that adds the prefix of every slot it takes yields the voxel's
+index in Morton order, so attributes (triangle id, normal, colour, ...) live in a
+separate array indexed by it. Counts depend only on a subtree's shape, so they are
+shared in the DAG as the subtrees are.
+
+Builds are bottom-up from Morton-sorted voxels, one segment pass per level: parents are
+``ijk >> 1``, consecutive in Morton order, so each level is a boundary flag, a prefix sum
+and a scatter. The DAG deduplicates each level before building the next: a
+lexicographic sort of the child-pointer rows (multi-operand `jax.lax.sort`), a segment
+and a remap; masks of the mask-only level are deduplicated through a 256-entry table. No
+hash table, no locks, no dense grid. DAG nodes of a level are stored in the
+lexicographic order of their child rows (masks by value at level ``D - 1``), so the same
+voxel set always gives the same arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox import morton
+from jaxvox._buffers import bucket_pow2, expand_counts
+from jaxvox._errors import JaxvoxError
+from jaxvox._pytree import pytree_dataclass
+from jaxvox.grid import Grid
+from jaxvox.mesh import Mesh
+from jaxvox.voxelize import UNUSED, Voxels
+
+EMPTY = morton.EMPTY  # uint32 0xFFFFFFFF: an absent child (no node has that row index)
+OVERFLOW_NODES = 16  # bit of `Octree.overflow`: a level held more nodes than its capacity
+MISSING = -1  # `voxel_index` of an empty voxel
+
+_SLOTS = np.arange(8)
+# _SELECT[m, k]: slot of the k-th set bit of mask m (0 past popcount(m)).
+_SELECT = np.zeros((256, 8), np.uint8)
+for _m in range(256):
+    _bits = _SLOTS[(_m >> _SLOTS) & 1 == 1]
+    _SELECT[_m, : len(_bits)] = _bits
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class Octree:
+    """A sparse voxel octree (``dag=False``) or DAG (``dag=True``) in fixed-size tables.
+
+    Rows past ``level_count[l]`` within level ``l`` are padding (mask 0, children
+    `EMPTY`, prefix 0). Trees returned by `build_octree` / `build_dag` without explicit
+    capacities are compact: ``level_capacity == level_sizes``. `level_capacity`, `dag`
+    and `mode` are static (changing them recompiles).
+
+    Attributes:
+      mask: [N] uint8 child masks of all nodes, level by level, root first.
+      child: [M, 8] uint32 absolute child rows of the nodes above level ``D - 1``
+        (``M = N - level_capacity[-1]``), `EMPTY` where absent.
+      prefix: [M, 8] uint32 voxels in the children before each slot.
+      level_count: [D] int32 nodes per level.
+      voxel_count: [] int32 voxels in the tree.
+      overflow: [] int32 bitmask: the source voxels' ``OVERFLOW_*`` flags and
+        `OVERFLOW_NODES`; nonzero means the tree is truncated.
+      grid: the `Grid` the tree covers.
+      level_capacity: static tuple of D ints, rows reserved per level.
+      dag: static bool, whether identical subtrees are shared.
+      mode: static str, the voxelization mode of the source voxels.
+    """
+
+    mask: jax.Array  # [N] uint8
+    child: jax.Array  # [M, 8] uint32
+    prefix: jax.Array  # [M, 8] uint32
+    level_count: jax.Array  # [D] int32
+    voxel_count: jax.Array  # [] int32
+    overflow: jax.Array  # [] int32
+    grid: Grid
+    level_capacity: tuple = dataclasses.field(metadata=dict(static=True))
+    dag: bool = dataclasses.field(metadata=dict(static=True))
+    mode: str = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def depth(self) -> int:
+        """Number of node levels D = log2(resolution)."""
+        return len(self.level_capacity)
+
+    @property
+    def level_offsets(self) -> tuple[int, ...]:
+        """First row of each level in `mask` (and, above level D - 1, `child`, `prefix`)."""
+        return tuple(int(x) for x in np.cumsum((0,) + tuple(self.level_capacity[:-1])))
+
+    @property
+    def level_sizes(self) -> tuple[int, ...]:
+        """Nodes per level as host ints, root level first, down to level D - 1."""
+        return tuple(int(n) for n in np.asarray(self.level_count))
+
+    @property
+    def num_nodes(self) -> int:
+        """Total number of nodes (host int)."""
+        return sum(self.level_sizes)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the node tables as stored: `mask`, `child` and `prefix`.
+
+        That is 1 byte per node plus 64 bytes (8 uint32 child rows and 8 uint32 prefix
+        sums) per node above level D - 1, padding rows included (none in compact trees).
+        The grid, the per-level counts and the attribute arrays are not counted.
+        """
+        return int(self.mask.nbytes + self.child.nbytes + self.prefix.nbytes)
+
+
+# ----------------------------------------------------------------------------- build
+
+
+def _slot(ijk: jax.Array, shift) -> jax.Array:
+    """Child slot (uint32) of voxel indices [..., 3] at bit `shift`."""
+    b = (ijk >> shift) & 1
+    return (b[..., 0] | (b[..., 1] << 1) | (b[..., 2] << 2)).astype(jnp.uint32)
+
+
+def _popcount8(mask: jax.Array) -> jax.Array:
+    return jax.lax.population_count(mask.astype(jnp.uint32)).astype(jnp.int32)
+
+
+def _segments(ijk: jax.Array, n: jax.Array):
+    """Groups Morton-sorted cells by parent.
+
+    Args:
+      ijk: [C, 3] int32 cells, the first `n` valid, in Morton order.
+      n: [] int32.
+
+    Returns:
+      (parent [C] int32 index of each cell's parent among the distinct parents,
+      first [C] bool whether the cell is the first of its parent, count [] int32 of parents).
+    """
+    parent_ijk = ijk >> 1
+    valid = jnp.arange(ijk.shape[0]) < n
+    differs = jnp.any(parent_ijk[1:] != parent_ijk[:-1], axis=1)
+    first = valid & jnp.concatenate([jnp.ones(1, bool), differs])
+    parent = jnp.cumsum(first, dtype=jnp.int32) - 1
+    return parent, first, jnp.sum(first, dtype=jnp.int32)
+
+
+def _unique_masks(mask: jax.Array, n: jax.Array):
+    """Deduplicates uint8 masks (first `n` valid) through a 256-entry table.
+
+    Returns (id [C] int32 of each mask's unique node, table [C] uint8 unique masks in
+    increasing order, count [] int32).
+    """
+    valid = jnp.arange(mask.shape[0]) < n
+    present = jnp.zeros(256, jnp.int32).at[jnp.where(valid, mask.astype(jnp.int32), 256)].set(1, mode="drop")
+    rank = jnp.cumsum(present) - present
+    table = jnp.zeros(mask.shape[0], jnp.uint8).at[jnp.where(present > 0, rank, mask.shape[0])].set(
+        jnp.arange(256, dtype=jnp.uint8), mode="drop")
+    return rank[mask.astype(jnp.int32)], table, jnp.sum(present)
+
+
+def _unique_rows(rows: jax.Array, n: jax.Array):
+    """Deduplicates child rows (first `n` valid) by a lexicographic sort.
+
+    Args:
+      rows: [C, 8] uint32; invalid rows are all `EMPTY` (a valid row never is).
+
+    Returns:
+      (id [C] int32 of each row's unique node, rep [C] int32 one source row of each
+      unique node (in lexicographic order), count [] int32).
+    """
+    c = rows.shape[0]
+    iota = jnp.arange(c, dtype=jnp.int32)
+    *cols, perm = jax.lax.sort([rows[:, s] for s in range(8)] + [iota], num_keys=8)
+    srt = jnp.stack(cols, axis=1)
+    differs = jnp.any(srt[1:] != srt[:-1], axis=1)
+    first = (iota < n) & jnp.concatenate([jnp.ones(1, bool), differs])
+    sid = jnp.cumsum(first, dtype=jnp.int32) - 1
+    ids = jnp.zeros(c, jnp.int32).at[perm].set(sid)
+    rep = jnp.zeros(c, jnp.int32).at[jnp.where(first, sid, c)].set(perm, mode="drop")
+    return ids, rep, jnp.sum(first, dtype=jnp.int32)
+
+
+class _Level(NamedTuple):
+    """One built level (C = its capacity) and what the level above needs from it."""
+
+    mask: jax.Array  # [C] uint8
+    child: jax.Array | None  # [C, 8] uint32 rows relative to the next level's start (None at level D - 1)
+    prefix: jax.Array | None  # [C, 8] uint32
+    count: jax.Array  # [] int32 rows used (after deduplication in a DAG)
+    cells: jax.Array  # [C, 3] int32 octree nodes of this level, Morton order (the next step's input)
+    n_cells: jax.Array  # [] int32
+    cell_counts: jax.Array  # [C] int32 voxels below each octree node
+    cell_ids: jax.Array  # [C] int32 stored row of each octree node
+    overflow: jax.Array  # [] bool
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "dag"))
+def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool) -> _Level:
+    """One bottom-up step: groups the cells of the level below by parent.
+
+    Args:
+      ijk: [C', 3] int32 cells of the level below (voxels for level D - 1), the first
+        `n` valid, in Morton order.
+      counts: [C'] int32 voxels in each cell, or None for voxels.
+      ids: [C'] int32 stored row of each cell within its level, or None for voxels.
+      capacity: static number of rows of this level.
+      dag: static, deduplicate the rows.
+    """
+    cap = capacity
+    parent, first, n_parent = _segments(ijk, n)
+    overflow = n_parent > cap
+    n_parent = jnp.minimum(n_parent, cap)
+    valid = jnp.arange(ijk.shape[0]) < n
+    dest = jnp.where(valid, parent, cap)  # invalid cells go to the dropped slot `cap`
+    slot = _slot(ijk, 0)
+    cells = jnp.zeros((cap, 3), jnp.int32).at[jnp.where(first, parent, cap)].set(ijk >> 1, mode="drop")
+    # `row`: the stored row of each octree node (the DAG maps duplicates to one row).
+    row, n_rows, child, prefix = jnp.arange(cap, dtype=jnp.int32), n_parent, None, None
+    if counts is None:  # level D - 1: masks only
+        mask = jnp.zeros(cap, jnp.uint8).at[dest].add((1 << slot).astype(jnp.uint8), mode="drop")
+        cell_counts = _popcount8(mask)
+        if dag:
+            row, mask, n_rows = _unique_masks(mask, n_parent)
+    else:
+        child = jnp.full((cap, 8), EMPTY).at[dest, slot].set(ids.astype(jnp.uint32), mode="drop")
+        per_slot = jnp.zeros((cap, 8), jnp.int32).at[dest, slot].set(counts, mode="drop")
+        cell_counts = per_slot.sum(1)
+        if dag:
+            row, rep, n_rows = _unique_rows(child, n_parent)
+            keep = (jnp.arange(cap) < n_rows)[:, None]
+            child = jnp.where(keep, child[rep], EMPTY)
+            per_slot = jnp.where(keep, per_slot[rep], 0)
+        mask = jnp.sum(jnp.where(child != EMPTY, jnp.uint8(1) << _SLOTS.astype(np.uint8), 0),
+                       axis=1, dtype=jnp.uint8)
+        prefix = (jnp.cumsum(per_slot, axis=1) - per_slot).astype(jnp.uint32)
+    return _Level(mask, child, prefix, n_rows, cells, n_parent, cell_counts, row, overflow)
+
+
+def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> list[_Level]:
+    """All levels, root first; level ``l`` has `capacity[l]` rows."""
+    ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
+    levels = []
+    for cap in capacity[::-1]:
+        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag)
+        levels.append(level)
+        ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
+    return levels[::-1]
+
+
+def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag) -> Octree:
+    return Octree(mask=mask, child=child, prefix=prefix, level_count=level_count,
+                  voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.int32),
+                  overflow=(vox.overflow | jnp.where(overflow, OVERFLOW_NODES, 0)).astype(jnp.int32),
+                  grid=vox.grid, level_capacity=tuple(int(c) for c in capacity), dag=dag, mode=vox.mode)
+
+
+@functools.partial(jax.jit, static_argnames=("capacity", "dag"))
+def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
+    """Bottom-up build with static per-level capacities, as one jittable function."""
+    levels = _levels(vox, capacity, dag)
+    offsets = np.cumsum((0,) + tuple(capacity))
+    child = [jnp.where(lv.child == EMPTY, EMPTY, lv.child + jnp.uint32(offsets[i + 1]))
+             for i, lv in enumerate(levels[:-1])]
+    rows = lambda parts: jnp.concatenate(parts) if parts else jnp.zeros((0, 8), jnp.uint32)
+    return _tree(vox, jnp.concatenate([lv.mask for lv in levels]), rows(child), rows([lv.prefix for lv in levels[:-1]]),
+                 jnp.stack([lv.count for lv in levels]), jnp.any(jnp.stack([lv.overflow for lv in levels])),
+                 capacity, dag)
+
+
+def _build_compact(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
+    """Host-side build: per-level compiled steps (shared by similar inputs), assembled on
+    the host into compact tables without padding rows."""
+    levels = _levels(vox, capacity, dag)
+    sizes = [int(lv.count) for lv in levels]
+    if any(bool(lv.overflow) for lv in levels):
+        raise JaxvoxError(f"internal error: octree levels {sizes} overflowed capacities {capacity}")
+    stored = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
+    offsets = np.cumsum([0] + stored)
+    child = np.empty((offsets[-2], 8), np.uint32)
+    prefix = np.empty((offsets[-2], 8), np.uint32)
+    for i, lv in enumerate(levels[:-1]):
+        rows = np.asarray(lv.child[:stored[i]])
+        child[offsets[i]:offsets[i + 1]] = np.where(rows == EMPTY, EMPTY, rows + np.uint32(offsets[i + 1]))
+        prefix[offsets[i]:offsets[i + 1]] = np.asarray(lv.prefix[:stored[i]])
+    mask = np.concatenate([np.asarray(lv.mask[:n]) for lv, n in zip(levels, stored)])
+    put = functools.partial(jax.device_put, may_alias=True)
+    return _tree(vox, put(mask), put(child), put(prefix), jnp.asarray(sizes, jnp.int32), jnp.bool_(False),
+                 stored, dag)
+
+
+@functools.partial(jax.jit, static_argnames=("depth",))
+def _level_counts(coords: jax.Array, count: jax.Array, *, depth: int):
+    """Counting pass: nodes per level of the SVO, and whether the input is well formed.
+
+    Returns (counts [depth] int32 root first, sorted [] bool: valid voxels strictly
+    increase in Morton order, in_range [] bool: all indices in [0, 2^depth)).
+    """
+    valid = jnp.arange(coords.shape[0]) < count
+    inside = jnp.all((coords >= 0) & (coords < (1 << depth)) | ~valid[:, None])
+    hi, lo = morton.encode(jnp.clip(coords, 0, (1 << depth) - 1))
+    increasing = (hi[1:] > hi[:-1]) | ((hi[1:] == hi[:-1]) & (lo[1:] > lo[:-1]))
+    ordered = jnp.all(increasing | ~valid[1:])
+    counts = []
+    cells = jnp.where(valid[:, None], coords, 0)
+    for _ in range(depth):
+        cells = cells >> 1
+        differs = jnp.any(cells[1:] != cells[:-1], axis=1)
+        counts.append(jnp.sum(valid[:1]) + jnp.sum(differs & valid[1:]))
+    return jnp.stack(counts[::-1]).astype(jnp.int32), ordered, inside
+
+
+def _check_voxels(vox: Voxels) -> tuple[int, ...]:
+    """Host-side validation of build input; returns the SVO node count per level."""
+    if not isinstance(vox, Voxels):
+        raise JaxvoxError(f"expected jaxvox.Voxels, got {type(vox).__name__}")
+    if int(vox.overflow):
+        raise JaxvoxError(f"the voxel buffer overflowed (flags {int(vox.overflow)}); "
+                          "the tree would be truncated")
+    depth = vox.grid.resolution.bit_length() - 1
+    counts, ordered, inside = _level_counts(vox.coords, vox.count, depth=depth)
+    if not bool(inside):
+        raise JaxvoxError(f"voxel indices outside [0, {vox.grid.resolution})")
+    if not bool(ordered):
+        raise JaxvoxError("voxels are not unique and in Morton order (build them with "
+                          "jaxvox.voxelize or Voxels.from_coords)")
+    return tuple(int(c) for c in np.asarray(counts))
+
+
+
+
+def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
+    if capacities is not None:
+        capacities = tuple(int(c) for c in capacities)
+        depth = vox.grid.resolution.bit_length() - 1
+        if len(capacities) != depth or capacities[0] != 1 or min(capacities) < 0:
+            raise JaxvoxError(f"capacities must be {depth} non-negative ints with capacities[0] == 1, "
+                              f"got {capacities}")
+        return _build(vox, capacity=capacities, dag=dag)
+    sizes = _check_voxels(vox)
+    # Power-of-two capacities: similar inputs share compiled level steps.
+    capacity = tuple(min(8**level, bucket_pow2(n)) for level, n in enumerate(sizes))
+    return _build_compact(vox, capacity, dag)
+
+
+def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
+    """Builds the sparse voxel octree of a voxel set, bottom-up from Morton order.
+
+    Without `capacities` (host-side use) the input is checked (no overflow, indices in
+    range, unique and Morton-sorted), a counting pass sizes every level and the result is
+    compact. With `capacities` the build is a pure function of static shape, usable inside
+    `jax.jit` and `jax.vmap`: a level with more nodes than its capacity sets
+    `OVERFLOW_NODES` in ``tree.overflow`` and the tree is truncated.
+
+    Args:
+      vox: `Voxels` (unique, Morton-sorted, as `jaxvox.voxelize` returns them).
+      capacities: static per-level node capacities, D ints (root level first, 1 for the
+        root), or None.
+
+    Returns:
+      An `Octree` with ``dag=False`` whose nodes are in Morton order within each level.
+    """
+    return _build_host(vox, capacities, dag=False)
+
+
+def build_dag(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
+    """Builds the sparse voxel DAG: the octree with identical subtrees stored once.
+
+    Deduplication runs bottom-up during the build (see the module docstring), so the
+    octree is never stored. `capacities` bound the *octree's* node counts per level (the
+    rows deduplicated at each level); the host-side path sizes them by the counting pass
+    and compacts the result to the DAG's own sizes. Same contract as `build_octree`.
+
+    Returns:
+      An `Octree` with ``dag=True``; canonical (the same voxel set gives the same arrays).
+    """
+    return _build_host(vox, capacities, dag=True)
+
+
+def compact(tree: Octree) -> Octree:
+    """Drops padding rows so that ``level_capacity == level_sizes`` (host-side).
+
+    Child rows are absolute, so each level's pointers shift by the change of its target
+    level's offset. The work is host memory copies (numpy), so it compiles nothing.
+    """
+    sizes = tree.level_sizes
+    sizes = (max(sizes[0], 1),) + sizes[1:]  # the root row always exists
+    if sizes == tuple(tree.level_capacity):
+        return tree
+    old, new = tree.level_offsets, tuple(int(x) for x in np.cumsum((0,) + sizes[:-1]))
+    mask, child, prefix = (np.asarray(a) for a in (tree.mask, tree.child, tree.prefix))
+    rows = [slice(o, o + s) for o, s in zip(old, sizes)]
+    out_child = np.empty((sum(sizes[:-1]), 8), np.uint32)
+    for level in range(tree.depth - 1):
+        part = child[rows[level]]
+        shift = np.uint32(old[level + 1] - new[level + 1])
+        out_child[new[level]:new[level] + sizes[level]] = np.where(part == EMPTY, EMPTY, part - shift)
+    put = functools.partial(jax.device_put, may_alias=True)
+    return dataclasses.replace(
+        tree, mask=put(np.concatenate([mask[r] for r in rows])), child=put(out_child),
+        prefix=put(np.concatenate([prefix[r] for r in rows[:-1]]) if tree.depth > 1 else prefix[:0]),
+        level_capacity=sizes)
+
+
+# ----------------------------------------------------------------------------- queries
+
+
+@jax.jit
+def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
+    """Morton-order index of each voxel in the tree, `MISSING` (-1) where empty.
+
+    A root-to-leaf walk adding the stored prefix sums; the index addresses attribute
+    arrays in the order of ``expand(tree)`` (and of the source `Voxels`). Pure and
+    jittable; indices outside the grid give -1.
+
+    Args:
+      tree: an `Octree` (SVO or DAG).
+      ijk: [..., 3] int voxel indices.
+
+    Returns:
+      [...] int32.
+    """
+    ijk = jnp.asarray(ijk).astype(jnp.int32)
+    depth = tree.depth
+    alive = jnp.all((ijk >= 0) & (ijk < tree.grid.resolution), axis=-1) & (tree.voxel_count > 0)
+    node = jnp.zeros(ijk.shape[:-1], jnp.int32)
+    index = jnp.zeros(ijk.shape[:-1], jnp.int32)
+
+    def step(level, state):
+        node, index, alive = state
+        slot = _slot(ijk, depth - 1 - level).astype(jnp.int32)
+        index += jnp.where(alive, tree.prefix[node, slot].astype(jnp.int32), 0)
+        nxt = tree.child[node, slot]
+        alive &= nxt != EMPTY
+        return jnp.where(alive, nxt, 0).astype(jnp.int32), index, alive
+
+    if depth > 1:
+        node, index, alive = jax.lax.fori_loop(0, depth - 1, step, (node, index, alive))
+    slot = _slot(ijk, 0)
+    mask = tree.mask[node].astype(jnp.uint32)
+    alive &= ((mask >> slot) & 1) == 1
+    index += _popcount8(mask & ((jnp.uint32(1) << slot) - 1))
+    return jnp.where(alive, index, MISSING)
+
+
+@functools.partial(jax.jit, static_argnames=("depth", "capacity"))
+def _expand_nodes(mask, child, voxel_count, *, depth: int, capacity: int):
+    """Top-down expansion of node tables; returns (coords [capacity, 3] int32, count).
+
+    Takes the tables rather than the `Octree`, so trees of equal (padded) table sizes
+    share one compiled program whatever their level sizes.
+    """
+    node = jnp.zeros(1, jnp.int32)  # absolute row of each node instance
+    ijk = jnp.zeros((1, 3), jnp.int32)
+    n = (voxel_count > 0).astype(jnp.int32)
+    select = jnp.asarray(_SELECT)
+    for level in range(depth):
+        cap = min(capacity, 8 ** (level + 1))
+        m = mask[node]
+        live = jnp.arange(node.shape[0]) < n
+        owner, rank, valid, n = expand_counts(jnp.where(live, _popcount8(m), 0), cap)
+        slot = select[m[owner].astype(jnp.int32), jnp.minimum(rank, 7)].astype(jnp.int32)
+        ijk = 2 * ijk[owner] + ((slot[:, None] >> jnp.arange(3)) & 1)
+        if level < depth - 1:
+            node = jnp.where(valid, child[node[owner], slot].astype(jnp.int32), 0)
+    n = jnp.minimum(n, capacity)
+    return jnp.where((jnp.arange(ijk.shape[0]) < n)[:, None], ijk, UNUSED), n
+
+
+def _pad_rows(a: jax.Array, fill) -> jax.Array:
+    """Host copy of `a` padded with `fill` rows to a power-of-two length."""
+    a = np.asarray(a)
+    pad = bucket_pow2(len(a), 1) - len(a)
+    return jax.device_put(np.concatenate([a, np.full((pad,) + a.shape[1:], fill, a.dtype)]), may_alias=True)
+
+
+def expand(tree: Octree, *, capacity: int | None = None) -> Voxels:
+    """The voxels of a tree, in Morton order (the inverse of the builds).
+
+    A top-down pass per level: every node instance emits its children in slot order,
+    so the output is Morton-sorted without a sort. Without `capacity` (host-side) the
+    buffer is sized by ``tree.voxel_count`` (and the tables are padded to power-of-two
+    sizes so that similar trees share a compiled program); with a static `capacity` it is
+    jittable, and a tree with more voxels sets `OVERFLOW_NODES` in the result's
+    ``overflow``.
+
+    Returns:
+      `Voxels` (``triangle`` is None; attributes stay in their own arrays).
+    """
+    mask, child = tree.mask, tree.child
+    if capacity is None:
+        if int(tree.overflow):
+            raise JaxvoxError(f"the tree is truncated (overflow flags {int(tree.overflow)})")
+        capacity = bucket_pow2(int(tree.voxel_count))
+        mask, child = _pad_rows(mask, 0), _pad_rows(child, EMPTY)
+    coords, n = _expand_nodes(mask, child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
+    overflow = tree.overflow | jnp.where(tree.voxel_count > capacity, OVERFLOW_NODES, 0)
+    return Voxels(coords, n, overflow.astype(jnp.int32), None, tree.grid, tree.mode)
+
+
+# ----------------------------------------------------------------------------- attributes
+
+
+def voxel_attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
+    """Per-voxel attributes from the triangle that set each voxel, in Morton order.
+
+    Args:
+      mesh: the mesh the voxels came from.
+      vox: `Voxels` from ``jaxvox.voxelize(..., triangle_ids=True)``.
+
+    Returns:
+      A dict of arrays over the voxel buffer's slots (``[capacity, ...]``; slots past
+      ``vox.count`` are zero or -1), to be indexed by `voxel_index`:
+
+      * ``"triangle"``: int32 [capacity] triangle id (-1 in unused slots);
+      * ``"normal"``: float32 [capacity, 3] unit face normal (0 for degenerate faces);
+      * ``"color"``: float32 [capacity, C], only when the mesh has vertex colours: the
+        colour interpolated at the point of the triangle's plane nearest the voxel centre
+        (barycentric weights clipped to the triangle).
+    """
+    if vox.triangle is None:
+        raise JaxvoxError("these voxels carry no triangle ids; voxelize with triangle_ids=True")
+    return _attributes(mesh, vox)
+
+
+@jax.jit
+def _attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
+    valid = jnp.arange(vox.coords.shape[0]) < vox.count
+    tri = jnp.where(valid, vox.triangle, 0)
+    corners = mesh.vertices[mesh.faces[tri]]  # [C, 3, 3]
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    normal = jnp.cross(e1, e2)
+    length = jnp.linalg.norm(normal, axis=-1, keepdims=True)
+    unit = jnp.where(length > 0, normal / jnp.where(length > 0, length, 1.0), 0.0)
+    out = {"triangle": jnp.where(valid, vox.triangle, -1), "normal": jnp.where(valid[:, None], unit, 0.0)}
+    if mesh.colors is not None:
+        centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
+        weights = _barycentric(corners, centre, normal)
+        colour = jnp.einsum("ck,ckd->cd", weights, mesh.colors[mesh.faces[tri]])
+        out["color"] = jnp.where(valid[:, None], colour, 0.0)
+    return out
+
+
+def _barycentric(corners, point, normal):
+    """Clipped barycentric weights [C, 3] of `point` projected onto each triangle's plane."""
+    area2 = jnp.sum(normal * normal, axis=-1)
+    safe = jnp.where(area2 > 0, area2, 1.0)
+    sub = lambda a, b: jnp.sum(jnp.cross(corners[:, b] - point, corners[:, a] - point) * normal, -1)
+    w = jnp.stack([sub(2, 1), sub(0, 2), sub(1, 0)], axis=-1) / safe[:, None]
+    w = jnp.where(area2[:, None] > 0, jnp.clip(w, 0.0, None), 1.0)
+    return w / jnp.sum(w, axis=-1, keepdims=True)
