@@ -1,4 +1,4 @@
-"""The ``jaxvox`` command line: ``run`` (the main job), ``voxelize``.
+"""The ``jaxvox`` command line: ``run`` (the main job), ``voxelize``, ``build``.
 
 Errors (missing file, bad option, bad resolution) print one line and exit with status 2.
 """
@@ -57,8 +57,40 @@ def cmd_voxelize(args) -> int:
     return 0
 
 
+def _build_tree(mesh, grid, kind: str):
+    """Voxelizes with triangle ids and builds an octree or DAG; returns (tree, attributes, seconds)."""
+    import jaxvox as jv
+
+    vox = jv.voxelize(mesh, grid, triangle_ids=True)
+    start = time.perf_counter()
+    tree = (jv.build_dag if kind == "dag" else jv.build_octree)(vox)
+    tree.mask.block_until_ready()
+    return tree, jv.voxel_attributes(mesh, vox), time.perf_counter() - start
+
+
+def _tree_line(tree, seconds: float) -> str:
+    kind = "DAG" if tree.dag else "octree"
+    return (f"{kind:6s} {tree.num_nodes:>9,d} nodes, {tree.nbytes / 2**20:8.2f} MiB "
+            f"({8 * tree.nbytes / max(int(tree.voxel_count), 1):.1f} bits/voxel), built in {seconds:.2f} s")
+
+
+def cmd_build(args) -> int:
+    """Voxelizes a mesh, builds its octree or DAG and saves it with per-voxel attributes."""
+    import jaxvox as jv
+
+    mesh, name = _load(args.mesh)
+    grid = jv.Grid.fit(mesh, resolution=args.resolution)
+    tree, attributes, seconds = _build_tree(mesh, grid, args.kind)
+    jv.save(args.out, tree, attributes=attributes)
+    print(f"{name}: {int(tree.voxel_count):,} voxels at {args.resolution}^3 -> " + _tree_line(tree, seconds))
+    print(f"  nodes per level: {list(tree.level_sizes)}")
+    print(f"wrote {args.out} (attributes: {', '.join(sorted(attributes))})")
+    return 0
+
+
 def cmd_run(args) -> int:
-    """The main job: voxelize a mesh (default: the built-in scene) in both modes, report, draw."""
+    """The main job: voxelize a mesh (default: the built-in scene) in both modes, build its
+    octree and DAG, report, draw."""
     import jaxvox as jv
     from jaxvox.plot import save_projections
 
@@ -73,13 +105,22 @@ def cmd_run(args) -> int:
         results[mode] = vox.to_numpy()
         print(f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
               f"(after a warm-up call that compiles)")
+    trees = {}
+    for kind in ("octree", "dag"):
+        _build_tree(mesh, grid, kind)  # compile
+        trees[kind], attributes, seconds = _build_tree(mesh, grid, kind)
+        print(f"  {_tree_line(trees[kind], seconds)}")
+    print(f"  octree/DAG nodes: {trees['octree'].num_nodes / trees['dag'].num_nodes:.1f}x")
     png = os.path.join(args.out, "voxels.png")
     save_projections(png, results, args.resolution)
     npz = os.path.join(args.out, "voxels.npz")
     _save_npz(npz, results["conservative"], grid, "conservative")
+    jvx = os.path.join(args.out, "scene.jvx")
+    jv.save(jvx, trees["dag"], attributes=attributes)
     print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
     print(f"wrote {png} (rows: conservative, 6-separating; columns: views along x, y, z)")
     print(f"wrote {npz} (conservative voxel indices and the grid)")
+    print(f"wrote {jvx} (the DAG with per-voxel {', '.join(sorted(attributes))}; jaxvox.load / load_attributes)")
     return 0
 
 
@@ -102,7 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxvox", description="Voxel geometry in JAX.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    run = sub.add_parser("run", help="main job: voxelize the default scene (or MESH), report, write a PNG")
+    run = sub.add_parser("run", help="main job: voxelize the default scene (or MESH), build its octree "
+                                     "and DAG, report, write a PNG and the DAG")
     run.add_argument("mesh", nargs="?", help="mesh file (default: the built-in scene)")
     run.add_argument("--resolution", type=int, default=256)
     run.add_argument("--out", default=DEFAULT_OUT, help="output folder (default: out)")
@@ -114,6 +156,13 @@ def build_parser() -> argparse.ArgumentParser:
     vox.add_argument("--mode", choices=["conservative", "6-separating"], default="conservative")
     vox.add_argument("--out", default="voxels.npz")
     vox.set_defaults(func=cmd_voxelize)
+
+    build = sub.add_parser("build", help="voxelize a mesh and save its DAG (or octree) with attributes")
+    build.add_argument("mesh", nargs="?", help="mesh file trimesh can read (default: the built-in scene)")
+    build.add_argument("--resolution", type=int, default=512, help="voxels per axis, a power of two")
+    build.add_argument("--kind", choices=["dag", "octree"], default="dag")
+    build.add_argument("--out", default="tree.jvx")
+    build.set_defaults(func=cmd_build)
     return parser
 
 

@@ -176,11 +176,40 @@ def _unique_masks(mask: jax.Array, n: jax.Array):
     return rank[mask.astype(jnp.int32)], table, jnp.sum(present)
 
 
-def _unique_rows(rows: jax.Array, n: jax.Array):
+def _packed_keys(rows: jax.Array, id_bits: int) -> list[jax.Array]:
+    """Packs child rows into as few uint32 sort keys as their ids allow.
+
+    Children are ids below ``2^id_bits - 1`` or `EMPTY`, which becomes ``2^id_bits - 1``
+    (still the largest value), and are packed first child in the highest bits, so the
+    lexicographic order of the keys is that of the rows.
+
+    Args:
+      rows: [C, 8] uint32.
+      id_bits: static bit width per child (1..32).
+
+    Returns:
+      ceil(8 / floor(32 / id_bits)) uint32 [C] keys (2 for ids below 255, 8 above 2^16).
+    """
+    per_word = 32 // id_bits
+    if per_word == 1:
+        return [rows[:, s] for s in range(8)]
+    top = jnp.uint32((1 << id_bits) - 1)
+    small = jnp.where(rows == EMPTY, top, rows)
+    keys = []
+    for start in range(0, 8, per_word):
+        key = jnp.zeros(rows.shape[0], jnp.uint32)
+        for s in range(start, min(start + per_word, 8)):
+            key = (key << id_bits) | small[:, s]
+        keys.append(key)
+    return keys
+
+
+def _unique_rows(rows: jax.Array, n: jax.Array, id_bits: int):
     """Deduplicates child rows (first `n` valid) by a lexicographic sort.
 
     Args:
       rows: [C, 8] uint32; invalid rows are all `EMPTY` (a valid row never is).
+      id_bits: static, child ids are below ``2^id_bits - 1`` (see `_packed_keys`).
 
     Returns:
       (id [C] int32 of each row's unique node, rep [C] int32 one source row of each
@@ -188,9 +217,9 @@ def _unique_rows(rows: jax.Array, n: jax.Array):
     """
     c = rows.shape[0]
     iota = jnp.arange(c, dtype=jnp.int32)
-    *cols, perm = jax.lax.sort([rows[:, s] for s in range(8)] + [iota], num_keys=8)
-    srt = jnp.stack(cols, axis=1)
-    differs = jnp.any(srt[1:] != srt[:-1], axis=1)
+    keys = _packed_keys(rows, id_bits)
+    *srt, perm = jax.lax.sort(keys + [iota], num_keys=len(keys))
+    differs = jnp.any(jnp.stack([k[1:] != k[:-1] for k in srt]), axis=0)
     first = (iota < n) & jnp.concatenate([jnp.ones(1, bool), differs])
     sid = jnp.cumsum(first, dtype=jnp.int32) - 1
     ids = jnp.zeros(c, jnp.int32).at[perm].set(sid)
@@ -212,8 +241,8 @@ class _Level(NamedTuple):
     overflow: jax.Array  # [] bool
 
 
-@functools.partial(jax.jit, static_argnames=("capacity", "dag"))
-def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool) -> _Level:
+@functools.partial(jax.jit, static_argnames=("capacity", "dag", "id_bits"))
+def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int = 32) -> _Level:
     """One bottom-up step: groups the cells of the level below by parent.
 
     Args:
@@ -223,6 +252,7 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool) -> _Level:
       ids: [C'] int32 stored row of each cell within its level, or None for voxels.
       capacity: static number of rows of this level.
       dag: static, deduplicate the rows.
+      id_bits: static, `ids` are below ``2^id_bits - 1`` (narrower sort keys).
     """
     cap = capacity
     parent, first, n_parent = _segments(ijk, n)
@@ -244,7 +274,7 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool) -> _Level:
         per_slot = jnp.zeros((cap, 8), jnp.int32).at[dest, slot].set(counts, mode="drop")
         cell_counts = per_slot.sum(1)
         if dag:
-            row, rep, n_rows = _unique_rows(child, n_parent)
+            row, rep, n_rows = _unique_rows(child, n_parent, id_bits)
             keep = (jnp.arange(cap) < n_rows)[:, None]
             child = jnp.where(keep, child[rep], EMPTY)
             per_slot = jnp.where(keep, per_slot[rep], 0)
@@ -254,12 +284,17 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool) -> _Level:
     return _Level(mask, child, prefix, n_rows, cells, n_parent, cell_counts, row, overflow)
 
 
-def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> list[_Level]:
-    """All levels, root first; level ``l`` has `capacity[l]` rows."""
+def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool, host: bool) -> list[_Level]:
+    """All levels, root first; level ``l`` has `capacity[l]` rows.
+
+    The DAG's sort keys are as narrow as the ids of the level below allow: bounded by
+    that level's capacity, or on the host (`host`) by its actual row count.
+    """
     ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
-    levels = []
+    levels, below = [], 0
     for cap in capacity[::-1]:
-        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag)
+        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=max(1, min(32, below.bit_length())))
+        below = int(level.count) if host else cap
         levels.append(level)
         ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
     return levels[::-1]
@@ -275,7 +310,7 @@ def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag
 @functools.partial(jax.jit, static_argnames=("capacity", "dag"))
 def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     """Bottom-up build with static per-level capacities, as one jittable function."""
-    levels = _levels(vox, capacity, dag)
+    levels = _levels(vox, capacity, dag, host=False)
     offsets = np.cumsum((0,) + tuple(capacity))
     child = [jnp.where(lv.child == EMPTY, EMPTY, lv.child + jnp.uint32(offsets[i + 1]))
              for i, lv in enumerate(levels[:-1])]
@@ -288,7 +323,7 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
 def _build_compact(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     """Host-side build: per-level compiled steps (shared by similar inputs), assembled on
     the host into compact tables without padding rows."""
-    levels = _levels(vox, capacity, dag)
+    levels = _levels(vox, capacity, dag, host=True)
     sizes = [int(lv.count) for lv in levels]
     if any(bool(lv.overflow) for lv in levels):
         raise JaxvoxError(f"internal error: octree levels {sizes} overflowed capacities {capacity}")

@@ -388,3 +388,22 @@ def test_corrupt_and_truncated_files_are_detected(saved, tmp_path):
         jv.load(bad)
     with pytest.raises(jv.JaxvoxError, match="cannot read"):
         jv.load(tmp_path / "missing.jvx")
+
+
+def test_cli_build_and_run(tmp_path, capsys, meshes_dir):
+    from jaxvox.cli import main
+
+    out = tmp_path / "woody.jvx"
+    assert main(["build", str(meshes_dir / "woody.obj"), "--resolution", "32", "--out", str(out)]) == 0
+    tree = jv.load(out)
+    assert tree.dag and tree.grid.resolution == 32
+    mesh = jv.load_mesh(meshes_dir / "woody.obj")
+    expected = jv.voxelize(mesh, jv.Grid.fit(mesh, 32)).to_numpy()
+    np.testing.assert_array_equal(jv.expand(tree).to_numpy(), expected)
+    assert set(jv.load_attributes(out)) == {"triangle", "normal"}
+    assert main(["run", "--resolution", "32", "--out", str(tmp_path / "run")]) == 0
+    printed = capsys.readouterr().out
+    assert "DAG" in printed and "octree/DAG nodes" in printed
+    scene = jv.load(tmp_path / "run" / "scene.jvx")
+    assert set(jv.load_attributes(tmp_path / "run" / "scene.jvx")) == {"triangle", "normal", "color"}
+    assert int(scene.voxel_count) > 0 and (tmp_path / "run" / "voxels.png").stat().st_size > 0

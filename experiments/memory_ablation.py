@@ -1,0 +1,235 @@
+"""Memory ablation: bytes of voxel layouts from a dense bit grid to a DAG with prefix sums.
+
+For each mesh and resolution R a fresh subprocess voxelizes the mesh (conservative,
+`jv.Grid.fit`), builds the sparse voxel octree and the DAG with `jv.build_octree` and
+`jv.build_dag` (build times: the first call, which includes compilation, and the median
+of ``--repeats`` further calls), and reports node counts per level and the bytes of:
+
+==================  ===================================================================
+layout              bytes
+==================  ===================================================================
+dense bits          R^3 / 8: one bit per voxel
+spc                 1 byte per octree node (kaolin's SPC: masks only, children found by
+                    an exclusive sum of popcounts computed at load time)
+spc+exsum           5 bytes per octree node (masks plus kaolin's stored int32 exclusive sum)
+octree-33B          every node as a mask + 8 uint32 pointers (33 bytes), the level above the
+                    voxels included: the slides' count (955 MB vs 61 MB for the Asian
+                    Dragon at 8192^3 is this layout's octree/DAG ratio, i.e. the node ratio)
+octree              jaxvox's table without prefix sums: 1 byte per node + 8 uint32
+                    pointers per node above the mask-only level (the slides' naive layout)
+octree+prefix       ``svo.nbytes``: the above plus 8 uint32 prefix sums per inner node
+octree-sparse       1 byte + 1 uint32 first-child pointer per inner node, 1 byte per
+                    mask-only node (an octree's children are consecutive)
+dag-33B             the DAG, 33 bytes per node
+dag                 the DAG in jaxvox's table without prefix sums
+dag+prefix          ``dag.nbytes``: jaxvox's DAG as stored
+dag-sparse          empty slots dropped: per inner node a uint32 header (mask) and one
+                    uint32 pointer per present child, addressed by the popcount of the
+                    mask bits below the slot; 1 byte per mask-only node
+dag-sparse+prefix   the above plus a uint32 prefix sum per present child but the first
+                    (always 0)
+==================  ===================================================================
+
+The sparse layouts' sizes are computed from the built DAG's masks (exact popcounts), not
+by writing the packed stream. Bits per voxel divide each size by the voxel count.
+
+Outputs ``memory_ablation.json`` (all numbers and the machine), ``.png`` (bytes against
+resolution for the first mesh; octree/DAG ratio and bits per voxel for every mesh) and
+``.md`` (tables) in ``--out``.
+
+Examples:
+  python experiments/memory_ablation.py                     # 8 meshes up to 2048^3, the bunny to 8192^3
+  python experiments/memory_ablation.py --smoke             # R = 64, 128 on two meshes
+  python experiments/memory_ablation.py --meshes stanford-bunny --resolutions 8192
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import _common
+
+ALL_MESHES = ("stanford-bunny", "spot", "teapot", "suzanne", "fandisk", "cow", "woody", "beetle")
+LAYOUTS = ("dense bits", "spc", "spc+exsum", "octree-33B", "octree", "octree+prefix", "octree-sparse", "dag-33B",
+           "dag", "dag+prefix", "dag-sparse", "dag-sparse+prefix")
+
+
+def layout_bytes(svo, dag, resolution: int) -> dict[str, int]:
+    """Bytes of every layout in the module docstring, from the built trees."""
+    def parts(tree):
+        sizes = tree.level_sizes
+        nodes, inner = sum(sizes), sum(sizes[:-1])
+        children = int(np.unpackbits(np.asarray(tree.mask[:inner])[:, None], axis=1).sum())
+        return nodes, inner, sizes[-1], children
+
+    s_nodes, s_inner, _, _ = parts(svo)
+    d_nodes, d_inner, d_last, d_children = parts(dag)
+    return {
+        "dense bits": resolution**3 // 8,
+        "spc": s_nodes,
+        "spc+exsum": 5 * s_nodes,
+        "octree-33B": 33 * s_nodes,
+        "octree": s_nodes + 32 * s_inner,
+        "octree+prefix": svo.nbytes,
+        "octree-sparse": s_nodes + 4 * s_inner,
+        "dag-33B": 33 * d_nodes,
+        "dag": d_nodes + 32 * d_inner,
+        "dag+prefix": dag.nbytes,
+        "dag-sparse": 4 * (d_inner + d_children) + d_last,
+        "dag-sparse+prefix": 4 * (d_inner + d_children) + d_last + 4 * (d_children - d_inner),
+    }
+
+
+def worker(spec: dict) -> dict:
+    """One (mesh, resolution) case in this process; returns its row."""
+    import jax
+
+    import jaxvox as jv
+
+    mesh = jv.load_mesh(spec["path"])
+    resolution = spec["resolution"]
+    vox_timing, vox = _common.time_calls(
+        lambda: jax.block_until_ready(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution))), 0)
+    trees, timings = {}, {}
+    for name, build in (("octree", jv.build_octree), ("dag", jv.build_dag)):
+        timing, tree = _common.time_calls(lambda: jax.block_until_ready(build(vox)), spec["repeats"])
+        trees[name], timings[name] = tree, timing
+    count = int(vox.count)
+    sizes = layout_bytes(trees["octree"], trees["dag"], resolution)
+    return dict(
+        voxels=count,
+        voxelize_s=vox_timing["first_s"],
+        octree_levels=list(trees["octree"].level_sizes),
+        dag_levels=list(trees["dag"].level_sizes),
+        octree_nodes=trees["octree"].num_nodes,
+        dag_nodes=trees["dag"].num_nodes,
+        build_octree=timings["octree"],
+        build_dag=timings["dag"],
+        bytes=sizes,
+        bits_per_voxel={k: 8 * v / max(count, 1) for k, v in sizes.items()},
+        peak_rss_mib=_common.peak_rss_mib(),
+        backend=jax.default_backend(),
+        device=str(jax.devices()[0]),
+    )
+
+
+def mib(n: float) -> str:
+    return f"{n / 2**20:,.1f}"
+
+
+def table(rows: list[dict]) -> str:
+    """Markdown: sizes in MiB, ratios and build times per case."""
+    out = []
+    for row in rows:
+        if "error" in row:
+            out.append(dict(case=f"{row['mesh']} {row['resolution']}^3", octree=row["error"]))
+            continue
+        b = row["bytes"]
+        out.append({
+            "case": f"{row['mesh']} {row['resolution']}^3",
+            "voxels": f"{row['voxels']:,}",
+            "dense": mib(b["dense bits"]),
+            "spc": mib(b["spc"]),
+            "octree": mib(b["octree"]),
+            "octree+prefix": mib(b["octree+prefix"]),
+            "dag": mib(b["dag"]),
+            "dag+prefix": mib(b["dag+prefix"]),
+            "dag-sparse": mib(b["dag-sparse"]),
+            "dag-sparse+prefix": mib(b["dag-sparse+prefix"]),
+            "ratio": f"{b['octree'] / b['dag']:.1f}x",
+            "ratio33": f"{b['octree-33B'] / b['dag-33B']:.1f}x",
+            "bpv": f"{row['bits_per_voxel']['dag+prefix']:.2f}",
+            "t_svo": f"{row['build_octree']['median_s']:.2f}",
+            "t_dag": f"{row['build_dag']['median_s']:.2f}",
+            "peak": f"{row['peak_rss_mib'] / 1024:.1f}",
+        })
+    columns = [("case", "case"), ("voxels", "voxels"), ("dense", "dense bits MiB"), ("spc", "SPC MiB"),
+               ("octree", "octree MiB"), ("octree+prefix", "octree+prefix MiB"), ("dag", "DAG MiB"),
+               ("dag+prefix", "DAG+prefix MiB"), ("dag-sparse", "sparse DAG MiB"),
+               ("dag-sparse+prefix", "sparse DAG+prefix MiB"), ("ratio", "octree/DAG bytes"),
+               ("ratio33", "octree/DAG, 33 B/node (slides)"), ("bpv", "DAG+prefix bits/voxel"), ("t_svo", "SVO build s"),
+               ("t_dag", "DAG build s"), ("peak", "peak RSS GiB")]
+    return _common.markdown_table(out, columns)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """Bytes vs R (first mesh), octree/DAG ratio vs R and DAG bits per voxel vs R (all meshes)."""
+    rows = [r for r in rows if "error" not in r]
+    fig, (ax_bytes, ax_ratio, ax_bits) = _common.new_figure(3, width=5.5)
+    first = rows[0]["mesh"]
+    mine = sorted((r for r in rows if r["mesh"] == first), key=lambda r: r["resolution"])
+    res = [r["resolution"] for r in mine]
+    for layout in LAYOUTS:
+        ax_bytes.plot(res, [r["bytes"][layout] for r in mine], marker="o", label=layout)
+    ax_bytes.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bytes", title=f"{first}: bytes per layout")
+    ax_bytes.legend(fontsize=7)
+    for mesh in dict.fromkeys(r["mesh"] for r in rows):
+        part = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
+        x = [r["resolution"] for r in part]
+        ax_ratio.plot(x, [r["bytes"]["octree-33B"] / r["bytes"]["dag-33B"] for r in part], marker="o", label=mesh)
+        ax_ratio.plot(x, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in part], ls=":", color=ax_ratio.lines[-1].get_color())
+        ax_bits.plot(x, [r["bits_per_voxel"]["dag+prefix"] for r in part], marker="o", label=mesh)
+    ax_ratio.set(xscale="log", xlabel="resolution R", ylabel="octree bytes / DAG bytes",
+                 title="DAG compression (solid: 33 B/node, dotted: jaxvox tables)")
+    ax_bits.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bits per voxel",
+                title="DAG + prefix sums, bits per voxel")
+    for ax in (ax_bytes, ax_ratio, ax_bits):
+        ax.set_xticks(res, [str(r) for r in res])
+        ax.grid(True, which="both", alpha=0.3)
+    ax_ratio.legend(fontsize=7)
+    _common.save_figure(fig, path)
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    """Command-line options; see the module docstring."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--meshes", nargs="+", default=list(ALL_MESHES))
+    parser.add_argument("--mesh-dir", type=Path, default=_common.MESH_DIR)
+    parser.add_argument("--resolutions", nargs="+", type=int, default=[64, 128, 256, 512, 1024, 2048])
+    parser.add_argument("--huge", nargs="*", type=int, default=[4096, 8192], metavar="R",
+                        help="resolutions run for the first mesh only (default 4096 8192)")
+    parser.add_argument("--repeats", type=int, default=2, help="timed builds after the first (0 above 2048)")
+    parser.add_argument("--timeout", type=float, default=3600)
+    parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
+    parser.add_argument("--smoke", action="store_true", help="R = 64, 128 on two meshes; *_smoke outputs")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.smoke:
+        args.meshes, args.resolutions, args.huge = args.meshes[:2], [64, 128], []
+    return args
+
+
+def main(argv=None) -> None:
+    """Runs every case in its own process, then writes JSON, PNG and markdown."""
+    args = parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(json.loads(args.worker))))
+        return
+    cases = [(mesh, r) for mesh in args.meshes for r in args.resolutions]
+    cases += [(args.meshes[0], r) for r in args.huge if r not in args.resolutions]
+    rows = []
+    for mesh, resolution in _common.progress(cases, desc="cases"):
+        spec = dict(path=str(args.mesh_dir / f"{mesh}.obj"), resolution=resolution,
+                    repeats=args.repeats if resolution <= 2048 else 0)
+        row = dict(mesh=mesh, resolution=resolution)
+        row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
+        rows.append(row)
+        print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
+    stem = "memory_ablation_smoke" if args.smoke else "memory_ablation"
+    report = table(rows)
+    _common.write_json(args.out / f"{stem}.json", dict(
+        machine=_common.machine_info(["jax", "jaxlib", "numpy"]),
+        settings=dict(meshes=args.meshes, resolutions=args.resolutions, huge=args.huge, repeats=args.repeats),
+        layouts=LAYOUTS, results=rows))
+    (args.out / f"{stem}.md").write_text(report)
+    plot(rows, args.out / f"{stem}.png")
+    print(report)
+
+
+if __name__ == "__main__":
+    main()
