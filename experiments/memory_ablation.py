@@ -164,8 +164,10 @@ def plot(rows: list[dict], path: Path) -> None:
     first = rows[0]["mesh"]
     mine = sorted((r for r in rows if r["mesh"] == first), key=lambda r: r["resolution"])
     res = [r["resolution"] for r in mine]
-    for layout in LAYOUTS:
-        ax_bytes.plot(res, [r["bytes"][layout] for r in mine], marker="o", label=layout)
+    colours = [f"C{i % 10}" for i in range(len(LAYOUTS))]
+    for i, layout in enumerate(LAYOUTS):
+        ax_bytes.plot(res, [r["bytes"][layout] for r in mine], marker="os^"[i // 10 % 3], color=colours[i],
+                      ls="-" if i < 10 else "--", label=layout)
     ax_bytes.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bytes", title=f"{first}: bytes per layout")
     ax_bytes.legend(fontsize=7)
     for mesh in dict.fromkeys(r["mesh"] for r in rows):
@@ -174,7 +176,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax_ratio.plot(x, [r["bytes"]["octree-33B"] / r["bytes"]["dag-33B"] for r in part], marker="o", label=mesh)
         ax_ratio.plot(x, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in part], ls=":", color=ax_ratio.lines[-1].get_color())
         ax_bits.plot(x, [r["bits_per_voxel"]["dag+prefix"] for r in part], marker="o", label=mesh)
-    ax_ratio.set(xscale="log", xlabel="resolution R", ylabel="octree bytes / DAG bytes",
+    ax_ratio.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="octree bytes / DAG bytes",
                  title="DAG compression (solid: 33 B/node, dotted: jaxvox tables)")
     ax_bits.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bits per voxel",
                 title="DAG + prefix sums, bits per voxel")
@@ -197,6 +199,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--timeout", type=float, default=3600)
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--smoke", action="store_true", help="R = 64, 128 on two meshes; *_smoke outputs")
+    parser.add_argument("--plot-only", action="store_true", help="redraw the PNG and table from the JSON")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
@@ -210,6 +213,12 @@ def main(argv=None) -> None:
     if args.worker:
         print(json.dumps(worker(json.loads(args.worker))))
         return
+    stem = "memory_ablation_smoke" if args.smoke else "memory_ablation"
+    if args.plot_only:
+        rows = json.loads((args.out / f"{stem}.json").read_text())["results"]
+        (args.out / f"{stem}.md").write_text(table(rows))
+        plot(rows, args.out / f"{stem}.png")
+        return
     cases = [(mesh, r) for mesh in args.meshes for r in args.resolutions]
     cases += [(args.meshes[0], r) for r in args.huge if r not in args.resolutions]
     rows = []
@@ -220,7 +229,6 @@ def main(argv=None) -> None:
         row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
         rows.append(row)
         print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
-    stem = "memory_ablation_smoke" if args.smoke else "memory_ablation"
     report = table(rows)
     _common.write_json(args.out / f"{stem}.json", dict(
         machine=_common.machine_info(["jax", "jaxlib", "numpy"]),
