@@ -10,14 +10,18 @@ bytes                 content
 4                     uint32 header length H
 H                     UTF-8 JSON header: kind ("octree" or "dag"), mode, grid,
                       level sizes, voxel count, and for every array its name,
-                      dtype, shape and byte offset from the start of the data
-pad                   zeros up to a multiple of 8 bytes
-...                   array data, each array at an 8-byte aligned offset
+                      dtype (little-endian bool, int, uint or float), shape and
+                      byte offset from the start of the data; padded with spaces
+                      so that 16 + H is a multiple of 8
+...                   array data from byte 16 + H, each array at an 8-byte
+                      aligned offset, zeros between arrays
 4                     uint32 CRC-32 of every byte before it
 ====================  ==========================================================
 
 Any flipped byte changes the CRC-32; a truncated file is shorter than its header
-says. Both raise `JaxvoxError` naming the problem.
+says. Both raise `JaxvoxError` naming the problem, as does a header or a table that does
+not describe a valid tree (checked in full on load: shapes, pointer targets, prefix sums
+and the voxel count), so a file from another writer cannot produce a wrong tree.
 """
 
 from __future__ import annotations
@@ -31,13 +35,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
-from jaxvox.grid import Grid
+from jaxvox.grid import Grid, check_resolution
 from jaxvox.octree import EMPTY, Octree, compact
+from jaxvox.voxelize import MODES
 
 MAGIC = b"\x89JVX\r\n\x1a\n"
 FORMAT_VERSION = 1
 _PREFIX = struct.Struct("<8sII")
 _ALIGN = 8
+_KINDS = "biuf"  # numpy dtype kinds an array may have: bool, signed, unsigned, float
 
 
 def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = None) -> None:
@@ -63,12 +69,14 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
         value = np.asarray(value)
         if value.ndim == 0 or value.shape[0] < n:
             raise JaxvoxError(f"attribute {name!r} has shape {value.shape}; it needs {n} rows")
+        if value.dtype.kind not in _KINDS or value.dtype.fields is not None:
+            raise JaxvoxError(f"attribute {name!r} has dtype {value.dtype}; only bool, integer and float "
+                              "arrays are stored")
         arrays[f"attribute/{name}"] = value[:n]
     entries, blobs, offset = [], [], 0
     for name, value in arrays.items():
         value = np.ascontiguousarray(np.asarray(value))
-        if value.dtype.byteorder == ">":
-            value = value.astype(value.dtype.newbyteorder("<"))
+        value = value.astype(value.dtype.newbyteorder("<"))  # a no-op unless big-endian
         entries.append(dict(name=name, dtype=value.dtype.str, shape=list(value.shape), offset=offset))
         blobs.append(value)
         offset += -(-value.nbytes // _ALIGN) * _ALIGN
@@ -81,17 +89,32 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     head += b" " * (-(len(head) + _PREFIX.size) % _ALIGN)
     path = os.fspath(path)
     tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as fh:
-        crc = 0
-        for chunk in [_PREFIX.pack(MAGIC, FORMAT_VERSION, len(head)), head, *blobs]:
-            data = memoryview(chunk).cast("B") if isinstance(chunk, np.ndarray) else chunk
-            fh.write(data)
-            crc = zlib.crc32(data, crc)
-            pad = -len(data) % _ALIGN if isinstance(chunk, np.ndarray) else 0
-            fh.write(b"\0" * pad)
-            crc = zlib.crc32(b"\0" * pad, crc)
-        fh.write(struct.pack("<I", crc))
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            crc = 0
+            for chunk in [_PREFIX.pack(MAGIC, FORMAT_VERSION, len(head)), head, *blobs]:
+                if isinstance(chunk, np.ndarray):  # (a zero-size array cannot be cast)
+                    chunk = memoryview(chunk.reshape(-1)).cast("B") if chunk.size else b""
+                pad = b"\0" * (-len(chunk) % _ALIGN)
+                for data in (chunk, pad):
+                    fh.write(data)
+                    crc = zlib.crc32(data, crc)
+            fh.write(struct.pack("<I", crc))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def _entry_bytes(entry: dict) -> int:
+    """Byte size of one array descriptor; ValueError unless it is well formed."""
+    dtype = np.dtype(entry["dtype"])
+    shape, offset = entry["shape"], entry["offset"]
+    if (not isinstance(entry["name"], str) or dtype.kind not in _KINDS or dtype.byteorder == ">"
+            or not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape)
+            or type(offset) is not int or offset < 0 or offset % _ALIGN):
+        raise ValueError(f"bad array descriptor {entry}")
+    return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
 
 
 def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
@@ -113,9 +136,9 @@ def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
     try:
         header = json.loads(data[_PREFIX.size:start])
         entries = header["arrays"]
-        sizes = [int(np.prod(e["shape"], dtype=np.int64)) * np.dtype(e["dtype"]).itemsize for e in entries]
+        sizes = [_entry_bytes(e) for e in entries]
         end = start + max([e["offset"] + s for e, s in zip(entries, sizes)], default=0)
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise JaxvoxError(f"{path} is corrupt: unreadable header ({exc})") from exc
     end = -(-end // _ALIGN) * _ALIGN
     if len(data) < end + 4:
@@ -134,19 +157,53 @@ def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
 
 
 def _check_tree(path, header, arrays) -> None:
-    """Structural checks beyond the checksum (a file written by other software)."""
-    sizes = header["level_sizes"]
-    sizes = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
-    n_nodes, n_inner = sum(sizes), sum(sizes[:-1])
+    """Checks that the header and tables describe a valid tree (beyond the checksum).
+
+    Shapes and dtypes, the level count against the resolution, every child pointer
+    against the level below, every prefix sum against the voxel counts of the children,
+    and the total against ``voxel_count``: one vectorised pass per level.
+    """
+    def bad(what):
+        raise JaxvoxError(f"{path} is inconsistent: {what}")
+
+    try:
+        resolution = check_resolution(header["grid"]["resolution"])
+        sizes = [int(x) for x in header["level_sizes"]]
+        voxel_count = int(header["voxel_count"])
+        kind, mode = header["kind"], header["mode"]
+        origin = [float(x) for x in header["grid"]["origin"]]
+        float(header["grid"]["voxel_size"])
+    except (JaxvoxError, KeyError, TypeError, ValueError) as exc:
+        bad(f"header fields ({exc})")
+    depth = resolution.bit_length() - 1
+    if (len(sizes) != depth or min(sizes) < 0 or sizes[0] > 1 or kind not in ("octree", "dag")
+            or mode not in MODES or len(origin) != 3):
+        bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}")
+    stored = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
+    n_nodes, n_inner = sum(stored), sum(stored[:-1])
     expect = {"mask": ((n_nodes,), np.uint8), "child": ((n_inner, 8), np.uint32), "prefix": ((n_inner, 8), np.uint32)}
     for name, (shape, dtype) in expect.items():
         a = arrays.get(name)
         if a is None or a.shape != shape or a.dtype != dtype:
-            got = None if a is None else (a.shape, str(a.dtype))
-            raise JaxvoxError(f"{path} is inconsistent: {name} should be {shape} {np.dtype(dtype)}, got {got}")
-    child = arrays["child"]
-    if ((child != EMPTY) & (child >= n_nodes)).any():
-        raise JaxvoxError(f"{path} is inconsistent: child pointers past the {n_nodes} nodes")
+            bad(f"{name} should be {shape} {np.dtype(dtype)}, got {None if a is None else (a.shape, str(a.dtype))}")
+    mask, child, prefix = arrays["mask"], arrays["child"], arrays["prefix"]
+    starts = np.cumsum([0] + stored)
+    bits = (mask[:, None] >> np.arange(8, dtype=np.uint8)) & 1 == 1  # [N, 8] present children
+    counts = bits[starts[-2]:].sum(1).astype(np.int64)  # voxels below each node, bottom level first
+    for level in range(depth - 2, -1, -1):
+        rows = slice(starts[level], starts[level + 1])
+        c, present = child[rows], bits[rows]
+        if ((c != EMPTY) != present).any():
+            bad(f"child pointers disagree with the masks at level {level}")
+        target = np.where(present, c.astype(np.int64) - starts[level + 1], 0)
+        if (present & ((target < 0) | (target >= stored[level + 1]))).any():
+            bad(f"child pointers of level {level} leave level {level + 1}")
+        per_slot = np.where(present, counts[np.where(present, target, 0)] if len(counts) else 0, 0)
+        if (np.cumsum(per_slot, axis=1) - per_slot != prefix[rows]).any():
+            bad(f"prefix sums of level {level} disagree with the voxel counts below")
+        counts = per_slot.sum(1)
+    if int(counts[: sizes[0]].sum()) != voxel_count:
+        bad(f"voxel_count {voxel_count} but the tree holds {int(counts[: sizes[0]].sum())} voxels")
 
 
 def load(path: str | os.PathLike) -> Octree:

@@ -70,7 +70,8 @@ class Octree:
 
     Rows past ``level_count[l]`` within level ``l`` are padding (mask 0, children
     `EMPTY`, prefix 0). Trees returned by `build_octree` / `build_dag` without explicit
-    capacities are compact: ``level_capacity == level_sizes``. `level_capacity`, `dag`
+    capacities are compact: ``level_capacity == level_sizes``, except that the root row
+    always exists (an empty tree has capacities ``(1, 0, ...)``). `level_capacity`, `dag`
     and `mode` are static (changing them recompiles).
 
     Attributes:
@@ -265,7 +266,8 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
     # `row`: the stored row of each octree node (the DAG maps duplicates to one row).
     row, n_rows, child, prefix = jnp.arange(cap, dtype=jnp.int32), n_parent, None, None
     if counts is None:  # level D - 1: masks only
-        mask = jnp.zeros(cap, jnp.uint8).at[dest].add((1 << slot).astype(jnp.uint8), mode="drop")
+        present = jnp.zeros((cap, 8), bool).at[dest, slot].set(True, mode="drop")  # repeats stay one bit
+        mask = jnp.sum(jnp.where(present, jnp.uint8(1) << _SLOTS.astype(np.uint8), 0), axis=1, dtype=jnp.uint8)
         cell_counts = _popcount8(mask)
         if dag:
             row, mask, n_rows = _unique_masks(mask, n_parent)
@@ -293,7 +295,8 @@ def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool, host: bool) -> li
     ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
     levels, below = [], 0
     for cap in capacity[::-1]:
-        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=max(1, min(32, below.bit_length())))
+        id_bits = max(1, min(32, below.bit_length())) if dag else 32
+        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=id_bits)
         below = int(level.count) if host else cap
         levels.append(level)
         ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
@@ -457,7 +460,6 @@ def compact(tree: Octree) -> Octree:
 # ----------------------------------------------------------------------------- queries
 
 
-@jax.jit
 def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
     """Morton-order index of each voxel in the tree, `MISSING` (-1) where empty.
 
@@ -467,11 +469,23 @@ def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
 
     Args:
       tree: an `Octree` (SVO or DAG).
-      ijk: [..., 3] int voxel indices.
+      ijk: [..., 3] integer voxel indices. JAX holds them as int32 (without 64-bit
+        mode it converts wider integers on entry, wrapping values beyond 2^31).
 
     Returns:
       [...] int32.
+
+    Raises:
+      JaxvoxError: `ijk` is not an integer array with a last axis of 3.
     """
+    dtype = ijk.dtype if hasattr(ijk, "dtype") else np.asarray(ijk).dtype
+    if not jnp.issubdtype(dtype, jnp.integer) or np.shape(ijk)[-1:] != (3,):
+        raise JaxvoxError(f"voxel_index needs integer indices [..., 3], got {dtype} {np.shape(ijk)}")
+    return _voxel_index(tree, ijk)
+
+
+@jax.jit
+def _voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
     ijk = jnp.asarray(ijk).astype(jnp.int32)
     depth = tree.depth
     alive = jnp.all((ijk >= 0) & (ijk < tree.grid.resolution), axis=-1) & (tree.voxel_count > 0)

@@ -132,8 +132,10 @@ class Voxels:
           JaxvoxError: wrong shape, non-integer values or indices outside the grid.
         """
         a = np.asarray(ijk)
-        if a.size == 0:
+        if a.size == 0 and a.ndim == 1:  # e.g. []
             a = a.reshape(0, 3)
+        if a.size == 0 and a.ndim == 2 and a.shape[1] == 3:
+            a = a.astype(np.int32)
         if a.ndim != 2 or a.shape[1] != 3:
             raise JaxvoxError(f"voxel indices must have shape [N, 3], got {a.shape}")
         if not np.issubdtype(a.dtype, np.integer):

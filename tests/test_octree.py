@@ -279,7 +279,7 @@ def test_jit_vmap_and_eager_agree(dag):
 
 
 @pytest.mark.parametrize("dag", [False, True])
-def test_overflow_is_flagged(dag):
+def test_overflow_is_flagged(dag, tmp_path):
     rng = np.random.default_rng(2)
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=SMALL)
     vox = jv.Voxels.from_coords(rng.integers(0, SMALL, size=(200, 3)), grid)
@@ -293,7 +293,8 @@ def test_overflow_is_flagged(dag):
     with pytest.raises(jv.JaxvoxError, match="truncated"):
         jv.expand(tree)
     with pytest.raises(jv.JaxvoxError, match="truncated"):
-        jv.save("/dev/null", tree)
+        jv.save(tmp_path / "truncated.jvx", tree)
+    assert not list(tmp_path.iterdir())
     full = build(vox)
     out = jv.expand(full, capacity=len(ijk) - 1)
     assert int(out.overflow) & jv.OVERFLOW_NODES
@@ -322,6 +323,53 @@ def test_bad_input_is_refused():
         jv.Voxels.from_coords([[1, 1, 16]], grid)
     with pytest.raises(jv.JaxvoxError, match="integers"):
         jv.Voxels.from_coords([[1.5, 1, 1]], grid)
+    assert int(jv.Voxels.from_coords([], grid).count) == 0
+    with pytest.raises(jv.JaxvoxError, match="shape"):
+        jv.Voxels.from_coords(np.zeros((0, 5), np.int32), grid)
+    tree = jv.build_dag(jv.Voxels.from_coords([[1, 1, 1]], grid))
+    for bad in ([[1.0, 1.0, 1.0]], [[1, 1]]):
+        with pytest.raises(jv.JaxvoxError, match="integer indices"):
+            jv.voxel_index(tree, np.array(bad))
+
+
+def test_repeated_voxels_in_the_jittable_build():
+    """The jittable build documents unique input, but repeats must not corrupt masks."""
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=SMALL)
+    coords = np.full((64, 3), -1, np.int32)
+    coords[:3] = [[0, 0, 0], [1, 0, 0], [1, 0, 0]]
+    vox = jv.Voxels(jnp.asarray(coords), jnp.int32(3), jnp.int32(0), None, grid, jv.CONSERVATIVE)
+    for build in (jv.build_octree, jv.build_dag):
+        tree = build(vox, capacities=(1, 8, 64, 512))
+        np.testing.assert_array_equal(jv.expand(tree).to_numpy(), [[0, 0, 0], [1, 0, 0]])
+
+
+@pytest.mark.parametrize("id_bits", [1, 8, 9, 16, 17, 32])
+def test_packed_sort_keys_order_rows_lexicographically(id_bits):
+    octree = __import__("sys").modules["jaxvox.octree"]
+    rng = np.random.default_rng(id_bits)
+    top = min((1 << id_bits) - 2, 2**31)
+    rows = rng.integers(0, top + 1, size=(300, 8), dtype=np.int64).astype(np.uint32)
+    rows[rng.random((300, 8)) < 0.5] = jv.EMPTY
+    rows[:, 0] = np.where((rows == jv.EMPTY).all(1), 0, rows[:, 0])  # a row has a child
+    rows[100:150] = rows[:50]  # repeats
+    rows[280:] = jv.EMPTY  # padding, past n
+    ids, rep, count = octree._unique_rows(jnp.asarray(rows), jnp.int32(280), id_bits)
+    unique, inverse = np.unique(rows[:280], axis=0, return_inverse=True)  # EMPTY sorts last in uint32 too
+    assert int(count) == len(unique)
+    np.testing.assert_array_equal(np.asarray(ids)[:280], inverse.reshape(-1))
+    np.testing.assert_array_equal(rows[np.asarray(rep)[: len(unique)]], unique)
+
+
+def test_jittable_build_with_wide_ids_matches_host():
+    """Capacities above 2^16 make the DAG sort on eight unpacked keys."""
+    rng = np.random.default_rng(5)
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=64)
+    vox = jv.Voxels.from_coords(rng.integers(0, 64, size=(3000, 3)), grid)
+    caps = (1, 8, 64, 512, 1 << 17, 1 << 17)
+    jitted = jv.compact(jv.build_dag(vox, capacities=caps))
+    host = jv.build_dag(vox)
+    for field in ("mask", "child", "prefix", "level_count"):
+        np.testing.assert_array_equal(np.asarray(getattr(jitted, field)), np.asarray(getattr(host, field)))
 
 
 # ------------------------------------------------------------------ files
@@ -365,6 +413,83 @@ def test_save_load_is_bit_exact(saved, tmp_path):
     empty = jv.build_dag(jv.Voxels.from_coords(np.zeros((0, 3), np.int32), vox.grid))
     jv.save(again, empty)
     assert jv.load(again).level_sizes == empty.level_sizes and int(jv.load(again).voxel_count) == 0
+
+
+def test_tiny_trees_and_attribute_types(tmp_path):
+    path = tmp_path / "tiny.jvx"
+    for resolution, ijk in ((2, [[1, 1, 1]]), (2, []), (16, [])):
+        grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=resolution)
+        tree = jv.build_dag(jv.Voxels.from_coords(ijk, grid))
+        n = len(ijk)
+        jv.save(path, tree, attributes={"normal": np.zeros((n, 3), np.float32), "id": np.arange(n)})
+        back = jv.load(path)
+        np.testing.assert_array_equal(jv.expand(back).to_numpy().reshape(-1, 3), np.array(ijk).reshape(-1, 3))
+        assert jv.load_attributes(path)["normal"].shape == (n, 3)
+    big_endian = np.arange(1, dtype=">f8")
+    jv.save(path, tree, attributes={"x": big_endian})
+    assert jv.load_attributes(path)["x"].dtype == np.dtype("<f8")
+    for bad in (np.array([object()]), np.zeros(1, [("a", "<f4")]), np.array(["s"])):
+        with pytest.raises(jv.JaxvoxError, match="dtype"):
+            jv.save(tmp_path / "bad.jvx", tree, attributes={"x": bad})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.jvx"]  # no temporary file left
+
+
+def _rewrite(data: bytes, edit_header=None, edit_arrays=None) -> bytes:
+    """A file with an edited header or array bytes and a recomputed, valid checksum."""
+    import json
+    import struct
+    import zlib
+
+    magic, version, head_len = struct.unpack_from("<8sII", data)
+    header = json.loads(data[16:16 + head_len])
+    body = bytearray(data[16 + head_len:-4])
+    if edit_header:
+        edit_header(header)
+    if edit_arrays:
+        edit_arrays(header, body)
+    head = json.dumps(header).encode()
+    head += b" " * (-(len(head) + 16) % 8)
+    out = struct.pack("<8sII", magic, version, len(head)) + head + bytes(body)
+    return out + struct.pack("<I", zlib.crc32(out))
+
+
+def test_invalid_trees_with_valid_checksums_are_refused(saved, tmp_path):
+    path, *_ = saved
+    data = path.read_bytes()
+    entry = lambda h, name: next(e for e in h["arrays"] if e["name"] == name)
+
+    def poke(name, index, value):
+        def edit(header, body):
+            e = entry(header, name)
+            view = np.frombuffer(body, np.dtype(e["dtype"]), int(np.prod(e["shape"])), e["offset"])
+            view = view.copy()
+            view.reshape(-1)[index] = value
+            body[e["offset"]:e["offset"] + view.nbytes] = view.tobytes()
+        return edit
+
+    edits = {
+        "negative shape": dict(edit_header=lambda h: entry(h, "mask").update(shape=[-1])),
+        "negative offset": dict(edit_header=lambda h: entry(h, "child").update(offset=-8)),
+        "object dtype": dict(edit_header=lambda h: entry(h, "mask").update(dtype="|O")),
+        "float shape": dict(edit_header=lambda h: entry(h, "mask").update(shape=[1.5])),
+        "wrong resolution": dict(edit_header=lambda h: h["grid"].update(resolution=32)),
+        "odd resolution": dict(edit_header=lambda h: h["grid"].update(resolution=48)),
+        "voxel count": dict(edit_header=lambda h: h.update(voxel_count=h["voxel_count"] + 1)),
+        "huge voxel count": dict(edit_header=lambda h: h.update(voxel_count=2**40)),
+        "unknown kind": dict(edit_header=lambda h: h.update(kind="tree")),
+        "missing sizes": dict(edit_header=lambda h: h.pop("level_sizes")),
+        "pointer out of range": dict(edit_arrays=poke("child", 0, 10**6)),
+        "pointer vs mask": dict(edit_arrays=poke("child", 0, jv.EMPTY)),  # the root's first child
+        "prefix": dict(edit_arrays=poke("prefix", 8 * 5 + 3, 12345)),
+        "mask": dict(edit_arrays=poke("mask", -1, 0)),
+    }
+    bad = tmp_path / "bad.jvx"
+    assert jv.load(path).level_sizes  # the original loads
+    for what, edit in edits.items():
+        bad.write_bytes(_rewrite(data, **edit))
+        with pytest.raises(jv.JaxvoxError, match="inconsistent|corrupt|truncated") as info:
+            jv.load(bad)
+        assert info.value, what
 
 
 def test_corrupt_and_truncated_files_are_detected(saved, tmp_path):
