@@ -200,6 +200,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--smoke", action="store_true", help="R = 64, 128 on two meshes; *_smoke outputs")
     parser.add_argument("--plot-only", action="store_true", help="redraw the PNG and table from the JSON")
+    parser.add_argument("--update", action="store_true",
+                        help="merge into the existing JSON: replace its rows for the cases run, keep the others")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
@@ -229,11 +231,17 @@ def main(argv=None) -> None:
         row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
         rows.append(row)
         print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
+    settings = dict(meshes=args.meshes, resolutions=args.resolutions, huge=args.huge, repeats=args.repeats)
+    if args.update:
+        old = json.loads((args.out / f"{stem}.json").read_text())
+        done = {(r["mesh"], r["resolution"]) for r in rows}
+        order = list(dict.fromkeys(r["mesh"] for r in old["results"] + rows))
+        rows = sorted([r for r in old["results"] if (r["mesh"], r["resolution"]) not in done] + rows,
+                      key=lambda r: (order.index(r["mesh"]), r["resolution"]))
+        settings = dict(old["settings"], updated=old["settings"].get("updated", []) + [settings])
     report = table(rows)
     _common.write_json(args.out / f"{stem}.json", dict(
-        machine=_common.machine_info(["jax", "jaxlib", "numpy"]),
-        settings=dict(meshes=args.meshes, resolutions=args.resolutions, huge=args.huge, repeats=args.repeats),
-        layouts=LAYOUTS, results=rows))
+        machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=settings, layouts=LAYOUTS, results=rows))
     (args.out / f"{stem}.md").write_text(report)
     plot(rows, args.out / f"{stem}.png")
     print(report)

@@ -286,18 +286,25 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
     return _Level(mask, child, prefix, n_rows, cells, n_parent, cell_counts, row, overflow)
 
 
-def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool, host: bool) -> list[_Level]:
+def _levels(vox: Voxels, capacity: tuple[int, ...] | None, dag: bool) -> list[_Level]:
     """All levels, root first; level ``l`` has `capacity[l]` rows.
 
-    The DAG's sort keys are as narrow as the ids of the level below allow: bounded by
-    that level's capacity, or on the host (`host`) by its actual row count.
+    With ``capacity=None`` (host-side) each level's capacity is the power of two above its
+    counted node count, so a counting pass only ever reads the level below. The DAG's sort
+    keys are as narrow as the ids of the level below allow: bounded by that level's
+    capacity, or on the host by its actual row count.
     """
+    depth = vox.grid.resolution.bit_length() - 1
     ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
     levels, below = [], 0
-    for cap in capacity[::-1]:
+    for level_index in range(depth - 1, -1, -1):
+        if capacity is None:
+            cap = min(8**level_index, bucket_pow2(int(_count_parents(ijk, n))))
+        else:
+            cap = capacity[level_index]
         id_bits = max(1, min(32, below.bit_length())) if dag else 32
         level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=id_bits)
-        below = int(level.count) if host else cap
+        below = cap if capacity is not None else int(level.count)
         levels.append(level)
         ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
     return levels[::-1]
@@ -313,7 +320,7 @@ def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag
 @functools.partial(jax.jit, static_argnames=("capacity", "dag"))
 def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     """Bottom-up build with static per-level capacities, as one jittable function."""
-    levels = _levels(vox, capacity, dag, host=False)
+    levels = _levels(vox, capacity, dag)
     offsets = np.cumsum((0,) + tuple(capacity))
     child = [jnp.where(lv.child == EMPTY, EMPTY, lv.child + jnp.uint32(offsets[i + 1]))
              for i, lv in enumerate(levels[:-1])]
@@ -323,13 +330,13 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
                  capacity, dag)
 
 
-def _build_compact(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
-    """Host-side build: per-level compiled steps (shared by similar inputs), assembled on
-    the host into compact tables without padding rows."""
-    levels = _levels(vox, capacity, dag, host=True)
+def _build_compact(vox: Voxels, dag: bool) -> Octree:
+    """Host-side build: per-level compiled steps (shared by similar inputs) sized by
+    counting passes, assembled on the host into compact tables without padding rows."""
+    levels = _levels(vox, None, dag)
     sizes = [int(lv.count) for lv in levels]
     if any(bool(lv.overflow) for lv in levels):
-        raise JaxvoxError(f"internal error: octree levels {sizes} overflowed capacities {capacity}")
+        raise JaxvoxError(f"internal error: octree levels {sizes} overflowed their capacities")
     stored = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
     offsets = np.cumsum([0] + stored)
     child = np.empty((offsets[-2], 8), np.uint32)
@@ -344,44 +351,35 @@ def _build_compact(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
                  stored, dag)
 
 
-@functools.partial(jax.jit, static_argnames=("depth",))
-def _level_counts(coords: jax.Array, count: jax.Array, *, depth: int):
-    """Counting pass: nodes per level of the SVO, and whether the input is well formed.
+@jax.jit
+def _count_parents(ijk: jax.Array, n: jax.Array) -> jax.Array:
+    """Distinct parents ``ijk >> 1`` of the first `n` Morton-sorted cells: [] int32."""
+    return _segments(ijk, n)[2]
 
-    Returns (counts [depth] int32 root first, sorted [] bool: valid voxels strictly
-    increase in Morton order, in_range [] bool: all indices in [0, 2^depth)).
-    """
+
+@functools.partial(jax.jit, static_argnames=("resolution",))
+def _well_formed(coords: jax.Array, count: jax.Array, *, resolution: int):
+    """(in_range, ordered): valid voxels lie in the grid and strictly increase in Morton order."""
     valid = jnp.arange(coords.shape[0]) < count
-    inside = jnp.all((coords >= 0) & (coords < (1 << depth)) | ~valid[:, None])
-    hi, lo = morton.encode(jnp.clip(coords, 0, (1 << depth) - 1))
+    inside = jnp.all((coords >= 0) & (coords < resolution) | ~valid[:, None])
+    hi, lo = morton.encode(jnp.clip(coords, 0, resolution - 1))
     increasing = (hi[1:] > hi[:-1]) | ((hi[1:] == hi[:-1]) & (lo[1:] > lo[:-1]))
-    ordered = jnp.all(increasing | ~valid[1:])
-    counts = []
-    cells = jnp.where(valid[:, None], coords, 0)
-    for _ in range(depth):
-        cells = cells >> 1
-        differs = jnp.any(cells[1:] != cells[:-1], axis=1)
-        counts.append(jnp.sum(valid[:1]) + jnp.sum(differs & valid[1:]))
-    return jnp.stack(counts[::-1]).astype(jnp.int32), ordered, inside
+    return inside, jnp.all(increasing | ~valid[1:])
 
 
-def _check_voxels(vox: Voxels) -> tuple[int, ...]:
-    """Host-side validation of build input; returns the SVO node count per level."""
+def _check_voxels(vox: Voxels) -> None:
+    """Host-side validation of build input (raises `JaxvoxError`)."""
     if not isinstance(vox, Voxels):
         raise JaxvoxError(f"expected jaxvox.Voxels, got {type(vox).__name__}")
     if int(vox.overflow):
         raise JaxvoxError(f"the voxel buffer overflowed (flags {int(vox.overflow)}); "
                           "the tree would be truncated")
-    depth = vox.grid.resolution.bit_length() - 1
-    counts, ordered, inside = _level_counts(vox.coords, vox.count, depth=depth)
+    inside, ordered = _well_formed(vox.coords, vox.count, resolution=vox.grid.resolution)
     if not bool(inside):
         raise JaxvoxError(f"voxel indices outside [0, {vox.grid.resolution})")
     if not bool(ordered):
         raise JaxvoxError("voxels are not unique and in Morton order (build them with "
                           "jaxvox.voxelize or Voxels.from_coords)")
-    return tuple(int(c) for c in np.asarray(counts))
-
-
 
 
 def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
@@ -392,10 +390,8 @@ def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
             raise JaxvoxError(f"capacities must be {depth} non-negative ints with capacities[0] == 1, "
                               f"got {capacities}")
         return _build(vox, capacity=capacities, dag=dag)
-    sizes = _check_voxels(vox)
-    # Power-of-two capacities: similar inputs share compiled level steps.
-    capacity = tuple(min(8**level, bucket_pow2(n)) for level, n in enumerate(sizes))
-    return _build_compact(vox, capacity, dag)
+    _check_voxels(vox)
+    return _build_compact(vox, dag)
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
