@@ -192,7 +192,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--meshes", nargs="+", default=list(ALL_MESHES))
     parser.add_argument("--mesh-dir", type=Path, default=_common.MESH_DIR)
-    parser.add_argument("--resolutions", nargs="+", type=int, default=[64, 128, 256, 512, 1024, 2048])
+    parser.add_argument("--resolutions", nargs="*", type=int, default=[64, 128, 256, 512, 1024, 2048])
     parser.add_argument("--huge", nargs="*", type=int, default=[4096, 8192], metavar="R",
                         help="resolutions run for the first mesh only (default 4096 8192)")
     parser.add_argument("--repeats", type=int, default=2, help="timed builds after the first (0 above 2048)")
