@@ -57,15 +57,14 @@ def cmd_voxelize(args) -> int:
     return 0
 
 
-def _build_tree(mesh, grid, kind: str):
-    """Voxelizes with triangle ids and builds an octree or DAG; returns (tree, attributes, seconds)."""
+def _build_timed(vox, kind: str):
+    """Builds an octree or DAG of `vox`; returns (tree, seconds)."""
     import jaxvox as jv
 
-    vox = jv.voxelize(mesh, grid, triangle_ids=True)
     start = time.perf_counter()
     tree = (jv.build_dag if kind == "dag" else jv.build_octree)(vox)
     tree.mask.block_until_ready()
-    return tree, jv.voxel_attributes(mesh, vox), time.perf_counter() - start
+    return tree, time.perf_counter() - start
 
 
 def _tree_line(tree, seconds: float) -> str:
@@ -79,8 +78,9 @@ def cmd_build(args) -> int:
     import jaxvox as jv
 
     mesh, name = _load(args.mesh)
-    grid = jv.Grid.fit(mesh, resolution=args.resolution)
-    tree, attributes, seconds = _build_tree(mesh, grid, args.kind)
+    vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=args.resolution), triangle_ids=True)
+    tree, seconds = _build_timed(vox, args.kind)
+    attributes = jv.voxel_attributes(mesh, vox)
     jv.save(args.out, tree, attributes=attributes)
     print(f"{name}: {int(tree.voxel_count):,} voxels at {args.resolution}^3 -> " + _tree_line(tree, seconds))
     print(f"  nodes per level: {list(tree.level_sizes)}")
@@ -105,10 +105,12 @@ def cmd_run(args) -> int:
         results[mode] = vox.to_numpy()
         print(f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
               f"(after a warm-up call that compiles)")
+    vox = jv.voxelize(mesh, grid, triangle_ids=True)
+    attributes = jv.voxel_attributes(mesh, vox)
     trees = {}
     for kind in ("octree", "dag"):
-        _build_tree(mesh, grid, kind)  # compile
-        trees[kind], attributes, seconds = _build_tree(mesh, grid, kind)
+        _build_timed(vox, kind)  # compile
+        trees[kind], seconds = _build_timed(vox, kind)
         print(f"  {_tree_line(trees[kind], seconds)}")
     print(f"  octree/DAG nodes: {trees['octree'].num_nodes / trees['dag'].num_nodes:.1f}x")
     png = os.path.join(args.out, "voxels.png")
@@ -143,26 +145,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxvox", description="Voxel geometry in JAX.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    run = sub.add_parser("run", help="main job: voxelize the default scene (or MESH), build its octree "
-                                     "and DAG, report, write a PNG and the DAG")
-    run.add_argument("mesh", nargs="?", help="mesh file (default: the built-in scene)")
-    run.add_argument("--resolution", type=int, default=256)
-    run.add_argument("--out", default=DEFAULT_OUT, help="output folder (default: out)")
-    run.set_defaults(func=cmd_run)
+    def command(name, func, help, resolution, out, out_help):
+        """A subcommand taking an optional MESH, --resolution and --out."""
+        p = sub.add_parser(name, help=help)
+        p.add_argument("mesh", nargs="?", help="mesh file trimesh can read (default: the built-in scene)")
+        p.add_argument("--resolution", type=int, default=resolution, help="voxels per axis, a power of two")
+        p.add_argument("--out", default=out, help=out_help)
+        p.set_defaults(func=func)
+        return p
 
-    vox = sub.add_parser("voxelize", help="voxelize a mesh to an .npz of voxel indices")
-    vox.add_argument("mesh", nargs="?", help="mesh file trimesh can read (default: the built-in scene)")
-    vox.add_argument("--resolution", type=int, default=512, help="voxels per axis, a power of two")
+    command("run", cmd_run, "main job: voxelize the default scene (or MESH), build its octree and DAG, "
+            "report, write a PNG and the DAG", 256, DEFAULT_OUT, "output folder (default: out)")
+    vox = command("voxelize", cmd_voxelize, "voxelize a mesh to an .npz of voxel indices", 512, "voxels.npz",
+                  "output .npz file")
     vox.add_argument("--mode", choices=["conservative", "6-separating"], default="conservative")
-    vox.add_argument("--out", default="voxels.npz")
-    vox.set_defaults(func=cmd_voxelize)
-
-    build = sub.add_parser("build", help="voxelize a mesh and save its DAG (or octree) with attributes")
-    build.add_argument("mesh", nargs="?", help="mesh file trimesh can read (default: the built-in scene)")
-    build.add_argument("--resolution", type=int, default=512, help="voxels per axis, a power of two")
+    build = command("build", cmd_build, "voxelize a mesh and save its DAG (or octree) with attributes", 512,
+                    "tree.jvx", "output tree file")
     build.add_argument("--kind", choices=["dag", "octree"], default="dag")
-    build.add_argument("--out", default="tree.jvx")
-    build.set_defaults(func=cmd_build)
     return parser
 
 

@@ -36,7 +36,7 @@ import numpy as np
 
 from jaxvox._errors import JaxvoxError
 from jaxvox.grid import Grid, check_resolution
-from jaxvox.octree import EMPTY, Octree, compact
+from jaxvox.octree import EMPTY, Octree, compact, _stored_sizes
 from jaxvox.voxelize import MODES
 
 MAGIC = b"\x89JVX\r\n\x1a\n"
@@ -179,7 +179,7 @@ def _check_tree(path, header, arrays) -> None:
     if (len(sizes) != depth or min(sizes) < 0 or sizes[0] > 1 or kind not in ("octree", "dag")
             or mode not in MODES or len(origin) != 3):
         bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}")
-    stored = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
+    stored = _stored_sizes(sizes)
     n_nodes, n_inner = sum(stored), sum(stored[:-1])
     expect = {"mask": ((n_nodes,), np.uint8), "child": ((n_inner, 8), np.uint32), "prefix": ((n_inner, 8), np.uint32)}
     for name, (shape, dtype) in expect.items():
@@ -187,7 +187,7 @@ def _check_tree(path, header, arrays) -> None:
         if a is None or a.shape != shape or a.dtype != dtype:
             bad(f"{name} should be {shape} {np.dtype(dtype)}, got {None if a is None else (a.shape, str(a.dtype))}")
     mask, child, prefix = arrays["mask"], arrays["child"], arrays["prefix"]
-    starts = np.cumsum([0] + stored)
+    starts = np.cumsum((0,) + stored)
     bits = (mask[:, None] >> np.arange(8, dtype=np.uint8)) & 1 == 1  # [N, 8] present children
     counts = bits[starts[-2]:].sum(1).astype(np.int64)  # voxels below each node, bottom level first
     for level in range(depth - 2, -1, -1):
@@ -195,10 +195,10 @@ def _check_tree(path, header, arrays) -> None:
         c, present = child[rows], bits[rows]
         if ((c != EMPTY) != present).any():
             bad(f"child pointers disagree with the masks at level {level}")
-        target = np.where(present, c.astype(np.int64) - starts[level + 1], 0)
+        target = np.where(present, c.astype(np.int64) - starts[level + 1], stored[level + 1])
         if (present & ((target < 0) | (target >= stored[level + 1]))).any():
             bad(f"child pointers of level {level} leave level {level + 1}")
-        per_slot = np.where(present, counts[np.where(present, target, 0)] if len(counts) else 0, 0)
+        per_slot = np.append(counts, 0)[target]  # absent children read the appended 0
         if (np.cumsum(per_slot, axis=1) - per_slot != prefix[rows]).any():
             bad(f"prefix sums of level {level} disagree with the voxel counts below")
         counts = per_slot.sum(1)
@@ -221,7 +221,7 @@ def load(path: str | os.PathLike) -> Octree:
     return Octree(
         mask=jnp.asarray(arrays["mask"]), child=jnp.asarray(arrays["child"]), prefix=jnp.asarray(arrays["prefix"]),
         level_count=jnp.asarray(sizes, jnp.int32), voxel_count=jnp.int32(header["voxel_count"]),
-        overflow=jnp.int32(0), grid=grid, level_capacity=(max(sizes[0], 1),) + sizes[1:],
+        overflow=jnp.int32(0), grid=grid, level_capacity=_stored_sizes(sizes),
         dag=header["kind"] == "dag", mode=header["mode"])
 
 

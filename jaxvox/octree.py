@@ -131,6 +131,13 @@ class Octree:
         return int(self.mask.nbytes + self.child.nbytes + self.prefix.nbytes)
 
 
+def _stored_sizes(level_sizes) -> tuple[int, ...]:
+    """Rows a compact tree stores per level: `level_sizes`, but the root row always exists
+    (an empty tree keeps one root with mask 0)."""
+    sizes = tuple(int(n) for n in level_sizes)
+    return (max(sizes[0], 1),) + sizes[1:]
+
+
 # ----------------------------------------------------------------------------- build
 
 
@@ -138,6 +145,11 @@ def _slot(ijk: jax.Array, shift) -> jax.Array:
     """Child slot (uint32) of voxel indices [..., 3] at bit `shift`."""
     b = (ijk >> shift) & 1
     return (b[..., 0] | (b[..., 1] << 1) | (b[..., 2] << 2)).astype(jnp.uint32)
+
+
+def _pack_mask(present: jax.Array) -> jax.Array:
+    """[C, 8] bool child presence -> [C] uint8 masks."""
+    return jnp.sum(jnp.where(present, jnp.uint8(1) << _SLOTS.astype(np.uint8), 0), axis=1, dtype=jnp.uint8)
 
 
 def _popcount8(mask: jax.Array) -> jax.Array:
@@ -267,7 +279,7 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
     row, n_rows, child, prefix = jnp.arange(cap, dtype=jnp.int32), n_parent, None, None
     if counts is None:  # level D - 1: masks only
         present = jnp.zeros((cap, 8), bool).at[dest, slot].set(True, mode="drop")  # repeats stay one bit
-        mask = jnp.sum(jnp.where(present, jnp.uint8(1) << _SLOTS.astype(np.uint8), 0), axis=1, dtype=jnp.uint8)
+        mask = _pack_mask(present)
         cell_counts = _popcount8(mask)
         if dag:
             row, mask, n_rows = _unique_masks(mask, n_parent)
@@ -280,8 +292,7 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
             keep = (jnp.arange(cap) < n_rows)[:, None]
             child = jnp.where(keep, child[rep], EMPTY)
             per_slot = jnp.where(keep, per_slot[rep], 0)
-        mask = jnp.sum(jnp.where(child != EMPTY, jnp.uint8(1) << _SLOTS.astype(np.uint8), 0),
-                       axis=1, dtype=jnp.uint8)
+        mask = _pack_mask(child != EMPTY)
         prefix = (jnp.cumsum(per_slot, axis=1) - per_slot).astype(jnp.uint32)
     return _Level(mask, child, prefix, n_rows, cells, n_parent, cell_counts, row, overflow)
 
@@ -337,8 +348,8 @@ def _build_compact(vox: Voxels, dag: bool) -> Octree:
     sizes = [int(lv.count) for lv in levels]
     if any(bool(lv.overflow) for lv in levels):
         raise JaxvoxError(f"internal error: octree levels {sizes} overflowed their capacities")
-    stored = [max(sizes[0], 1)] + sizes[1:]  # the root row always exists
-    offsets = np.cumsum([0] + stored)
+    stored = _stored_sizes(sizes)
+    offsets = np.cumsum((0,) + stored)
     child = np.empty((offsets[-2], 8), np.uint32)
     prefix = np.empty((offsets[-2], 8), np.uint32)
     for i, lv in enumerate(levels[:-1]):
@@ -434,8 +445,7 @@ def compact(tree: Octree) -> Octree:
     Child rows are absolute, so each level's pointers shift by the change of its target
     level's offset. The work is host memory copies (numpy), so it compiles nothing.
     """
-    sizes = tree.level_sizes
-    sizes = (max(sizes[0], 1),) + sizes[1:]  # the root row always exists
+    sizes = _stored_sizes(tree.level_sizes)
     if sizes == tuple(tree.level_capacity):
         return tree
     old, new = tree.level_offsets, tuple(int(x) for x in np.cumsum((0,) + sizes[:-1]))
@@ -529,7 +539,7 @@ def _expand_nodes(mask, child, voxel_count, *, depth: int, capacity: int):
     return jnp.where((jnp.arange(ijk.shape[0]) < n)[:, None], ijk, UNUSED), n
 
 
-def _pad_rows(a: jax.Array, fill) -> jax.Array:
+def _padded_pow2(a: jax.Array, fill) -> jax.Array:
     """Host copy of `a` padded with `fill` rows to a power-of-two length."""
     a = np.asarray(a)
     pad = bucket_pow2(len(a), 1) - len(a)
@@ -554,7 +564,7 @@ def expand(tree: Octree, *, capacity: int | None = None) -> Voxels:
         if int(tree.overflow):
             raise JaxvoxError(f"the tree is truncated (overflow flags {int(tree.overflow)})")
         capacity = bucket_pow2(int(tree.voxel_count))
-        mask, child = _pad_rows(mask, 0), _pad_rows(child, EMPTY)
+        mask, child = _padded_pow2(mask, 0), _padded_pow2(child, EMPTY)
     coords, n = _expand_nodes(mask, child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
     overflow = tree.overflow | jnp.where(tree.voxel_count > capacity, OVERFLOW_NODES, 0)
     return Voxels(coords, n, overflow.astype(jnp.int32), None, tree.grid, tree.mode)

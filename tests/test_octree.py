@@ -85,7 +85,7 @@ def _check_tree(tree: jv.Octree, ijk: np.ndarray) -> None:
     assert tree.nbytes == sum(stored) + 64 * sum(stored[:-1])
 
 
-def _sorted_voxels(ijk: np.ndarray, resolution: int) -> np.ndarray:
+def _sorted_voxels(ijk: np.ndarray) -> np.ndarray:
     ijk = np.unique(np.asarray(ijk, np.int32).reshape(-1, 3), axis=0)
     return ijk[np.argsort(morton_encode(ijk), kind="stable")]
 
@@ -194,7 +194,7 @@ def _hand_made_sets():
 @pytest.mark.parametrize("build", [jv.build_octree, jv.build_dag])
 def test_hand_made_sets(name, build):
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=SMALL)
-    ijk = _sorted_voxels(_hand_made_sets()[name], SMALL)
+    ijk = _sorted_voxels(_hand_made_sets()[name])
     tree = build(jv.Voxels.from_coords(ijk, grid))
     _check_tree(tree, ijk)
     if name == "full":  # one node per level in the DAG: every subtree is the same
@@ -211,7 +211,7 @@ voxel_sets = st.lists(st.tuples(*[st.integers(0, SMALL - 1)] * 3), min_size=0, m
 @given(voxel_sets, st.booleans())
 def test_random_sets(points, dag):
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=SMALL)
-    ijk = _sorted_voxels(np.array(points, np.int32).reshape(-1, 3), SMALL)
+    ijk = _sorted_voxels(np.array(points, np.int32).reshape(-1, 3))
     tree = (jv.build_dag if dag else jv.build_octree)(jv.Voxels.from_coords(ijk, grid))
     _check_tree(tree, ijk)
     # every cell of the grid: index where present, -1 elsewhere
@@ -227,7 +227,7 @@ def test_deep_trees(points):
     """Resolution 2^17: Morton codes need both words; 17 levels."""
     resolution = 2**17
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=resolution)
-    ijk = _sorted_voxels(np.array(points, np.int32), resolution)
+    ijk = _sorted_voxels(np.array(points, np.int32))
     for build in (jv.build_octree, jv.build_dag):
         _check_tree(build(jv.Voxels.from_coords(ijk, grid)), ijk)
 
@@ -249,8 +249,8 @@ def test_dag_is_canonical():
 # ------------------------------------------------------------------ jit, vmap, overflow, errors
 
 
-def _sizes_as_capacities(ijk, depth, slack=0):
-    return tuple(1 if level == 0 else s + slack for level, s in enumerate(reference_svo_sizes(ijk, depth)))
+def _sizes_as_capacities(ijk, depth):
+    return tuple(1 if level == 0 else s for level, s in enumerate(reference_svo_sizes(ijk, depth)))
 
 
 @pytest.mark.parametrize("dag", [False, True])
