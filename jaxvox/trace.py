@@ -414,15 +414,9 @@ def _lanes(structure, rays: _Ray, t_start, status, method: str, max_steps: int, 
     return c.out_status, c.out_voxel
 
 
-def _run(structure, origins, directions, t_max, *, method, max_steps, lanes):
-    """Shared front end: grid units, mirroring, driver, unmirroring. Returns a `Hit`."""
-    grid = structure.grid
-    res = grid.resolution
-    o = (jnp.asarray(origins, jnp.float32) - grid.origin) / grid.voxel_size
-    d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
-    shape = o.shape[:-1]
-    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
-    t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape).reshape(-1)
+def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes):
+    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0)."""
+    res = structure.grid.resolution
     rays, t_start, status = jax.vmap(lambda a, b, c: _ray(a, b, c, res))(o, d, t_max)
     if lanes is None or o.shape[0] == 0:
         status, cell = _vmapped(structure, rays, t_start, status, method, max_steps)
@@ -433,29 +427,54 @@ def _run(structure, origins, directions, t_max, *, method, max_steps, lanes):
     t0 = (cell - jnp.stack(rays.o, -1)) * jnp.stack(rays.inv, -1)
     t_in = jnp.max(t0, axis=-1)
     flip = ((rays.flip[:, None] >> _AXES) & 1) == 1
-    voxel = jnp.where(flip, res - 1 - cell, cell)
     entry = jnp.where(t_in > 0, jnp.argmax(t0, axis=-1), -1)
     normal = jnp.where(_AXES == entry[:, None], jnp.where(flip, 1.0, -1.0), 0.0)
-    voxel = jnp.where(hit[:, None], voxel, -1)
-    out = Hit(t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf), voxel=voxel,
-              normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
-              index=jnp.zeros_like(status), status=status)
-    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), out)
+    return Hit(t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
+               voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
+               normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
+               index=jnp.zeros_like(status), status=status)
+
+
+def _run(structure, origins, directions, t_max, *, method, max_steps, lanes, shard):
+    """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`."""
+    grid = structure.grid
+    o = (jnp.asarray(origins, jnp.float32) - grid.origin) / grid.voxel_size
+    d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
+    shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
+    o, d = jnp.broadcast_to(o, shape + (3,)).reshape(-1, 3), jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape).reshape(-1)
+    run = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes)
+    devices = jax.devices()
+    n = o.shape[0]
+    if shard and len(devices) > 1 and n >= len(devices):
+        # Each device traces its own slice of the rays with its own lanes and queue.
+        pad = -n % len(devices)
+        o, d, t_max = (jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) for x in (o, d, t_max))
+        mesh = jax.sharding.Mesh(np.array(devices), ("rays",))
+        spec = jax.sharding.PartitionSpec("rays")
+        hits = jax.shard_map(lambda a, b, c: run(structure, a, b, c), mesh=mesh,
+                             in_specs=(spec, spec, spec), out_specs=spec, check_vma=False)(o, d, t_max)
+        hits = jax.tree.map(lambda x: x[:n], hits)
+    else:
+        hits = run(structure, o, d, t_max)
+    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), hits)
 
 
 def _max_steps(max_steps, resolution: int, depth: int) -> int:
     return int(max_steps) if max_steps is not None else 6 * resolution + 16 * depth
 
 
-@functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes"))
-def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes):
-    hit = _run(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes)
+@functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
+def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
+    hit = _run(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
+               shard=shard)
     index = _voxel_index(tree, jnp.maximum(hit.voxel, 0))
     return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
 
 
 def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=float("inf"),
-          method: str = "esvo", max_steps: int | None = None, lanes: int | None = 8192) -> Hit:
+          method: str = "esvo", max_steps: int | None = None, lanes: int | None = 16384,
+          shard: bool = True) -> Hit:
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
     Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps` and `lanes`
@@ -472,8 +491,11 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
         give identical hits.
       max_steps: cap on loop steps per ray (default ``6 R + 16 D``); rays that reach it
         get status `STEP_CAP`, never a silent miss.
-      lanes: number of persistent lanes fed from the ray queue (see the module
-        docstring); None for one vmapped loop per ray.
+      lanes: number of persistent lanes (per device) fed from the ray queue (see the
+        module docstring); None for one vmapped loop per ray.
+      shard: when there are several JAX devices, split the rays across all of them
+        (`jax.shard_map` over a one-axis mesh; the tree is replicated). Turn it off
+        inside a caller's own sharded or vmapped program.
 
     Returns:
       A `Hit` with the batch shape of the rays.
@@ -481,12 +503,14 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     if method not in ALGORITHMS:
         raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {ALGORITHMS}")
     steps = _max_steps(max_steps, tree.grid.resolution, tree.depth)
-    return _trace(tree, origins, directions, t_max, method=method, max_steps=steps, lanes=lanes)
+    return _trace(tree, origins, directions, t_max, method=method, max_steps=steps, lanes=lanes,
+                  shard=shard)
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps", "lanes"))
-def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes):
-    hit = _run(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes)
+@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
+def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
+    hit = _run(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes,
+               shard=shard)
     res = dense.grid.resolution
     v = jnp.maximum(hit.voxel, 0)
     index = (v[..., 0] * res + v[..., 1]) * res + v[..., 2]
@@ -494,7 +518,8 @@ def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes):
 
 
 def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions: jax.Array, *,
-                t_max=float("inf"), max_steps: int | None = None, lanes: int | None = 8192) -> Hit:
+                t_max=float("inf"), max_steps: int | None = None, lanes: int | None = 16384,
+                shard: bool = True) -> Hit:
     """First voxel hit along each ray in a dense occupancy grid (Amanatides-Woo DDA).
 
     Same conventions and driver as `trace`; meant for small grids and as a reference.
@@ -502,7 +527,7 @@ def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions
     Args:
       occupancy: [R, R, R] bool, indexed ``[i, j, k]``.
       grid: the `Grid` the occupancy lives on (its resolution must be R).
-      origins, directions, t_max, max_steps, lanes: as in `trace` (default
+      origins, directions, t_max, max_steps, lanes, shard: as in `trace` (default
         ``max_steps`` is ``3 R + 8``, enough for any ray).
 
     Returns:
@@ -516,4 +541,4 @@ def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions
         raise JaxvoxError(f"occupancy has shape {occupancy.shape}, expected {(res,) * 3} for the grid")
     steps = int(max_steps) if max_steps is not None else 3 * res + 8
     dense = _DenseGrid(occupancy.astype(bool).reshape(-1), grid)
-    return _trace_dense(dense, origins, directions, t_max, max_steps=steps, lanes=lanes)
+    return _trace_dense(dense, origins, directions, t_max, max_steps=steps, lanes=lanes, shard=shard)
