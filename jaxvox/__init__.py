@@ -1,12 +1,21 @@
 """jaxvox: voxel geometry in JAX.
 
 Exact conservative and 6-separating triangle voxelization, sparse voxel octrees and
-DAGs with per-node prefix sums for voxel attributes, all with fixed-capacity jittable
+DAGs with per-node prefix sums for voxel attributes, dense distance fields (jump
+flooding, fast sweeping, solid voxelization for the sign) and cascaded clipmaps, all with fixed-capacity jittable
 cores and host-side APIs that size capacities by counting passes.
 """
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
+from jaxvox.distance import (
+    QuantizedField,
+    distance_field,
+    distance_field_bytes,
+    open_edges,
+    quantize_field,
+    solid_voxelize,
+)
 from jaxvox.grid import Grid
 from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh
@@ -49,6 +58,12 @@ __all__ = [
     "build_dag",
     "build_octree",
     "compact",
+    "QuantizedField",
+    "distance_field",
+    "distance_field_bytes",
+    "open_edges",
+    "quantize_field",
+    "solid_voxelize",
     "expand",
     "load",
     "load_attributes",
