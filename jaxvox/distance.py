@@ -59,7 +59,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._buffers import bucket, expand_counts
+from jaxvox._buffers import bucket, bucket_pow2, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -89,9 +89,7 @@ def _centres(resolution: int) -> jax.Array:
 
 def _distance_to(points, tris, ids):
     """Distance from points [n, 3] to triangles ``tris[ids]`` ([n] int32; inf where -1)."""
-    corners = tris[jnp.maximum(ids, 0)]
-    d2 = _point_triangle_dist2(points, corners[:, 0], corners[:, 1], corners[:, 2])
-    return jnp.where(ids >= 0, jnp.sqrt(d2), jnp.inf)
+    return jnp.where(ids >= 0, _pair_distance(points, tris[jnp.maximum(ids, 0)]), jnp.inf)
 
 
 def _chunked_min(points, tris, fn, init):
@@ -106,18 +104,19 @@ def _chunked_min(points, tris, fn, init):
 
 def _pair_distance(p, t):
     """Point-triangle distances for broadcast points [..., 3] and triangles [..., 3, 3]."""
-    shape = jnp.broadcast_shapes(p.shape[:-1], t.shape[:-2])
-    p = jnp.broadcast_to(p, shape + (3,)).reshape(-1, 3)
-    t = jnp.broadcast_to(t, shape + (3, 3)).reshape(-1, 3, 3)
-    return jnp.sqrt(_point_triangle_dist2(p, t[:, 0], t[:, 1], t[:, 2])).reshape(shape)
+    return jnp.sqrt(_point_triangle_dist2(p, t[..., 0, :], t[..., 1, :], t[..., 2, :]))
 
 
 def _solid_angle(p, t):
-    """Signed solid angle / (4 pi) of triangles t [..., 3, 3] seen from points p [..., 3]."""
-    a, b, c = (t[..., i, :] - p for i in range(3))
-    la, lb, lc = (jnp.linalg.norm(x, axis=-1) for x in (a, b, c))
-    dot = lambda x, y: jnp.sum(x * y, -1)
-    det = dot(a, jnp.cross(b, c))
+    """Signed solid angle / (4 pi) of triangles t [..., 3, 3] seen from points p [..., 3].
+
+    Van Oosterom & Strackee, on separate x, y, z components (fused by XLA).
+    """
+    a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
+    det = (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
+           + a[2] * (b[0] * c[1] - b[1] * c[0]))
     den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
     return jnp.arctan2(det, den) / (2 * jnp.pi)
 
@@ -363,9 +362,17 @@ def _winding_solid(tris, *, resolution: int):
     return (_winding_numbers(_centres(resolution), tris) > 0.5).reshape((resolution,) * 3)
 
 
-@jax.jit
-def _grid_triangles(mesh: Mesh, grid: Grid):
-    return grid.to_grid_units(mesh.triangles())
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def _grid_triangles(mesh: Mesh, grid: Grid, *, capacity: int):
+    """Triangles in grid units, [capacity, 3, 3] float32, padded with copies of the first
+    vertex (zero-area triangles on the surface: they change no distance, cross no ray and
+    subtend no solid angle), so that meshes of similar size share compiled code."""
+    tris = grid.to_grid_units(mesh.triangles())
+    return jnp.concatenate([tris, jnp.broadcast_to(tris[:1, :1], (capacity - tris.shape[0], 3, 3))])
+
+
+def _padded_triangles(mesh: Mesh, grid: Grid):
+    return _grid_triangles(mesh, grid, capacity=bucket_pow2(mesh.num_faces, 256))
 
 
 def _solid(mesh: Mesh, grid: Grid, tris, method: str):
@@ -405,7 +412,7 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
     validate_mesh(mesh)
     _check_sign_method(method)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
-    return _solid(mesh, grid, _grid_triangles(mesh, grid), method)
+    return _solid(mesh, grid, _padded_triangles(mesh, grid), method)
 
 
 # ------------------------------------------------------------------- the field
@@ -502,7 +509,7 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     _check_bytes(r, distance_field_bytes(1, method=method, signed=signed), max_bytes, f"distance_field({method!r})")
     if mesh.num_faces == 0:
         return jnp.full((r, r, r), jnp.inf, jnp.float32)
-    tris = _grid_triangles(mesh, grid)
+    tris = _padded_triangles(mesh, grid)
     if method == "exact":
         coords, triangle = jnp.zeros((0, 3), jnp.int32), jnp.zeros(0, jnp.int32)
     else:
