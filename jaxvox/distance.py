@@ -63,8 +63,8 @@ from jaxvox._buffers import bucket, bucket_pow2, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh, validate_mesh
-from jaxvox.voxelize import CONSERVATIVE, _point_triangle_dist2, voxelize
+from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
+from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
 
 METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep")
 SIGN_METHODS = ("auto", "parity", "winding")
@@ -362,17 +362,16 @@ def _winding_solid(tris, *, resolution: int):
     return (_winding_numbers(_centres(resolution), tris) > 0.5).reshape((resolution,) * 3)
 
 
-@functools.partial(jax.jit, static_argnames=("capacity",))
-def _grid_triangles(mesh: Mesh, grid: Grid, *, capacity: int):
-    """Triangles in grid units, [capacity, 3, 3] float32, padded with copies of the first
-    vertex (zero-area triangles on the surface: they change no distance, cross no ray and
-    subtend no solid angle), so that meshes of similar size share compiled code."""
-    tris = grid.to_grid_units(mesh.triangles())
-    return jnp.concatenate([tris, jnp.broadcast_to(tris[:1, :1], (capacity - tris.shape[0], 3, 3))])
+@jax.jit
+def _grid_triangles(mesh: Mesh, grid: Grid):
+    return grid.to_grid_units(mesh.triangles())
 
 
-def _padded_triangles(mesh: Mesh, grid: Grid):
-    return _grid_triangles(mesh, grid, capacity=bucket_pow2(mesh.num_faces, 256))
+def _padded(mesh: Mesh) -> Mesh:
+    """`mesh` padded to a power-of-two number of faces with ``(0, 0, 0)`` faces (points at
+    vertex 0, on the surface: they change no distance, cross no ray and subtend no solid
+    angle), so that meshes of similar size share compiled code."""
+    return pad_mesh(mesh, mesh.num_vertices, bucket_pow2(mesh.num_faces, 256))
 
 
 def _solid(mesh: Mesh, grid: Grid, tris, method: str):
@@ -412,7 +411,7 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
     validate_mesh(mesh)
     _check_sign_method(method)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
-    return _solid(mesh, grid, _padded_triangles(mesh, grid), method)
+    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method)
 
 
 # ------------------------------------------------------------------- the field
@@ -509,12 +508,16 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     _check_bytes(r, distance_field_bytes(1, method=method, signed=signed), max_bytes, f"distance_field({method!r})")
     if mesh.num_faces == 0:
         return jnp.full((r, r, r), jnp.inf, jnp.float32)
-    tris = _padded_triangles(mesh, grid)
+    padded = _padded(mesh)
+    tris = _grid_triangles(padded, grid)
     if method == "exact":
         coords, triangle = jnp.zeros((0, 3), jnp.int32), jnp.zeros(0, jnp.int32)
     else:
-        vox = voxelize(mesh, grid, mode=CONSERVATIVE, triangle_ids=True, progress=False)
-        coords, triangle = vox.coords, vox.triangle
+        vox = voxelize(padded, grid, mode=CONSERVATIVE, triangle_ids=True, progress=False)
+        n = int(vox.count)
+        cap = bucket_pow2(n, 4096)  # few shapes: similar meshes share the compiled field
+        coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(vox.coords[:n])
+        triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
     dist = _unsigned(tris, coords, triangle, grid, method=method, band=int(band), sweeps=int(sweeps))
     if signed:
         dist = jnp.where(_solid(mesh, grid, tris, sign), -dist, dist)
