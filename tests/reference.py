@@ -88,6 +88,7 @@ __all__ = [
     "closest_point_on_triangles",
     "mesh_distance",
     "ray_parity",
+    "first_hit",
 ]
 
 MODES = ("conservative", "6-separating")
@@ -486,4 +487,27 @@ def ray_parity(vertices, faces, points, direction=(0.5773, 0.5774, 0.5775)) -> n
         t = np.einsum("fk,fk->f", e2, q) * inv
         hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
         out[n] = hit.sum() % 2 == 1
+    return out
+
+
+def first_hit(vertices, faces, origins, directions) -> np.ndarray:
+    """Ray parameter of the nearest triangle hit, ``t >= 0`` (float64 ``[P]``, inf on a miss),
+    for unit directions (Moller-Trumbore, no culling)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    out = np.full(len(origins), np.inf)
+    for n, (o, d) in enumerate(zip(np.asarray(origins, np.float64), np.asarray(directions, np.float64))):
+        d = d / np.linalg.norm(d)
+        h = np.cross(d, e2)
+        det = np.einsum("fk,fk->f", e1, h)
+        ok = np.abs(det) > 1e-300
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = o - tri[:, 0]
+        u = np.einsum("fk,fk->f", s, h) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        t = np.einsum("fk,fk->f", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0)
+        if hit.any():
+            out[n] = t[hit].min()
     return out

@@ -30,7 +30,7 @@ from scipy import ndimage
 
 import jaxvox as jv
 
-from tests.reference import mesh_distance, ray_parity, winding_number
+from tests.reference import first_hit, mesh_distance, ray_parity, winding_number
 
 BOUNDS = {  # method: (max above exact, max below exact), voxels
     "exact": (2e-4, 2e-4),
@@ -249,3 +249,59 @@ def test_bunny_unsigned_bounds(meshes_dir, method):
     err = (got[idx] - ref) / float(grid.voxel_size)
     above, below = BOUNDS[method]
     assert err.max() <= above and err.min() >= -below
+
+
+# ------------------------------------------------------------------------------ clipmaps
+
+
+def test_clipmap_incremental_equals_scratch_after_moves():
+    mesh = _icosphere(1, 0.5, (0.1, 0.0, 0.0))
+    kw = dict(resolution=16, num_cascades=3, voxel_size=0.05)
+    rng = np.random.default_rng(5)
+    moves = [(-0.9, 0.2, 0.1), (-0.85, 0.2, 0.1), (2.0, 1.0, -1.0)] + list(rng.uniform(-1, 1, (3, 3)))
+    clip = jv.build_clipmap(mesh, (-1.0, 0.2, 0.1), **kw)
+    for frame, camera in enumerate(moves):  # time-sliced: at most one cascade per frame
+        clip = jv.update_clipmap(clip, mesh, camera, cascades=jv.time_sliced_cascades(frame, 3))
+        assert len(jv.time_sliced_cascades(frame, 3)) == 1
+    clip = jv.update_clipmap(clip, mesh, moves[-1])  # catch up every cascade
+    scratch = jv.build_clipmap(mesh, moves[-1], **kw)
+    np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(scratch.corner))
+    np.testing.assert_allclose(np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6)
+    # stored values are the exact signed distance at each voxel centre, clamped
+    c, r = 1, 16
+    h = 0.05 * 2**c
+    g = np.asarray(scratch.corner[c]) + np.argwhere(np.ones((r, r, r), bool))
+    centres = (g + 0.5) * h
+    slots = np.mod(g, r)
+    ref = mesh_distance(mesh.vertices, mesh.faces, centres)
+    inside = winding_number(mesh.vertices, mesh.faces, centres[::97]) > 0.5
+    got = np.asarray(scratch.fields[c])[tuple(slots.T)]
+    np.testing.assert_allclose(np.abs(got), np.minimum(ref, 8 * h), atol=1e-5)
+    np.testing.assert_array_equal(got[::97] < 0, inside)
+    # union with a dynamic object: pointwise min
+    ball = jv.build_clipmap(_icosphere(0, 0.2, (-0.6, 0.0, 0.0)), moves[-1], **kw)
+    union = jv.union_clipmaps(scratch, ball)
+    np.testing.assert_array_equal(np.asarray(union.fields), np.minimum(scratch.fields, ball.fields))
+
+
+def test_clipmap_tracing_matches_exact_hits():
+    mesh = _icosphere(2, 0.5, (0.1, 0.0, 0.0))
+    camera = np.array([-1.0, 0.2, 0.1])
+    clip = jv.build_clipmap(mesh, camera, resolution=16, num_cascades=3, voxel_size=0.05)
+    rng = np.random.default_rng(6)
+    towards = np.array([0.1, 0.0, 0.0]) + rng.uniform(-0.3, 0.3, (24, 3)) - camera  # well inside the silhouette
+    away = rng.normal(size=(8, 3)) * 0.2 + [-1.0, 0.0, 0.0]
+    dirs = np.concatenate([towards, away])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = np.repeat(camera[None], len(dirs), 0)
+    t, status, cascade = jax.jit(jv.trace_clipmap)(clip, origins, dirs)
+    ref = first_hit(mesh.vertices, mesh.faces, origins, dirs)
+    status, t, cascade = np.asarray(status), np.asarray(t), np.asarray(cascade)
+    np.testing.assert_array_equal(status == jv.TRACE_HIT, np.isfinite(ref))
+    assert (status[np.isinf(ref)] == jv.TRACE_MISS).all()
+    hit = np.isfinite(ref)
+    assert hit.sum() == 24
+    h = 0.05 * 2.0 ** cascade[hit]
+    assert (np.abs(t[hit] - ref[hit]) <= h).all()
+    capped = jv.trace_clipmap(clip, origins[:4], dirs[:4], max_steps=1)[1]
+    assert (np.asarray(capped) == jv.TRACE_STEP_CAP).all()
