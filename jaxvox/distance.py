@@ -71,8 +71,9 @@ SIGN_METHODS = ("auto", "parity", "winding")
 NO_TRIANGLE = -1  # triangle id of a voxel no seed has reached yet
 FORMATS = ("float16", "fixed16")
 
-# Peak working memory per voxel of each method (bytes), measured on the CPU backend at
-# 64^3-128^3 and rounded up; add SIGN_BYTES_PER_VOXEL for a signed field.
+# Estimated peak working memory per voxel of each method (bytes), counted from the
+# arrays each step holds (ids, distances, pass copies; for sweeping the skewed
+# [3R-2, R, R] copies) with room to spare; add SIGN_BYTES_PER_VOXEL for a signed field.
 BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 96, "jfa+sweep": 96}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
@@ -421,8 +422,8 @@ def distance_field_bytes(resolution: int, *, method: str = "jfa+sweep", signed: 
     """Estimated peak working memory of `distance_field` at R^3 voxels, in bytes.
 
     ``R^3 * (BYTES_PER_VOXEL[method] + (SIGN_BYTES_PER_VOXEL if signed else 0))``; the
-    result itself is 4 R^3 bytes (512^3: 0.5 GiB; "jfa+sweep" signed builds need about
-    14 GiB there).
+    result itself is 4 R^3 bytes (512^3: 0.5 GiB; a signed "jfa+sweep" build is estimated
+    at 14 GiB there).
     """
     return int(resolution) ** 3 * (BYTES_PER_VOXEL[_check_method(method)] + (SIGN_BYTES_PER_VOXEL if signed else 0))
 

@@ -222,7 +222,7 @@ def test_quantized_field_error(spot, fmt):
     assert (err <= bound + 1e-6).all()
 
 
-@hypothesis.settings(deadline=None, max_examples=8)
+@hypothesis.settings(deadline=None, max_examples=6)
 @hypothesis.given(st.lists(st.tuples(*[st.floats(-0.25, 1.25, width=32)] * 9), min_size=1, max_size=4))
 def test_random_triangles_jfa_bounds(corners):
     """Random triangles (possibly degenerate, possibly outside the grid): JFA never below
