@@ -1,12 +1,31 @@
 """jaxvox: voxel geometry in JAX.
 
 Exact conservative and 6-separating triangle voxelization, sparse voxel octrees and
-DAGs with per-node prefix sums for voxel attributes, all with fixed-capacity jittable
+DAGs with per-node prefix sums for voxel attributes, dense distance fields (jump
+flooding, fast sweeping, solid voxelization for the sign) and cascaded clipmaps, all with fixed-capacity jittable
 cores and host-side APIs that size capacities by counting passes.
 """
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
+from jaxvox.distance import (
+    TRACE_HIT,
+    TRACE_MISS,
+    TRACE_STEP_CAP,
+    Clipmap,
+    build_clipmap,
+    clipmap_corners,
+    time_sliced_cascades,
+    trace_clipmap,
+    union_clipmaps,
+    update_clipmap,
+    QuantizedField,
+    distance_field,
+    distance_field_bytes,
+    open_edges,
+    quantize_field,
+    solid_voxelize,
+)
 from jaxvox.grid import Grid
 from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh
@@ -49,6 +68,22 @@ __all__ = [
     "build_dag",
     "build_octree",
     "compact",
+    "QuantizedField",
+    "TRACE_HIT",
+    "TRACE_MISS",
+    "TRACE_STEP_CAP",
+    "Clipmap",
+    "build_clipmap",
+    "clipmap_corners",
+    "time_sliced_cascades",
+    "trace_clipmap",
+    "union_clipmaps",
+    "update_clipmap",
+    "distance_field",
+    "distance_field_bytes",
+    "open_edges",
+    "quantize_field",
+    "solid_voxelize",
     "expand",
     "load",
     "load_attributes",

@@ -443,31 +443,36 @@ def _rows(columns: _Columns, row_cap: int, chunk: int) -> _Rows:
 
 
 def _point_triangle_dist2(p, a, b, c):
-    """Squared distance from points p [n, 3] to triangles (a, b, c) [n, 3] (Ericson's regions)."""
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = jnp.sum(ab * ap, -1), jnp.sum(ac * ap, -1)
-    bp, cp = p - b, p - c
-    d3, d4 = jnp.sum(ab * bp, -1), jnp.sum(ac * bp, -1)
-    d5, d6 = jnp.sum(ab * cp, -1), jnp.sum(ac * cp, -1)
+    """Squared distance from points p [..., 3] to triangles (a, b, c) [..., 3] (Ericson's regions).
+
+    Leading axes broadcast. Works on the x, y, z components as separate arrays: no
+    reductions over a length-3 axis, so XLA fuses it all into one elementwise loop.
+    """
+    p, a, b, c = (tuple(x[..., i] for i in range(3)) for x in (p, a, b, c))
+    sub = lambda x, y: tuple(xi - yi for xi, yi in zip(x, y))
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp, cp = sub(p, b), sub(p, c)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
 
     def seg(x0, x1):
-        e = x1 - x0
-        ee = jnp.sum(e * e, -1)
-        s = jnp.clip(jnp.sum((p - x0) * e, -1) / jnp.where(ee > 0, ee, 1.0), 0.0, 1.0)
-        r = p - (x0 + s[:, None] * e)
-        return jnp.sum(r * r, -1)
+        e, q = sub(x1, x0), sub(p, x0)
+        ee = dot(e, e)
+        s = jnp.clip(dot(q, e) / jnp.where(ee > 0, ee, 1.0), 0.0, 1.0)
+        r = tuple(qi - s * ei for qi, ei in zip(q, e))
+        return dot(r, r)
 
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     inside = (va >= 0) & (vb >= 0) & (vc >= 0)
     den = va + vb + vc
     safe = jnp.where(den > 0, den, 1.0)
-    proj = a + (vb / safe)[:, None] * ab + (vc / safe)[:, None] * ac
-    r = p - proj
-    face = jnp.sum(r * r, -1)
+    v, w = vb / safe, vc / safe
+    r = tuple(api - v * abi - w * aci for api, abi, aci in zip(ap, ab, ac))
+    face = dot(r, r)
     edges = jnp.minimum(jnp.minimum(seg(a, b), seg(b, c)), seg(c, a))
     return jnp.where(inside & (den > 0), jnp.minimum(face, edges), edges)
-
-
 
 
 def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: bool):

@@ -85,6 +85,10 @@ __all__ = [
     "to_grid_units",
     "triangle_tolerance",
     "winding_number",
+    "closest_point_on_triangles",
+    "mesh_distance",
+    "ray_parity",
+    "first_hit",
 ]
 
 MODES = ("conservative", "6-separating")
@@ -398,4 +402,112 @@ def winding_number(vertices, faces, points) -> np.ndarray:
         den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
                + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb)
         out[n] = np.arctan2(det, den).sum() / (2 * np.pi)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Distances and inside tests (float64)
+# --------------------------------------------------------------------------------------------
+
+
+def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
+    """Closest points on triangles (a, b, c) to points p, all float64 ``[N, 3]`` (broadcast).
+
+    Ericson, *Real-Time Collision Detection*, 5.1.5: Voronoi regions of the vertices, the
+    edges and the face, tested in that order. Degenerate triangles fall into a vertex or
+    edge region, which is the right answer for a point or a segment.
+    """
+    p, a, b, c = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (p, a, b, c)))
+    ab, ac, ap = b - a, c - a, p - a
+    dot = lambda x, y: np.einsum("...k,...k->...", x, y)
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp, cp = p - b, p - c
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    out = np.empty_like(p)
+    done = np.zeros(p.shape[:-1], bool)
+
+    def take(mask, value):
+        mask = mask & ~done
+        out[mask] = value[mask]
+        done[mask] = True
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        take((d1 <= 0) & (d2 <= 0), a)
+        take((d3 >= 0) & (d4 <= d3), b)
+        take((d6 >= 0) & (d5 <= d6), c)
+        take((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / (d1 - d3))[..., None] * ab)
+        take((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / (d2 - d6))[..., None] * ac)
+        take((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+             b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[..., None] * (c - b))
+        den = va + vb + vc
+        take(np.ones_like(done), a + (vb / den)[..., None] * ab + (vc / den)[..., None] * ac)
+    return out
+
+
+def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
+    """Unsigned distance (float64 ``[P]``) from points ``[P, 3]`` to a triangle mesh, brute force.
+
+    ``+inf`` for a mesh without faces.
+    """
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.full(len(points), np.inf)
+    if len(tri) == 0:
+        return out
+    step = max(1, chunk // len(tri))
+    for s in range(0, len(points), step):
+        p = points[s:s + step, None, :]
+        q = closest_point_on_triangles(p, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+        out[s:s + step] = np.sqrt(((q - p) ** 2).sum(-1)).min(1)
+    return out
+
+
+def ray_parity(vertices, faces, points, direction=(0.5773, 0.5774, 0.5775)) -> np.ndarray:
+    """Inside test by ray parity (float64 ``[P]`` bool): odd number of crossings of the ray
+    ``point + t * direction``, ``t > 0``, with the triangles (Moller-Trumbore, no culling).
+
+    Right for watertight meshes; the default direction is generic, so that rays through
+    edges or vertices are unlikely.
+    """
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
+    d = np.asarray(direction, np.float64)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    h = np.cross(d, e2)
+    det = np.einsum("fk,fk->f", e1, h)
+    ok = np.abs(det) > 1e-300
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    out = np.empty(len(points), bool)
+    for n, p in enumerate(np.asarray(points, np.float64)):
+        s = p - tri[:, 0]
+        u = np.einsum("fk,fk->f", s, h) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        t = np.einsum("fk,fk->f", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        out[n] = hit.sum() % 2 == 1
+    return out
+
+
+def first_hit(vertices, faces, origins, directions) -> np.ndarray:
+    """Ray parameter of the nearest triangle hit, ``t >= 0`` (float64 ``[P]``, inf on a miss),
+    for unit directions (Moller-Trumbore, no culling)."""
+    tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    out = np.full(len(origins), np.inf)
+    for n, (o, d) in enumerate(zip(np.asarray(origins, np.float64), np.asarray(directions, np.float64))):
+        d = d / np.linalg.norm(d)
+        h = np.cross(d, e2)
+        det = np.einsum("fk,fk->f", e1, h)
+        ok = np.abs(det) > 1e-300
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        s = o - tri[:, 0]
+        u = np.einsum("fk,fk->f", s, h) * inv
+        q = np.cross(s, e1)
+        v = (q @ d) * inv
+        t = np.einsum("fk,fk->f", e2, q) * inv
+        hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0)
+        if hit.any():
+            out[n] = t[hit].min()
     return out

@@ -1,0 +1,185 @@
+"""Distance fields: time and error of each method against exact references.
+
+For each mesh and resolution R, on `jv.Grid.fit(mesh, resolution=R, padding=0.1)`:
+
+* methods: "jfa", "jfa-separable", "sweep" with 1, 2 and 3 iterations, "jfa+sweep"
+  (one separable 3x3x3 band pass, then 3 sweep iterations); unsigned fields are timed
+  (median of repeats after a warm-up; the first call's extra time is `compile_s`);
+* reference (a): scipy's exact EDT of the conservative surface voxels (voxel
+  centres to the nearest surface-voxel centre; itself within sqrt(3)/2 voxel of the
+  true distance);
+* reference (b): the exact point-to-mesh distance, Open3D's `RaycastingScene.
+  compute_distance` (float32 BVH) at every voxel centre, checked against a float64
+  brute force on a random subsample (the largest disagreement is reported);
+* errors in voxels: max, mean and 99th percentile of |field - reference|;
+* sign: the solid voxelization jaxvox uses (parity for watertight meshes, winding
+  number otherwise) against Open3D's ray-parity inside test (`compute_occupancy`,
+  watertight meshes only) at voxel centres more than 0.01 voxel from the surface;
+  "sign errors" counts disagreements; the 16-bit formats' extra error is reported too.
+
+Each (mesh, R) case runs in a fresh process. Outputs distance_fields[_smoke].json,
+.md (table) and .png (time vs error, one point per method and resolution) plus
+distance_fields[_smoke]_slices.png (error slices) in experiments/results/.
+
+Examples:
+  python experiments/distance_fields.py --smoke        # R = 32, 64 on spot (a few minutes)
+  python experiments/distance_fields.py                # R = 64 .. 512, spot and bunny
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import _common
+
+METHODS = [("jfa", "jfa", {}), ("jfa-separable", "jfa-separable", {}),
+           ("sweep x1", "sweep", dict(sweeps=1)), ("sweep x2", "sweep", dict(sweeps=2)),
+           ("sweep x3", "sweep", dict(sweeps=3)), ("jfa+sweep", "jfa+sweep", dict(sweeps=3))]
+
+
+def _errors(field: np.ndarray, ref: np.ndarray) -> dict:
+    e = np.abs(field - ref).reshape(-1)
+    return dict(max=float(e.max()), mean=float(e.mean()), p99=float(np.percentile(e, 99)))
+
+
+def worker(spec: dict) -> dict:
+    """One (mesh, R) case: every method, both references, sign and 16-bit errors."""
+    import jax
+    import open3d as o3d
+    from scipy import ndimage
+
+    sys.path.insert(0, str(_common.REPO_ROOT))
+    import jaxvox as jv
+    from tests.reference import mesh_distance
+
+    mesh = jv.load_mesh(spec["path"])
+    r = spec["resolution"]
+    grid = jv.Grid.fit(mesh, resolution=r, padding=0.1)
+    h = float(grid.voxel_size)
+    ijk = np.indices((r, r, r)).reshape(3, -1).T
+    centres = (ijk + 0.5) * h + np.asarray(grid.origin, np.float64)
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32))
+    exact = scene.compute_distance(centres.astype(np.float32)).numpy().reshape(r, r, r) / h
+    sample = np.random.default_rng(0).choice(len(centres), spec["subsample"], replace=False)
+    f64 = mesh_distance(mesh.vertices, mesh.faces, centres[sample]) / h
+    open3d_vs_f64 = float(np.abs(exact.reshape(-1)[sample] - f64).max())
+    surface = np.ones((r, r, r), bool)
+    surface[tuple(jv.voxelize(mesh, grid).to_numpy().T)] = False
+    edt = ndimage.distance_transform_edt(surface)
+
+    watertight = jv.open_edges(mesh) == 0
+    timing, solid = _common.time_calls(lambda: jax.block_until_ready(jv.solid_voxelize(mesh, grid)), 1)
+    solid = np.asarray(solid)
+    sign = dict(method="parity" if watertight else "winding", time_s=timing["median_s"])
+    if watertight:
+        inside = scene.compute_occupancy(centres.astype(np.float32)).numpy().reshape(r, r, r) > 0.5
+        firm = exact > 0.01
+        sign.update(errors=int((solid != inside)[firm].sum()), checked=int(firm.sum()))
+
+    rows, slices = [], {}
+    for label, method, kw in METHODS:
+        call = lambda: jax.block_until_ready(jv.distance_field(mesh, grid, method=method, signed=False, **kw))
+        timing, field = _common.time_calls(call, spec["repeats"])
+        field = np.asarray(field) / h
+        row = dict(method=label, **{k: timing[k] for k in ("median_s", "compile_s", "first_s")},
+                   vs_exact=_errors(field, exact), vs_edt=_errors(field, edt))
+        if label == "jfa+sweep":
+            for fmt in jv.distance.FORMATS:
+                q = jv.quantize_field(jax.numpy.asarray(field * h), grid, format=fmt)
+                row[f"{fmt}_extra"] = _errors(np.asarray(q.decode()) / h, field)
+        rows.append(row)
+        slices[label] = (field - exact)[:, :, r // 2].tolist()
+    return dict(resolution=r, voxel_size=h, faces=mesh.num_faces, watertight=bool(watertight),
+                open3d_vs_float64_max=open3d_vs_f64, subsample=spec["subsample"], sign=sign,
+                rows=rows, slices=slices, peak_rss_mib=_common.peak_rss_mib())
+
+
+def table(cases: list[dict]) -> str:
+    out = []
+    for case in cases:
+        if "error" in case:
+            out.append(dict(mesh=case["mesh"], R=case["resolution"], method=case["error"]))
+            continue
+        sign = case["sign"]
+        sign_text = (f"{sign['errors']} / {sign['checked']:,}" if "errors" in sign else "n/a (open mesh)")
+        for row in case["rows"]:
+            a, b = row["vs_exact"], row["vs_edt"]
+            out.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
+                            time=f"{row['median_s']:.3g}", compile=f"{row['compile_s']:.2g}",
+                            exact=f"{a['max']:.3f} / {a['mean']:.4f} / {a['p99']:.3f}",
+                            edt=f"{b['max']:.3f} / {b['mean']:.3f} / {b['p99']:.3f}",
+                            sign=f"{sign['method']}: {sign_text}"))
+    columns = [("mesh", "mesh"), ("R", "R"), ("method", "method"), ("time", "time (s)"),
+               ("compile", "compile (s)"), ("exact", "vs exact: max / mean / p99 (voxels)"),
+               ("edt", "vs EDT of surface voxels: max / mean / p99"), ("sign", "sign errors")]
+    return _common.markdown_table(out, columns)
+
+
+def plot(cases: list[dict], stem: Path) -> None:
+    fig, (ax_max, ax_mean) = _common.new_figure(2)
+    labels = [m[0] for m in METHODS]
+    for n, label in enumerate(labels):
+        pts = [(row["median_s"], row["vs_exact"], case["resolution"], case["mesh"])
+               for case in cases if "rows" in case for row in case["rows"] if row["method"] == label]
+        for ax, key in ((ax_max, "max"), (ax_mean, "mean")):
+            ax.scatter([p[0] for p in pts], [p[1][key] for p in pts], color=f"C{n}", label=label)
+            for p in pts:
+                ax.annotate(f"{p[3][:5]} {p[2]}", (p[0], p[1][key]), fontsize=6)
+    for ax, key in ((ax_max, "max"), (ax_mean, "mean")):
+        ax.set(xscale="log", yscale="log", xlabel="median time per field (s)",
+               ylabel=f"{key} |error| vs exact distance (voxels)", title=f"Time vs {key} error")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize="small")
+    _common.save_figure(fig, stem.with_suffix(".png"))
+    case = next((c for c in reversed(cases) if "slices" in c), None)
+    if case:
+        fig, axes = _common.new_figure(len(case["slices"]), width=3.2, height=3.0)
+        for ax, (label, sl) in zip(np.atleast_1d(axes), case["slices"].items()):
+            im = ax.imshow(np.asarray(sl).T, origin="lower", cmap="RdBu_r", vmin=-1.5, vmax=1.5)
+            ax.set_title(f"{label}\n{case['mesh']} {case['resolution']}^3, z = R/2", fontsize=8)
+        fig.colorbar(im, ax=axes, label="field - exact (voxels)")
+        _common.save_figure(fig, stem.parent / f"{stem.name}_slices.png")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--meshes", nargs="+", default=["spot", "stanford-bunny"])
+    parser.add_argument("--resolutions", nargs="+", type=int, default=[64, 128, 256, 512])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--subsample", type=int, default=2000, help="float64 check points")
+    parser.add_argument("--timeout", type=float, default=7200)
+    parser.add_argument("--smoke", action="store_true", help="spot at R = 32, 64, one repeat")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(json.loads(args.worker))))
+        return
+    if args.smoke:
+        args.meshes, args.resolutions, args.repeats, args.subsample = ["spot"], [32, 64], 1, 300
+    cases = []
+    for mesh in args.meshes:
+        for r in _common.progress(args.resolutions, desc=mesh):
+            spec = dict(path=str(_common.MESH_DIR / f"{mesh}.obj"), resolution=r,
+                        repeats=args.repeats, subsample=args.subsample)
+            case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=mesh, resolution=r)
+            cases.append(case)
+            print(f"{mesh} R={r}: {case.get('error', 'done')}", file=sys.stderr)
+    stem = _common.RESULTS_DIR / ("distance_fields_smoke" if args.smoke else "distance_fields")
+    report = table(cases)
+    _common.write_json(stem.with_suffix(".json"), dict(
+        machine=_common.machine_info(["jax", "jaxlib", "open3d", "scipy", "numpy"]),
+        settings=vars(args) | dict(mesh_dir=None), cases=cases))
+    stem.with_suffix(".md").write_text(report)
+    plot(cases, stem)
+    print(report)
+
+
+if __name__ == "__main__":
+    main()

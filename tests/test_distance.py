@@ -1,0 +1,307 @@
+"""Distance fields, solid voxelization and 16-bit storage against float64 and scipy references.
+
+Error bounds per method (voxel units, on the closed spot mesh at 32^3, measured there
+as jfa 0.22, jfa-separable 0.38, sweep 1.28 / -0.53, jfa+sweep 0.97 / -0.43):
+
+* "exact": within 2e-4 voxel of the float64 brute force (float32 rounding);
+* "jfa", "jfa-separable": distances to real triangles, so never below the exact
+  distance; above it by at most 0.5 and 0.75 voxel;
+* "sweep", "jfa+sweep" (first-order eikonal): at most 1.75 and 1.5 voxels above, and
+  0.75 and 0.6 below (the upwind update undershoots along ridges of the field).
+
+Against scipy's EDT of the conservative surface voxels ``e`` the exact distance ``d``
+obeys ``|d - e| <= sqrt(3)/2`` (each is within half a voxel diagonal of the other's
+witness), so every method must stay within that plus its own bound. On point sites at
+voxel centres the exact field *is* the EDT.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import hypothesis
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import ndimage
+
+import jaxvox as jv
+
+from tests.reference import first_hit, mesh_distance, ray_parity, winding_number
+
+BOUNDS = {  # method: (max above exact, max below exact), voxels
+    "exact": (2e-4, 2e-4),
+    "jfa": (0.5, 2e-4),
+    "jfa-separable": (0.75, 2e-4),
+    "sweep": (1.75, 0.75),
+    "jfa+sweep": (1.5, 0.6),
+}
+# Sweeping from a few isolated seeds (a lone triangle, geometry outside the grid, which
+# enters through the boundary voxels nearest its triangles' centroids) is first-order
+# from point sources: measured up to 2.8 voxels above at 16^3.
+ISOLATED_SWEEP_BOUND = 3.0
+HALF_DIAGONAL = math.sqrt(3) / 2
+SLOW = os.environ.get("JAXVOX_SLOW_SCALE", "").strip().lower()
+
+
+def _centres(grid) -> np.ndarray:
+    r = grid.resolution
+    ijk = np.indices((r, r, r)).reshape(3, -1).T
+    return (ijk + 0.5) * float(grid.voxel_size) + np.asarray(grid.origin, np.float64)
+
+
+def _icosphere(subdivisions=1, radius=1.0, shift=(0.0, 0.0, 0.0)) -> jv.Mesh:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return jv.Mesh(np.asarray(s.vertices, np.float32) + np.float32(shift), np.asarray(s.faces, np.int32))
+
+
+@pytest.fixture(scope="module")
+def spot(meshes_dir):
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, resolution=32, padding=0.1)
+    exact = np.asarray(jv.distance_field(mesh, grid, method="exact", signed=False))
+    return mesh, grid, exact
+
+
+def test_exact_matches_float64_on_hard_cases():
+    """Brute force against the float64 reference: a closed sphere, an open fan with a
+    degenerate (zero-area) triangle and a point, and a mesh half outside the grid."""
+    sphere = _icosphere(1, 0.6, (0.5, 0.5, 0.5))
+    v = np.array([[0.2, 0.2, 0.5], [0.8, 0.3, 0.5], [0.4, 0.9, 0.6], [0.6, 0.6, 0.6], [0.3, 0.3, 0.3]], np.float32)
+    fan = jv.Mesh(v, np.array([[0, 1, 2], [1, 3, 3], [4, 4, 4]], np.int32))  # triangle, segment, point
+    outside = _icosphere(0, 0.5, (1.6, 0.5, -0.4))  # mostly outside the unit box
+    grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1 / 16, resolution=16)
+    points = _centres(grid)
+    for mesh in (sphere, fan, outside):
+        ref = mesh_distance(mesh.vertices, mesh.faces, points).reshape((16,) * 3)
+        got = np.asarray(jv.distance_field(mesh, grid, method="exact", signed=False))
+        np.testing.assert_allclose(got * 16, ref * 16, atol=BOUNDS["exact"][0])
+        for method in ("jfa", "jfa+sweep"):  # geometry outside the grid still seeds the field
+            got = np.asarray(jv.distance_field(mesh, grid, method=method, signed=False))
+            err = (got - ref) * 16
+            above = ISOLATED_SWEEP_BOUND if method == "jfa+sweep" else BOUNDS[method][0]
+            assert err.max() <= above and err.min() >= -BOUNDS[method][1], (method, err.min(), err.max())
+
+
+@pytest.mark.parametrize("method", list(BOUNDS))
+def test_point_sites_are_the_edt(method):
+    """Zero-area triangles at voxel centres: the exact field is scipy's EDT of those voxels."""
+    r = 16
+    rng = np.random.default_rng(3)
+    sites = rng.integers(0, r, size=(12, 3))
+    v = (sites + 0.5).astype(np.float32)
+    mesh = jv.Mesh(v, np.repeat(np.arange(len(v), dtype=np.int32)[:, None], 3, axis=1))
+    grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1.0, resolution=r)
+    occupied = np.ones((r, r, r), bool)
+    occupied[tuple(sites.T)] = False
+    edt = ndimage.distance_transform_edt(occupied)
+    got = np.asarray(jv.distance_field(mesh, grid, method=method, signed=False))
+    above, below = BOUNDS[method]
+    assert (got - edt).max() <= above and (got - edt).min() >= -below
+    if method == "exact":
+        np.testing.assert_allclose(got, edt, atol=1e-5)
+
+
+@pytest.mark.parametrize("method", [m for m in BOUNDS if m != "exact"])
+def test_methods_on_spot_within_bounds(spot, method):
+    mesh, grid, exact = spot
+    h = float(grid.voxel_size)
+    got = np.asarray(jv.distance_field(mesh, grid, method=method, signed=False))
+    err = (got - exact) / h
+    above, below = BOUNDS[method]
+    assert err.max() <= above and err.min() >= -below, (err.min(), err.max())
+    # scipy's EDT of the conservative surface voxels, in voxels
+    surface = np.ones((32,) * 3, bool)
+    surface[tuple(jv.voxelize(mesh, grid).to_numpy().T)] = False
+    edt = ndimage.distance_transform_edt(surface)
+    assert np.abs(exact / h - edt).max() <= HALF_DIAGONAL + 1e-4
+    assert np.abs(got / h - edt).max() <= HALF_DIAGONAL + above
+
+
+def test_exact_against_float64_on_spot_sample(spot):
+    mesh, grid, exact = spot
+    idx = np.random.default_rng(0).choice(exact.size, 300, replace=False)
+    ref = mesh_distance(mesh.vertices, mesh.faces, _centres(grid)[idx])
+    np.testing.assert_allclose(exact.reshape(-1)[idx] / float(grid.voxel_size),
+                               ref / float(grid.voxel_size), atol=BOUNDS["exact"][0])
+
+
+def test_more_band_and_sweeps_options(spot):
+    """The band and the number of sweeps are honoured: a wide band is exact near the
+    surface, and one sweep already fills the grid."""
+    mesh, grid, exact = spot
+    h = float(grid.voxel_size)
+    wide = np.asarray(jv.distance_field(mesh, grid, method="sweep", band=3, sweeps=1, signed=False))
+    assert np.isfinite(wide).all()
+    near = exact / h < 1.0
+    assert np.abs(wide - exact)[near].max() / h <= BOUNDS["jfa-separable"][0]
+
+
+def test_sign_parity_on_watertight_meshes(meshes_dir):
+    for name in ("spot", "cow"):
+        mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+        assert jv.open_edges(mesh) == 0
+        grid = jv.Grid.fit(mesh, resolution=32, padding=0.05)
+        solid = np.asarray(jv.solid_voxelize(mesh, grid, method="parity"))
+        points = _centres(grid)
+        idx = np.random.default_rng(1).choice(len(points), 250, replace=False)
+        ref = ray_parity(mesh.vertices, mesh.faces, points[idx])
+        assert 0 < solid.sum() < solid.size
+        np.testing.assert_array_equal(solid.reshape(-1)[idx], ref)
+        field = np.asarray(jv.distance_field(mesh, grid, method="jfa+sweep"))  # sign="auto": parity
+        np.testing.assert_array_equal(field < 0, solid)
+
+
+def test_sign_winding_on_open_mesh_and_parity_refuses(meshes_dir):
+    mesh = jv.load_mesh(meshes_dir / "suzanne.obj")
+    assert jv.open_edges(mesh) > 0
+    grid = jv.Grid.fit(mesh, resolution=16, padding=0.05)
+    with pytest.raises(jv.JaxvoxError, match="watertight"):
+        jv.solid_voxelize(mesh, grid, method="parity")
+    with pytest.raises(jv.JaxvoxError, match="watertight"):
+        jv.distance_field(mesh, grid, sign="parity")
+    idx = np.random.default_rng(4).choice(16**3, 400, replace=False)
+    w = winding_number(mesh.vertices, mesh.faces, _centres(grid)[idx])
+    solid = np.asarray(jv.solid_voxelize(mesh, grid)).reshape(-1)[idx]  # auto: winding
+    firm = np.abs(w - 0.5) > 1e-3
+    assert firm.sum() > 390 and solid.any()
+    np.testing.assert_array_equal(solid[firm], (w > 0.5)[firm])
+
+
+def test_winding_and_parity_agree_on_closed_sphere():
+    mesh = _icosphere(2, 0.7, (0.0, 0.0, 0.0))
+    grid = jv.Grid(origin=(-1.0, -1.0, -1.0), voxel_size=2 / 16, resolution=16)
+    parity = np.asarray(jv.solid_voxelize(mesh, grid, method="parity"))
+    winding = np.asarray(jv.solid_voxelize(mesh, grid, method="winding"))
+    np.testing.assert_array_equal(parity, winding)
+    r = np.linalg.norm(_centres(grid), axis=1).reshape((16,) * 3)
+    assert parity[r < 0.6].all() and not parity[r > 0.71].any()
+
+
+def test_bad_input_and_memory_limit():
+    mesh = _icosphere(0)
+    grid = jv.Grid(origin=(-1.0, -1.0, -1.0), voxel_size=0.25, resolution=8)
+    bad = jv.Mesh(np.asarray(mesh.vertices).copy(), mesh.faces)
+    bad = jv.Mesh(np.where(np.arange(len(bad.vertices))[:, None] == 2, np.nan, bad.vertices), bad.faces)
+    with pytest.raises(jv.JaxvoxError, match="NaN"):
+        jv.distance_field(bad, grid)
+    with pytest.raises(jv.JaxvoxError, match="method"):
+        jv.distance_field(mesh, grid, method="fmm")
+    with pytest.raises(jv.JaxvoxError, match="band"):
+        jv.distance_field(mesh, grid, band=-1)
+    with pytest.raises(jv.JaxvoxError, match="sweeps"):
+        jv.distance_field(mesh, grid, sweeps=0)
+    with pytest.raises(jv.JaxvoxError, match="sign"):
+        jv.distance_field(mesh, grid, sign="normals")
+    with pytest.raises(jv.JaxvoxError, match="GiB"):
+        jv.distance_field(mesh, grid, max_bytes=1000)
+    with pytest.raises(jv.JaxvoxError, match="power of two"):
+        jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=12)
+    big = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=1 << 14)
+    with pytest.raises(jv.JaxvoxError, match="max_bytes"):
+        jv.distance_field(mesh, big)  # 2^42 voxels: refused before anything is allocated
+    assert jv.distance_field_bytes(512, method="jfa+sweep") > 4 * 512**3
+    empty = jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    field = np.asarray(jv.distance_field(empty, grid))
+    assert field.shape == (8, 8, 8) and np.isposinf(field).all()
+
+
+@pytest.mark.parametrize("fmt", jv.distance.FORMATS)
+def test_quantized_field_error(spot, fmt):
+    mesh, grid, exact = spot
+    q = jax.jit(lambda f: jv.quantize_field(f, grid, format=fmt))(jnp.asarray(exact))
+    assert q.values.dtype == (jnp.float16 if fmt == "float16" else jnp.int16)
+    err = np.abs(np.asarray(q.decode()) - exact) / float(grid.voxel_size)
+    voxels = np.abs(exact) / float(grid.voxel_size)
+    bound = voxels * 2.0**-11 if fmt == "float16" else np.full_like(voxels, 0.5 / 256 + 1e-6)
+    assert (err <= bound + 1e-6).all()
+
+
+@hypothesis.settings(deadline=None, max_examples=6)
+@hypothesis.given(st.lists(st.tuples(*[st.floats(-0.25, 1.25, width=32)] * 9), min_size=1, max_size=4))
+def test_random_triangles_jfa_bounds(corners):
+    """Random triangles (possibly degenerate, possibly outside the grid): JFA never below
+    the float64 distance and within its bound above."""
+    v = np.array(corners, np.float32).reshape(-1, 3)
+    mesh = jv.Mesh(v, np.arange(len(v), dtype=np.int32).reshape(-1, 3))
+    grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1 / 8, resolution=8)
+    ref = mesh_distance(v, np.asarray(mesh.faces), _centres(grid)).reshape((8,) * 3) * 8
+    got = np.asarray(jv.distance_field(mesh, grid, method="jfa", signed=False)) * 8
+    assert (got - ref).min() >= -2e-4 and (got - ref).max() <= BOUNDS["jfa"][0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["jfa", "jfa+sweep"])
+def test_bunny_unsigned_bounds(meshes_dir, method):
+    """The bunny (open, 69k triangles) against the float64 reference on a sample of voxels;
+    64^3 with JAXVOX_SLOW_SCALE=full, 16^3 otherwise."""
+    r = 64 if SLOW == "full" else 16
+    mesh = jv.load_mesh(meshes_dir / "stanford-bunny.obj")
+    grid = jv.Grid.fit(mesh, resolution=r, padding=0.1)
+    got = np.asarray(jv.distance_field(mesh, grid, method=method, signed=False)).reshape(-1)
+    idx = np.random.default_rng(2).choice(got.size, 60, replace=False)
+    ref = mesh_distance(mesh.vertices, mesh.faces, _centres(grid)[idx])
+    err = (got[idx] - ref) / float(grid.voxel_size)
+    above, below = BOUNDS[method]
+    assert err.max() <= above and err.min() >= -below
+
+
+# ------------------------------------------------------------------------------ clipmaps
+
+
+def test_clipmap_incremental_equals_scratch_after_moves():
+    mesh = _icosphere(1, 0.5, (0.1, 0.0, 0.0))
+    kw = dict(resolution=16, num_cascades=3, voxel_size=0.05)
+    rng = np.random.default_rng(5)
+    moves = [(-0.9, 0.2, 0.1), (-0.85, 0.2, 0.1), (2.0, 1.0, -1.0)] + list(rng.uniform(-1, 1, (3, 3)))
+    clip = jv.build_clipmap(mesh, (-1.0, 0.2, 0.1), **kw)
+    for frame, camera in enumerate(moves):  # time-sliced: at most one cascade per frame
+        clip = jv.update_clipmap(clip, mesh, camera, cascades=jv.time_sliced_cascades(frame, 3))
+        assert len(jv.time_sliced_cascades(frame, 3)) == 1
+    clip = jv.update_clipmap(clip, mesh, moves[-1])  # catch up every cascade
+    scratch = jv.build_clipmap(mesh, moves[-1], **kw)
+    np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(scratch.corner))
+    np.testing.assert_allclose(np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6)
+    # stored values are the exact signed distance at each voxel centre, clamped
+    c, r = 1, 16
+    h = 0.05 * 2**c
+    g = np.asarray(scratch.corner[c]) + np.argwhere(np.ones((r, r, r), bool))
+    centres = (g + 0.5) * h
+    slots = np.mod(g, r)
+    ref = mesh_distance(mesh.vertices, mesh.faces, centres)
+    inside = winding_number(mesh.vertices, mesh.faces, centres[::97]) > 0.5
+    got = np.asarray(scratch.fields[c])[tuple(slots.T)]
+    np.testing.assert_allclose(np.abs(got), np.minimum(ref, 8 * h), atol=1e-5)
+    np.testing.assert_array_equal(got[::97] < 0, inside)
+    # union with a dynamic object: pointwise min
+    ball = jv.build_clipmap(_icosphere(0, 0.2, (-0.6, 0.0, 0.0)), moves[-1], **kw)
+    union = jv.union_clipmaps(scratch, ball)
+    np.testing.assert_array_equal(np.asarray(union.fields), np.minimum(scratch.fields, ball.fields))
+
+
+def test_clipmap_tracing_matches_exact_hits():
+    mesh = _icosphere(2, 0.5, (0.1, 0.0, 0.0))
+    camera = np.array([-1.0, 0.2, 0.1])
+    clip = jv.build_clipmap(mesh, camera, resolution=16, num_cascades=3, voxel_size=0.05)
+    rng = np.random.default_rng(6)
+    towards = np.array([0.1, 0.0, 0.0]) + rng.uniform(-0.3, 0.3, (24, 3)) - camera  # well inside the silhouette
+    away = rng.normal(size=(8, 3)) * 0.2 + [-1.0, 0.0, 0.0]
+    dirs = np.concatenate([towards, away])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    origins = np.repeat(camera[None], len(dirs), 0)
+    t, status, cascade = jax.jit(jv.trace_clipmap)(clip, origins, dirs)
+    ref = first_hit(mesh.vertices, mesh.faces, origins, dirs)
+    status, t, cascade = np.asarray(status), np.asarray(t), np.asarray(cascade)
+    np.testing.assert_array_equal(status == jv.TRACE_HIT, np.isfinite(ref))
+    assert (status[np.isinf(ref)] == jv.TRACE_MISS).all()
+    hit = np.isfinite(ref)
+    assert hit.sum() == 24
+    h = 0.05 * 2.0 ** cascade[hit]
+    assert (np.abs(t[hit] - ref[hit]) <= h).all()
+    capped = jv.trace_clipmap(clip, origins[:4], dirs[:4], max_steps=1)[1]
+    assert (np.asarray(capped) == jv.TRACE_STEP_CAP).all()
