@@ -1,17 +1,15 @@
 """jaxvox: voxel geometry in JAX.
 
 Exact conservative and 6-separating triangle voxelization, sparse voxel octrees and
-DAGs with per-node prefix sums for voxel attributes, dense distance fields (jump
-flooding, fast sweeping, solid voxelization for the sign) and cascaded clipmaps, all with fixed-capacity jittable
-cores and host-side APIs that size capacities by counting passes.
+DAGs with per-node prefix sums for voxel attributes, ray traversal of octrees, DAGs and
+dense grids, dense distance fields (jump flooding, fast sweeping, solid voxelization for
+the sign) and cascaded clipmaps, all with fixed-capacity jittable cores and host-side
+APIs that size capacities by counting passes.
 """
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
 from jaxvox.distance import (
-    TRACE_HIT,
-    TRACE_MISS,
-    TRACE_STEP_CAP,
     Clipmap,
     build_clipmap,
     clipmap_corners,
@@ -42,6 +40,7 @@ from jaxvox.octree import (
     voxel_index,
 )
 from jaxvox.scene import default_scene
+from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
 from jaxvox.voxelize import (
     CONSERVATIVE,
     OVERFLOW_CANDIDATES,
@@ -61,6 +60,14 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CONSERVATIVE",
+    "HIT",
+    "INVALID",
+    "MISS",
+    "STEP_CAP",
+    "TRACE_METHODS",
+    "Hit",
+    "trace",
+    "trace_dense",
     "EMPTY",
     "MISSING",
     "OVERFLOW_NODES",
@@ -69,9 +76,6 @@ __all__ = [
     "build_octree",
     "compact",
     "QuantizedField",
-    "TRACE_HIT",
-    "TRACE_MISS",
-    "TRACE_STEP_CAP",
     "Clipmap",
     "build_clipmap",
     "clipmap_corners",

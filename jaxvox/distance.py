@@ -64,6 +64,7 @@ from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
+from jaxvox.trace import HIT, MISS, STEP_CAP
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
 
 METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep")
@@ -576,9 +577,7 @@ def quantize_field(field: jax.Array, grid: Grid, *, format: str = "fixed16",
 
 # ------------------------------------------------------------ cascaded clipmap
 
-TRACE_HIT = 1  # `trace_clipmap` status: the ray reached the surface
-TRACE_MISS = 2  # it left the coarsest cascade or passed t_max
-TRACE_STEP_CAP = 3  # it used all max_steps without deciding (reported, not a miss)
+_RUNNING = -1  # `trace_clipmap` status while marching (statuses are `jaxvox.trace`'s)
 
 
 @pytree_dataclass
@@ -760,13 +759,13 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
     Args:
       clip: `Clipmap`.
       origins, directions: [n, 3] float32 world rays (directions need not be unit).
-      max_steps: static step cap per ray (hitting it gives `TRACE_STEP_CAP`).
+      max_steps: static step cap per ray (hitting it gives `STEP_CAP`).
       t_max: rays are misses beyond this distance (world units).
       hit_voxels: hit threshold in voxels of the current cascade.
 
     Returns:
       (t [n] float32 ray parameter of the hit (world units along the unit direction),
-      status [n] int32 TRACE_HIT / TRACE_MISS / TRACE_STEP_CAP,
+      status [n] int32 HIT / MISS / STEP_CAP,
       cascade [n] int32 cascade where the ray stopped).
     """
     last = clip.num_cascades - 1
@@ -775,7 +774,7 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
         d = d / jnp.linalg.norm(d)
 
         def cond(state):
-            return (state[3] == 0) & (state[2] < max_steps)
+            return (state[3] == _RUNNING) & (state[2] < max_steps)
 
         def body(state):
             t, c, steps, status = state
@@ -786,10 +785,10 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
             coarser = (~inside | ~inside_next) & ~hit & (c < last)
             escaped = ~inside & ~hit & (c == last)
             t_new = jnp.where(hit | coarser | escaped, t, t + value)
-            status = jnp.where(hit, TRACE_HIT, jnp.where(escaped | (t_new > t_max), TRACE_MISS, 0))
+            status = jnp.where(hit, HIT, jnp.where(escaped | (t_new > t_max), MISS, _RUNNING))
             return t_new, c + coarser.astype(jnp.int32), steps + 1, status
 
-        t, c, _, status = jax.lax.while_loop(cond, body, (jnp.float32(0.0), jnp.int32(0), jnp.int32(0), jnp.int32(0)))
-        return t, jnp.where(status == 0, TRACE_STEP_CAP, status), c
+        t, c, _, status = jax.lax.while_loop(cond, body, (jnp.float32(0.0), jnp.int32(0), jnp.int32(0), jnp.int32(_RUNNING)))
+        return t, jnp.where(status == _RUNNING, STEP_CAP, status), c
 
     return jax.vmap(one)(jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32))

@@ -19,11 +19,13 @@ slot is XORed with the sign bits), so the loop bodies only handle positive direc
 and stop at the first occupied voxel, which is the nearest because cells are visited
 in ray order.
 
-Hit convention: voxels are closed boxes; a voxel is hit when the ray is inside it for
-some ``t > 0`` (a ray starting on a face and moving away does not hit it; a ray
-grazing an edge does), and only if it enters the voxel at ``t <= t_max``. A zero
+Hit convention: a voxel is hit when the ray passes through its interior at some
+``t > 0``, that is when its slab interval ``[t_in, t_out]`` has ``t_in < t_out`` and
+``t_out > 0`` (a ray starting on a face and moving away does not hit it; a ray that
+only touches an edge or a corner does not either: a traversal visits one of the cells
+meeting there, not all), and only if it enters the voxel at ``t <= t_max``. A zero
 direction component is replaced by ``2^-100``, so a ray lying exactly in a voxel face
-plane sees the voxels on the positive side of that plane.
+plane passes through the voxels on the positive side of that plane.
 
 Work is in grid units (voxel ``(i, j, k)`` spans ``[i, i+1] x [j, j+1] x [k, k+1]``,
 ``o = (origin - grid.origin) / h``, ``d = direction / h``), so ``t`` is the parameter of
@@ -56,7 +58,7 @@ HIT, MISS, STEP_CAP, INVALID = 0, 1, 2, 3  # `Hit.status` values
 _RUNNING = -1  # status while a ray is being traced
 _TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
 _AXES = np.arange(3, dtype=np.int32)
-ALGORITHMS = ("esvo", "stack")
+TRACE_METHODS = ("esvo", "stack")  # `trace` methods
 
 
 @pytree_dataclass
@@ -117,7 +119,7 @@ def _ray(o, d, t_max, res: int):
     o = jnp.where(bad, 0.0, jnp.where(neg, res - o, o))
     inv = 1.0 / jnp.maximum(jnp.where(bad, 1.0, jnp.abs(d)), _TINY)
     t_in, t_out = jnp.max(-o * inv), jnp.min((res - o) * inv)
-    enters = (t_in <= t_out) & (t_out > 0) & (t_in <= t_max) & ~bad
+    enters = (t_in < t_out) & (t_out > 0) & (t_in <= t_max) & ~bad
     status = jnp.where(enters, _RUNNING, jnp.where(bad, INVALID, MISS)).astype(jnp.int32)
     flip = jnp.sum(jnp.where(neg, 1 << _AXES, 0)).astype(jnp.int32)
     ray = _Ray(tuple(o[a] for a in range(3)), tuple(inv[a] for a in range(3)), flip, t_max)
@@ -196,7 +198,7 @@ def _esvo_step(tree: Octree, ray: _Ray, s: _Esvo) -> _Esvo:
     t1 = _times(ray, _vec(lambda c: c + size, s.corner))
     t_in, t_out = _max3(t0), _min3(t1)
     slot = _bits(s.corner, shift) ^ ray.flip
-    live = _mask_bit(tree, s.parent, slot) & (t_out > 0) & (t_in <= t_out)
+    live = _mask_bit(tree, s.parent, slot) & (t_out > 0) & (t_in < t_out)
     push = live & (s.level < depth)
     axis = _argmin3(t1)
     before = _stack_get(s.corner, axis)
@@ -257,7 +259,7 @@ def _stacked_step(tree: Octree, ray: _Ray, s: _Stacked) -> _Stacked:
     t1 = _times(ray, _vec(lambda a: a + half, child_corner))
     t_in, t_out = _max3(t0), _min3(t1)
     slot = c ^ ray.flip
-    live = ~popping & _mask_bit(tree, s.node, slot) & (t_out > 0) & (t_in <= t_out)
+    live = ~popping & _mask_bit(tree, s.node, slot) & (t_out > 0) & (t_in < t_out)
     descend = live & (s.level < depth - 1)
     # the moved bit: the child across the nearest exit plane, if still inside this node
     exit_bit = jnp.left_shift(1, _argmin3(t1))
@@ -318,7 +320,7 @@ def _dda_step(dense: _DenseGrid, ray: _Ray, s: _Dda) -> _Dda:
     t1 = _times(ray, _vec(lambda c: c + 1, s.cell))
     t_in, t_out = _max3(t0), _min3(t1)
     i, j, k = _vec(lambda c, a: jnp.where((ray.flip >> a) & 1 == 1, res - 1 - c, c), s.cell, (0, 1, 2))
-    live = dense.occupancy[(i * res + j) * res + k] & (t_out > 0) & (t_in <= t_out)
+    live = dense.occupancy[(i * res + j) * res + k] & (t_out > 0) & (t_in < t_out)
     axis = _argmin3(t1)
     status = _status((t_in > ray.t_max) | (~live & (_stack_get(s.cell, axis) + 1 >= res)), live)
     cell = tuple(jnp.where((axis == a) & (status == _RUNNING), c + 1, c) for a, c in enumerate(s.cell))
@@ -500,8 +502,8 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     Returns:
       A `Hit` with the batch shape of the rays.
     """
-    if method not in ALGORITHMS:
-        raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {ALGORITHMS}")
+    if method not in TRACE_METHODS:
+        raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {TRACE_METHODS}")
     steps = _max_steps(max_steps, tree.grid.resolution, tree.depth)
     return _trace(tree, origins, directions, t_max, method=method, max_steps=steps, lanes=lanes,
                   shard=shard)

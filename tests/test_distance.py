@@ -297,11 +297,11 @@ def test_clipmap_tracing_matches_exact_hits():
     t, status, cascade = jax.jit(jv.trace_clipmap)(clip, origins, dirs)
     ref = first_hit(mesh.vertices, mesh.faces, origins, dirs)
     status, t, cascade = np.asarray(status), np.asarray(t), np.asarray(cascade)
-    np.testing.assert_array_equal(status == jv.TRACE_HIT, np.isfinite(ref))
-    assert (status[np.isinf(ref)] == jv.TRACE_MISS).all()
+    np.testing.assert_array_equal(status == jv.HIT, np.isfinite(ref))
+    assert (status[np.isinf(ref)] == jv.MISS).all()
     hit = np.isfinite(ref)
     assert hit.sum() == 24
     h = 0.05 * 2.0 ** cascade[hit]
     assert (np.abs(t[hit] - ref[hit]) <= h).all()
     capped = jv.trace_clipmap(clip, origins[:4], dirs[:4], max_steps=1)[1]
-    assert (np.asarray(capped) == jv.TRACE_STEP_CAP).all()
+    assert (np.asarray(capped) == jv.STEP_CAP).all()

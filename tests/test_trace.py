@@ -1,36 +1,73 @@
-"""Ray traversal against a float64 brute-force slab test (work in progress, issue 4)."""
+"""Ray traversal (esvo, stack, dense DDA) against a float64 brute-force slab test and the mesh."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+
+import hypothesis.strategies as st
 import jax
 import numpy as np
 import pytest
+from hypothesis import given, settings
 
 import jaxvox as jv
-from jaxvox.trace import HIT, INVALID, MISS, trace
+from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP
+
+from .reference import first_hit
 
 TINY = 2.0**-100
 
 
-def brute_force(ijk, origins, directions, tie=1e-4):
+def brute_force(ijk, origins, directions, t_max=np.inf, tie=1e-4):
     """First hit of each ray among closed voxel boxes, float64: (t [n], tied voxels per ray)."""
     lo = ijk.astype(np.float64)
     hi = lo + 1.0
     ts, ties = [], []
-    for o, d in zip(origins.astype(np.float64), directions.astype(np.float64)):
+    t_max = np.broadcast_to(np.asarray(t_max, np.float64), len(origins))
+    for o, d, t_max in zip(origins.astype(np.float64), directions.astype(np.float64), t_max):
         inv = 1.0 / np.where(d == 0, TINY, d)
         ta, tb = (lo - o) * inv, (hi - o) * inv
         t_in, t_out = np.minimum(ta, tb).max(1), np.maximum(ta, tb).min(1)
-        ok = (t_in <= t_out) & (t_out > 0)
-        if not ok.any():
-            ts.append(np.inf)
-            ties.append(set())
-            continue
+        ok = (t_in < t_out) & (t_out > 0) & (t_in <= t_max)
         t = np.maximum(t_in, 0.0)
-        first = t[ok].min()
+        first = t[ok].min() if ok.any() else np.inf
         ts.append(first)
         ties.append({tuple(v) for v in ijk[ok & (t <= first + tie)]})
     return np.array(ts), ties
+
+
+def assert_matches(hit, ijk, o, d, t_max=np.inf):
+    """Same hit/miss as the brute force, t within 1e-3, a voxel tied for first."""
+    t_ref, ties = brute_force(ijk, o, d, t_max)
+    status, voxel, t = np.asarray(hit.status), np.asarray(hit.voxel), np.asarray(hit.t)
+    for i in range(len(o)):
+        if np.isinf(t_ref[i]):
+            assert status[i] == MISS and voxel[i].tolist() == [-1, -1, -1], (i, o[i], d[i], voxel[i])
+        else:
+            assert status[i] == HIT and tuple(voxel[i]) in ties[i], (i, o[i], d[i], voxel[i], ties[i])
+            assert abs(t[i] - t_ref[i]) <= 1e-3 * max(1.0, t_ref[i]), (i, t[i], t_ref[i])
+
+
+def assert_same(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def rays(rng, n, resolution, ijk):
+    """Random rays with the hard cases: zero components, axis-aligned, inside voxels, on corners."""
+    o = rng.uniform(-10, resolution + 10, (n, 3)).astype(np.float32)
+    d = (rng.uniform(0, resolution, (n, 3)) - o).astype(np.float32)
+    k = n // 8
+    d[np.arange(k), rng.integers(0, 3, k)] = 0  # zero components
+    d[k:2 * k] = np.eye(3, dtype=np.float32)[rng.integers(0, 3, k)] * rng.choice([-1, 1], (k, 1))
+    o[2 * k:3 * k] = ijk[rng.integers(0, len(ijk), k)] + 0.5  # inside occupied voxels
+    o[3 * k:4 * k] = np.round(o[3 * k:4 * k])  # on voxel corners
+    o[4 * k:5 * k, 0] = np.round(o[4 * k:5 * k, 0])  # in voxel planes, moving along them
+    d[4 * k:5 * k, 0] = 0
+    return o, d
 
 
 @pytest.fixture(scope="module")
@@ -42,43 +79,195 @@ def scene(meshes_dir):
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=resolution)
     vox = jv.voxelize(jv.Mesh(v, mesh.faces), grid)
     ijk = vox.to_numpy()
-    rng = np.random.default_rng(0)
-    n = 1500
-    o = rng.uniform(-10, resolution + 10, (n, 3)).astype(np.float32)
-    d = (rng.uniform(0, resolution, (n, 3)) - o).astype(np.float32)
-    d[np.arange(200), rng.integers(0, 3, 200)] = 0  # zero components
-    d[200:300] = np.eye(3, dtype=np.float32)[rng.integers(0, 3, 100)] * rng.choice([-1, 1], (100, 1))
-    o[300:400] = ijk[rng.integers(0, len(ijk), 100)] + 0.5  # inside occupied voxels
-    o[400:500] = np.round(o[400:500])  # on voxel corners
+    o, d = rays(np.random.default_rng(0), 1200, resolution, ijk)
     return vox, ijk, o, d
 
 
-@pytest.mark.parametrize("build", [jv.build_octree, jv.build_dag])
-def test_trace_matches_brute_force(scene, build):
+@pytest.fixture(scope="module")
+def trees(scene):
+    vox = scene[0]
+    return {"svo": jv.build_octree(vox), "dag": jv.build_dag(vox)}
+
+
+@pytest.mark.parametrize("method", jv.TRACE_METHODS)
+@pytest.mark.parametrize("kind", ["svo", "dag"])
+def test_trace_matches_brute_force(scene, trees, kind, method):
     vox, ijk, o, d = scene
-    tree = build(vox)
-    hit = trace(tree, o, d)
-    t_ref, ties = brute_force(ijk, o, d)
-    status, voxel, t = np.asarray(hit.status), np.asarray(hit.voxel), np.asarray(hit.t)
-    for i in range(len(o)):
-        if np.isinf(t_ref[i]):
-            assert status[i] == MISS, i
-        else:
-            assert status[i] == HIT and tuple(voxel[i]) in ties[i], i
-            assert abs(t[i] - t_ref[i]) <= 1e-3 * max(1.0, t_ref[i]), i
-    assert (status[300:400] == HIT).all() and (t[300:400] == 0).all()
-    hits = status == HIT
+    tree = trees[kind]
+    hit = jv.trace(tree, o, d, method=method)
+    assert_matches(hit, ijk, o, d)
+    k = len(o) // 8
+    assert (np.asarray(hit.status)[2 * k:3 * k] == HIT).all() and (np.asarray(hit.t)[2 * k:3 * k] == 0).all()
+    hits = np.asarray(hit.status) == HIT
+    voxel = np.asarray(hit.voxel)
     np.testing.assert_array_equal(np.asarray(hit.index)[hits], np.asarray(jv.voxel_index(tree, voxel[hits])))
+    np.testing.assert_array_equal(np.asarray(hit.index)[~hits], -1)
 
 
-def test_trace_invalid_rays_and_jit(scene):
+def test_methods_and_drivers_agree_ray_for_ray(scene, trees):
+    """esvo and stack on the SVO and the DAG, the dense DDA, lanes and plain vmap: identical."""
     vox, ijk, o, d = scene
+    reference = jv.trace(trees["dag"], o, d)
+    for tree in trees.values():
+        for method in jv.TRACE_METHODS:
+            for lanes in (None, 64):
+                assert_same(jv.trace(tree, o, d, method=method, lanes=lanes), reference)
+    occupancy = np.zeros((32,) * 3, bool)
+    occupancy[tuple(ijk.T)] = True
+    dense = jv.trace_dense(occupancy, vox.grid, o, d)
+    for name in ("t", "voxel", "normal", "status"):
+        np.testing.assert_array_equal(np.asarray(getattr(dense, name)), np.asarray(getattr(reference, name)))
+    hits = np.asarray(dense.status) == HIT
+    v = np.asarray(dense.voxel)[hits]
+    np.testing.assert_array_equal(np.asarray(dense.index)[hits], (v[:, 0] * 32 + v[:, 1]) * 32 + v[:, 2])
+
+
+def test_normals_point_back_at_the_ray(scene, trees):
+    vox, ijk, o, d = scene
+    hit = jv.trace(trees["dag"], o, d)
+    entered = (np.asarray(hit.status) == HIT) & (np.asarray(hit.t) > 0)
+    n = np.asarray(hit.normal)[entered]
+    assert (np.abs(n).sum(1) == 1).all()
+    assert (np.einsum("ij,ij->i", n, d[entered]) < 0).all()
+    # the entry point lies on the face the normal names
+    p = o[entered] + np.asarray(hit.t)[entered, None] * d[entered]
+    face = np.asarray(hit.voxel)[entered] + (n > 0)
+    axis = np.abs(n).argmax(1)
+    rows = np.arange(len(axis))
+    np.testing.assert_allclose(p[rows, axis], face[rows, axis], atol=1e-3)
+
+
+def test_world_coordinates_and_t_max(meshes_dir):
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, 32)
+    vox = jv.voxelize(mesh, grid)
     tree = jv.build_dag(vox)
-    bad_o = np.array([[np.nan, 0, 0], [1, 1, 1], [1, 1, 1]], np.float32)
-    bad_d = np.array([[1, 0, 0], [0, 0, 0], [np.nan, 1, 0]], np.float32)
-    assert (np.asarray(trace(tree, bad_o, bad_d).status) == INVALID).all()
-    eager = trace(tree, o[:100], d[:100])
-    jitted = jax.jit(lambda oo, dd: trace(tree, oo, dd))(o[:100].reshape(10, 10, 3), d[:100].reshape(10, 10, 3))
-    np.testing.assert_array_equal(np.asarray(jitted.voxel).reshape(-1, 3), np.asarray(eager.voxel))
-    clipped = trace(tree, o[:100], d[:100], t_max=0.5)
-    assert (np.asarray(clipped.t)[np.asarray(clipped.status) == HIT] <= 0.5).all()
+    rng = np.random.default_rng(1)
+    lo, hi = np.asarray(grid.origin), np.asarray(grid.origin) + 32 * float(grid.voxel_size)
+    o = rng.uniform(lo - 0.2, hi + 0.2, (400, 3)).astype(np.float32)
+    d = rng.normal(size=(400, 3)).astype(np.float32)
+    t_max = rng.uniform(0, 0.5, 400).astype(np.float32)
+    hit = jv.trace(tree, o, d, t_max=t_max)
+    h = float(grid.voxel_size)
+    og = ((o - lo) / h).astype(np.float32)
+    dg = (d / h).astype(np.float32)
+    assert_matches(hit, vox.to_numpy(), og, dg, t_max=t_max)  # t is the world ray parameter
+
+
+def test_agrees_with_the_mesh(meshes_dir):
+    """Conservative voxels contain the surface: a ray that hits a triangle hits a voxel no later."""
+    resolution = 64
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, resolution)
+    tree = jv.build_dag(jv.voxelize(mesh, grid))
+    v = np.asarray(mesh.vertices, np.float64)
+    centre, radius = (v.min(0) + v.max(0)) / 2, np.ptp(v, 0).max()
+    eye = centre + np.array([0.4, 0.3, 1.5]) * radius
+    ys, xs = np.meshgrid(np.linspace(-0.35, 0.35, 24), np.linspace(-0.35, 0.35, 32), indexing="ij")
+    forward = (centre - eye) / np.linalg.norm(centre - eye)
+    right = np.cross(forward, [0, 1, 0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    d = (forward + xs[..., None] * right + ys[..., None] * up).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.broadcast_to(eye, d.shape)
+    t_mesh = first_hit(v, np.asarray(mesh.faces), o, d)
+    hit = jv.trace(tree, o.astype(np.float32), d.astype(np.float32))
+    t_vox, status = np.asarray(hit.t, np.float64), np.asarray(hit.status)
+    mesh_hits = np.isfinite(t_mesh)
+    assert mesh_hits.mean() > 0.2
+    assert (status[mesh_hits] == HIT).all()
+    h = float(grid.voxel_size)
+    assert (t_vox[mesh_hits] <= t_mesh[mesh_hits] + 1e-4 * h).all()
+    # where both hit, the voxel depth is about a voxel diagonal from the surface (more for
+    # grazing rays, which cross the conservative shell at a slant)
+    gap = (t_mesh[mesh_hits] - t_vox[mesh_hits]) / h
+    assert np.median(gap) < np.sqrt(3) and np.quantile(gap, 0.9) < 2 * np.sqrt(3)
+    # rays that miss the surface but hit voxels pass within a voxel diagonal of it
+    near = (status == HIT) & ~mesh_hits
+    assert near.mean() < 0.1
+
+
+def test_invalid_rays_and_step_cap(scene, trees):
+    vox, ijk, o, d = scene
+    tree = trees["dag"]
+    bad_o = np.array([[np.nan, 0, 0], [1, 1, 1], [1, 1, 1], [1, 1, 1]], np.float32)
+    bad_d = np.array([[1, 0, 0], [0, 0, 0], [np.nan, 1, 0], [1, 1, 1]], np.float32)
+    for method in jv.TRACE_METHODS:
+        hit = jv.trace(tree, bad_o, bad_d, t_max=np.array([1, 1, 1, np.nan], np.float32), method=method)
+        assert (np.asarray(hit.status) == INVALID).all()
+        assert np.isinf(np.asarray(hit.t)).all() and (np.asarray(hit.index) == -1).all()
+    full = jv.trace(tree, o, d)
+    for method in jv.TRACE_METHODS:
+        capped = jv.trace(tree, o, d, method=method, max_steps=4)
+        status = np.asarray(capped.status)
+        assert (status == STEP_CAP).any()
+        # a capped ray is never reported as a hit or a miss; finished rays are unchanged
+        done = status != STEP_CAP
+        np.testing.assert_array_equal(status[done], np.asarray(full.status)[done])
+        np.testing.assert_array_equal(np.asarray(capped.voxel)[done], np.asarray(full.voxel)[done])
+
+
+def test_jit_vmap_and_batch_shapes(scene, trees):
+    vox, ijk, o, d = scene
+    tree = trees["dag"]
+    eager = jv.trace(tree, o[:120], d[:120])
+    jitted = jax.jit(lambda t, a, b: jv.trace(t, a, b))(tree, o[:120].reshape(10, 12, 3), d[:120].reshape(10, 12, 3))
+    assert jitted.t.shape == (10, 12) and jitted.voxel.shape == (10, 12, 3)
+    assert_same(jax.tree.map(lambda x: x.reshape((120,) + x.shape[2:]), jitted), eager)
+    mapped = jax.vmap(lambda a, b: jv.trace(tree, a, b, shard=False))(o[:120].reshape(4, 30, 3), d[:120].reshape(4, 30, 3))
+    assert_same(jax.tree.map(lambda x: x.reshape((120,) + x.shape[2:]), mapped), eager)
+    one = jv.trace(tree, o[0], d[0])  # a single ray
+    assert one.t.shape == () and int(one.status) == int(eager.status[0])
+    empty = jv.trace(tree, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+    assert empty.t.shape == (0,)
+
+
+def test_empty_tree_and_bad_arguments(scene):
+    vox = scene[0]
+    empty = jv.Voxels.from_coords(np.zeros((0, 3), np.int32), vox.grid)
+    hit = jv.trace(jv.build_dag(empty), np.zeros((2, 3), np.float32), np.ones((2, 3), np.float32))
+    assert (np.asarray(hit.status) == MISS).all()
+    with pytest.raises(jv.JaxvoxError, match="method"):
+        jv.trace(jv.build_dag(vox), np.zeros((1, 3)), np.ones((1, 3)), method="bfs")
+    with pytest.raises(jv.JaxvoxError, match="shape"):
+        jv.trace_dense(np.zeros((8, 8, 8), bool), vox.grid, np.zeros((1, 3)), np.ones((1, 3)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([4, 16]))
+def test_random_sets_and_lattice_rays(seed, resolution):
+    """Random voxel sets at small R; rays with integer and half-integer coordinates (ties everywhere)."""
+    rng = np.random.default_rng(seed)
+    count = rng.integers(1, max(2, resolution**3 // 4))
+    ijk = np.unique(rng.integers(0, resolution, (count, 3)), axis=0).astype(np.int32)
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=resolution)
+    full = tuple(8**level for level in range(resolution.bit_length() - 1))  # one compile per R
+    tree = jv.build_octree(jv.Voxels.from_coords(ijk, grid), capacities=full)
+    o = (rng.integers(-2, 2 * resolution + 4, (64, 3)) / 2.0).astype(np.float32)
+    d = rng.integers(-2, 3, (64, 3)).astype(np.float32)
+    d[(d == 0).all(1), 0] = 1
+    hit = jv.trace(tree, o, d, method="esvo", lanes=16)
+    assert_matches(hit, ijk, o, d)
+    assert_same(jv.trace(tree, o, d, method="stack", lanes=None), hit)
+
+
+def test_sharded_over_four_host_devices(scene, tmp_path):
+    vox, ijk, o, d = scene
+    np.savez(tmp_path / "rays.npz", ijk=ijk, o=o, d=d)
+    script = textwrap.dedent(f"""
+        import jax, numpy as np, jaxvox as jv
+        assert len(jax.devices()) == 4, jax.devices()
+        z = np.load({str(tmp_path / "rays.npz")!r})
+        grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=32)
+        tree = jv.build_dag(jv.Voxels.from_coords(z["ijk"], grid))
+        a = jv.trace(tree, z["o"][:1001], z["d"][:1001])
+        b = jv.trace(tree, z["o"][:1001], z["d"][:1001], shard=False)
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        print("OK", int((np.asarray(a.status) == 0).sum()))
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.startswith("OK")
