@@ -9,6 +9,7 @@ APIs that size capacities by counting passes.
 
 from jaxvox import morton
 from jaxvox._errors import JaxvoxError
+from jaxvox.camera import look_at_view, pinhole_rays
 from jaxvox.distance import (
     Clipmap,
     build_clipmap,
@@ -60,6 +61,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CONSERVATIVE",
+    "look_at_view",
+    "pinhole_rays",
     "HIT",
     "INVALID",
     "MISS",

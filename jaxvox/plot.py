@@ -43,3 +43,24 @@ def save_projections(path: str, sets: dict[str, np.ndarray], resolution: int, si
     for r in rows[1:]:
         out = np.concatenate([out, sep, r], axis=0)
     iio.imwrite(path, out)
+
+
+def hit_image(hit, shading: str = "normal") -> np.ndarray:
+    """An 8-bit RGB image of a traced `Hit` of shape [H, W]: white where rays missed.
+
+    ``shading="normal"`` maps the entry face normal n to ``0.5 + 0.5 n`` (rays starting
+    inside a voxel get mid grey); ``"depth"`` shades near hits bright and far hits dark.
+    """
+    from jaxvox.trace import HIT
+
+    hits = np.asarray(hit.status) == HIT
+    if shading == "normal":
+        rgb = 0.5 + 0.5 * np.asarray(hit.normal)
+    elif shading == "depth":
+        t = np.asarray(hit.t)
+        lo, hi = (np.min(t[hits]), np.max(t[hits])) if hits.any() else (0.0, 1.0)
+        rgb = np.repeat((0.9 - 0.75 * (t - lo) / max(hi - lo, 1e-12))[..., None], 3, axis=-1)
+    else:
+        raise ValueError(f"unknown shading {shading!r}; expected 'normal' or 'depth'")
+    rgb = np.where(hits[..., None], rgb, 1.0)
+    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)

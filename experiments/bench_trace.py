@@ -1,0 +1,244 @@
+"""Ray traversal benchmark: jaxvox's octree/DAG traversals against Embree on the triangles.
+
+For each mesh and resolution R, in one fresh subprocess per case:
+
+* the voxels (`jv.voxelize`, conservative) and their SVO and DAG, with node counts and
+  bytes;
+* 1920x1080 primary rays of a pinhole camera framing the mesh, traced by `jv.trace` on
+  the DAG with both traversals (``esvo``: PUSH/ADVANCE/POP; ``stack``: save state and go
+  down) and on the SVO with ``esvo``; the same rays against the triangle mesh with Embree
+  (embreex, single-threaded ``rtcIntersect1`` loop) in the same process;
+* incoherent rays (2^20, random origins on a sphere around the mesh towards random points
+  in its box) and shadow rays (from the primary hit points, pushed one voxel along the
+  normal, towards a fixed light direction), both ways;
+* agreement of the primary image with Embree: the fraction of pixels whose hit/miss
+  agree, and the depth difference (mesh t minus voxel t) in voxels where both hit;
+* at R <= ``--naive-max`` the naive baseline: a plain vmapped dense-grid DDA
+  (`jv.trace_dense` with ``lanes=None``) on 256x256 of the primary rays.
+
+Timings are the median of ``--repeats`` calls after a warm-up call (its excess over the
+median is reported as compile time), with `jax.block_until_ready`.
+
+Outputs ``bench_trace.json``, ``.md`` and ``.png`` (Mrays/s against resolution, and
+Mrays/s against depth error) in ``--out``.
+
+Examples:
+  python experiments/bench_trace.py                 # bunny and spot, R = 512 .. 2048
+  python experiments/bench_trace.py --smoke         # R = 64, 128 at 480x270
+  python experiments/bench_trace.py --resolutions 4096 8192 --meshes stanford-bunny
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import _common
+
+DEFAULT_MESHES = ("stanford-bunny", "spot")
+
+
+def _embree(mesh):
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene()
+    v = np.asarray(mesh.vertices, np.float32)
+    TriangleMesh(scene, v[np.asarray(mesh.faces)])
+
+    def run(o, d):
+        out = scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
+        return np.where(out["primID"] >= 0, out["tfar"], np.inf)
+
+    return run
+
+
+def worker(spec: dict) -> dict:
+    import jax
+    import jax.numpy as jnp
+
+    import jaxvox as jv
+
+    mesh = jv.load_mesh(_common.MESH_DIR / f"{spec['mesh']}.obj")
+    R, width, height = spec["resolution"], spec["width"], spec["height"]
+    grid = jv.Grid.fit(mesh, R)
+    h = float(grid.voxel_size)
+    vox = jv.voxelize(mesh, grid)
+    trees = {"dag": jv.build_dag(vox), "svo": jv.build_octree(vox)}
+    result = dict(spec, voxels=int(vox.count), rays=width * height,
+                  nodes={k: t.num_nodes for k, t in trees.items()},
+                  bytes={k: t.nbytes for k, t in trees.items()},
+                  mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes))
+    eye, target = jv.look_at_view(mesh)
+    o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=width, height=height))
+    rng = np.random.default_rng(0)
+    lo, hi = np.asarray(grid.origin), np.asarray(grid.origin) + R * h
+    centre, radius = (lo + hi) / 2, 1.5 * np.linalg.norm(hi - lo)
+    n_inc = spec["incoherent"]
+    u = rng.normal(size=(n_inc, 3))
+    o_inc = (centre + radius * u / np.linalg.norm(u, axis=1, keepdims=True)).astype(np.float32)
+    d_inc = (rng.uniform(lo, hi, (n_inc, 3)) - o_inc).astype(np.float32)
+    d_inc /= np.linalg.norm(d_inc, axis=1, keepdims=True)
+    light = np.array([0.3, 1.0, 0.5], np.float32) / np.linalg.norm([0.3, 1.0, 0.5])
+    embree = _embree(mesh)
+
+    timings, hits = {}, {}
+
+    def timed(name, fn):
+        timing, out = _common.time_calls(fn, spec["repeats"])
+        timings[name] = dict(timing, mrays_s=None)
+        return timing, out
+
+    cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
+    for name, kind, method in cases:
+        timing, hit = timed(f"primary/{name}", lambda: jax.block_until_ready(
+            jv.trace(trees[kind], o, d, method=method)))
+        timings[f"primary/{name}"]["mrays_s"] = width * height / timing["median_s"] / 1e6
+        hits[name] = hit
+    hit = hits["dag-esvo"]
+    o_np, d_np = np.asarray(o), np.asarray(d)
+    timing, t_mesh = timed("primary/embree", lambda: embree(o_np, d_np))
+    timings["primary/embree"]["mrays_s"] = width * height / timing["median_s"] / 1e6
+    t_vox, vox_hit = np.asarray(hit.t), np.asarray(hit.status) == jv.HIT
+    mesh_hit = np.isfinite(t_mesh)
+    both = vox_hit & mesh_hit
+    gap = (t_mesh[both] - t_vox[both]) / h
+    result["agreement"] = dict(
+        pixels_agree=float((vox_hit == mesh_hit).mean()), mesh_hits=int(mesh_hit.sum()),
+        voxel_hits=int(vox_hit.sum()), voxel_only=int((vox_hit & ~mesh_hit).sum()),
+        mesh_only=int((mesh_hit & ~vox_hit).sum()),
+        depth_voxels={q: float(np.quantile(gap, p)) for q, p in
+                      (("min", 0), ("median", 0.5), ("p90", 0.9), ("p99", 0.99), ("max", 1))} if both.any() else None,
+        within_diagonal=float((np.abs(gap) <= np.sqrt(3)).mean()) if both.any() else None)
+    # incoherent and shadow rays
+    for name, kind, method in cases[:2]:
+        timing, _ = timed(f"incoherent/{name}", lambda: jax.block_until_ready(
+            jv.trace(trees[kind], o_inc, d_inc, method=method)))
+        timings[f"incoherent/{name}"]["mrays_s"] = n_inc / timing["median_s"] / 1e6
+    timing, _ = timed("incoherent/embree", lambda: embree(o_inc, d_inc))
+    timings["incoherent/embree"]["mrays_s"] = n_inc / timing["median_s"] / 1e6
+    p = o_np[vox_hit] + t_vox[vox_hit, None] * d_np[vox_hit] + np.asarray(hit.normal)[vox_hit] * h
+    s_dir = np.broadcast_to(light, p.shape).astype(np.float32)
+    p = p.astype(np.float32)
+    result["shadow_rays"] = len(p)
+    for name, kind, method in cases[:1]:
+        timing, _ = timed(f"shadow/{name}", lambda: jax.block_until_ready(jv.trace(trees[kind], p, s_dir, method=method)))
+        timings[f"shadow/{name}"]["mrays_s"] = len(p) / timing["median_s"] / 1e6
+    timing, _ = timed("shadow/embree", lambda: embree(p, s_dir))
+    timings["shadow/embree"]["mrays_s"] = len(p) / timing["median_s"] / 1e6
+    if R <= spec["naive_max"]:
+        occupancy = np.zeros((R,) * 3, bool)
+        occupancy[tuple(vox.to_numpy().T)] = True
+        sub = (slice(None, None, max(height // 256, 1)), slice(None, None, max(width // 256, 1)))
+        o_sub = o_np.reshape(height, width, 3)[sub].reshape(-1, 3)
+        d_sub = d_np.reshape(height, width, 3)[sub].reshape(-1, 3)
+        for name, lanes in (("naive-dda", None), ("dda-lanes", 16384)):
+            timing, _ = timed(f"primary/{name}", lambda: jax.block_until_ready(
+                jv.trace_dense(occupancy, grid, o_sub, d_sub, lanes=lanes)))
+            timings[f"primary/{name}"]["mrays_s"] = len(o_sub) / timing["median_s"] / 1e6
+            timings[f"primary/{name}"]["rays"] = len(o_sub)
+    result["timings"] = timings
+    result["peak_rss_mib"] = _common.peak_rss_mib()
+    return result
+
+
+def chart(rows, path):
+    fig, (left, right) = _common.new_figure(2)
+    for mesh in sorted({r["mesh"] for r in rows}):
+        mine = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
+        res = [r["resolution"] for r in mine]
+        for case, style in (("dag-esvo", "o-"), ("dag-stack", "s--"), ("svo-esvo", "^:"), ("embree", "k-")):
+            left.plot(res, [r["timings"][f"primary/{case}"]["mrays_s"] for r in mine], style,
+                      label=f"{mesh} {case}")
+        naive = [(r["resolution"], r["timings"]["primary/naive-dda"]["mrays_s"]) for r in mine
+                 if "primary/naive-dda" in r["timings"]]
+        if naive:
+            left.plot(*zip(*naive), "x", label=f"{mesh} naive vmapped DDA")
+        err = [r["agreement"]["depth_voxels"]["median"] * r["voxel_size_world"] / r["extent_world"] for r in mine]
+        right.plot(err, [r["timings"]["primary/dag-esvo"]["mrays_s"] for r in mine], "o-", label=f"{mesh} DAG (esvo)")
+        for r, e in zip(mine, err):
+            right.annotate(f"{r['resolution']}", (e, r["timings"]["primary/dag-esvo"]["mrays_s"]), fontsize=7)
+        right.plot([0], [np.median([r["timings"]["primary/embree"]["mrays_s"] for r in mine])], "k*",
+                   label=f"{mesh} Embree (triangles)")
+    left.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="Mrays/s (1920x1080 primary)",
+             title="traversal speed")
+    left.set_xticks(sorted({r["resolution"] for r in rows}), [str(x) for x in sorted({r["resolution"] for r in rows})])
+    right.set(xscale="symlog", xlabel="median depth error / mesh extent", ylabel="Mrays/s", yscale="log",
+              title="speed vs depth error (primary rays)")
+    for ax in (left, right):
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+    _common.save_figure(fig, path)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--meshes", nargs="+", default=list(DEFAULT_MESHES))
+    parser.add_argument("--resolutions", nargs="+", type=int, default=[512, 1024, 2048])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--naive-max", type=int, default=1024)
+    parser.add_argument("--smoke", action="store_true")
+    parser.add_argument("--update", action="store_true", help="merge into the existing JSON instead of replacing it")
+    parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
+    parser.add_argument("--worker")
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(worker(json.loads(args.worker))))
+        return
+    width, height, n_inc = (1920, 1080, 2**20) if not args.smoke else (480, 270, 2**16)
+    resolutions = args.resolutions if not args.smoke else [64, 128]
+    stem = "bench_trace" + ("_smoke" if args.smoke else "")
+    path = args.out / f"{stem}.json"
+    rows = json.loads(path.read_text())["rows"] if args.update and path.exists() else []
+    for mesh in _common.progress(args.meshes, desc="meshes"):
+        for R in resolutions:
+            spec = dict(mesh=mesh, resolution=R, width=width, height=height, incoherent=n_inc,
+                        repeats=args.repeats, naive_max=args.naive_max)
+            row = _common.run_worker(__file__, spec, timeout=3600)
+            if "error" in row:
+                print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
+                continue
+            import jaxvox as jv
+
+            m = jv.load_mesh(_common.MESH_DIR / f"{mesh}.obj")
+            row["voxel_size_world"] = float(jv.Grid.fit(m, R).voxel_size)
+            row["extent_world"] = float(np.ptp(np.asarray(m.vertices), 0).max())
+            rows = [r for r in rows if (r["mesh"], r["resolution"]) != (mesh, R)] + [row]
+            t = row["timings"]
+            print(f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
+                  f"{t['primary/dag-stack']['mrays_s']:.2f}, SVO esvo {t['primary/svo-esvo']['mrays_s']:.2f}, "
+                  f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
+                  f"{row['agreement']['pixels_agree']:.4f}", flush=True)
+            _common.write_json(path, dict(machine=_common.machine_info(["jax", "embreex", "numpy"]), rows=rows))
+    rows.sort(key=lambda r: (r["mesh"], r["resolution"]))
+    columns = [("mesh", "mesh"), ("resolution", "R"), ("dag_esvo", "DAG esvo Mrays/s"), ("dag_stack", "DAG stack"),
+               ("svo_esvo", "SVO esvo"), ("embree", "Embree"), ("ratio", "Embree / DAG esvo"),
+               ("naive", "naive vmapped DDA"), ("incoherent", "incoherent DAG / Embree"),
+               ("shadow", "shadow DAG / Embree"), ("compile", "compile s"), ("agree", "pixels agree"),
+               ("depth", "depth diff (voxels) median / p99"), ("dag_mib", "DAG MiB")]
+    table = []
+    for r in rows:
+        t = r["timings"]
+        rate = lambda k: t[k]["mrays_s"]
+        table.append(dict(
+            mesh=r["mesh"], resolution=r["resolution"], dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
+            dag_stack=f"{rate('primary/dag-stack'):.2f}", svo_esvo=f"{rate('primary/svo-esvo'):.2f}",
+            embree=f"{rate('primary/embree'):.2f}", ratio=f"{rate('primary/embree') / rate('primary/dag-esvo'):.1f}x",
+            naive=f"{rate('primary/naive-dda'):.3f}" if "primary/naive-dda" in t else "-",
+            incoherent=f"{rate('incoherent/dag-esvo'):.2f} / {rate('incoherent/embree'):.2f}",
+            shadow=f"{rate('shadow/dag-esvo'):.2f} / {rate('shadow/embree'):.2f}",
+            compile=f"{t['primary/dag-esvo']['compile_s']:.1f}", agree=f"{r['agreement']['pixels_agree']:.4f}",
+            depth=f"{r['agreement']['depth_voxels']['median']:.2f} / {r['agreement']['depth_voxels']['p99']:.2f}",
+            dag_mib=f"{r['bytes']['dag'] / 2**20:.1f}"))
+    md = _common.markdown_table(table, columns)
+    (args.out / f"{stem}.md").write_text(md + "\n")
+    print(md)
+    chart(rows, args.out / f"{stem}.png")
+
+
+if __name__ == "__main__":
+    main()
