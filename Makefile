@@ -26,11 +26,13 @@ $(VENV)/.bench-installed: $(STAMP)
 	$(PY) -m pip install --quiet -e ".[test,bench]"
 	touch $@
 
-bench: $(VENV)/.bench-installed  ## benchmarks against Open3D and trimesh, R=128..2048, and the bunny at 8192^3
+bench: $(VENV)/.bench-installed  ## voxelization against Open3D and trimesh (R=128..2048, bunny at 8192^3); traversal against Embree
 	$(PY) experiments/bench_voxelize.py --huge 8192
+	$(PY) experiments/bench_trace.py
 
 bench-smoke: $(VENV)/.bench-installed  ## the same at R=64,128 (a few minutes)
 	$(PY) experiments/bench_voxelize.py --smoke
+	$(PY) experiments/bench_trace.py --smoke
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

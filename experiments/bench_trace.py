@@ -13,6 +13,7 @@ For each mesh and resolution R, in one fresh subprocess per case:
   normal, towards a fixed light direction), both ways;
 * agreement of the primary image with Embree: the fraction of pixels whose hit/miss
   agree, and the depth difference (mesh t minus voxel t) in voxels where both hit;
+* the SVO only up to ``--svo-max`` (4096: at 8192^3 it does not fit beside the DAG build);
 * at R <= ``--naive-max`` the naive baseline: a plain vmapped dense-grid DDA
   (`jv.trace_dense` with ``lanes=None``) on 256x256 of the primary rays.
 
@@ -68,7 +69,9 @@ def worker(spec: dict) -> dict:
     grid = jv.Grid.fit(mesh, R)
     h = float(grid.voxel_size)
     vox = jv.voxelize(mesh, grid)
-    trees = {"dag": jv.build_dag(vox), "svo": jv.build_octree(vox)}
+    trees = {"dag": jv.build_dag(vox)}
+    if R <= spec["svo_max"]:  # the SVO at 8192^3 (74 M nodes) and its build do not fit beside the DAG's
+        trees["svo"] = jv.build_octree(vox)
     result = dict(spec, voxels=int(vox.count), rays=width * height,
                   nodes={k: t.num_nodes for k, t in trees.items()},
                   bytes={k: t.nbytes for k, t in trees.items()},
@@ -94,7 +97,7 @@ def worker(spec: dict) -> dict:
         return timing, out
 
     cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
-    for name, kind, method in cases:
+    for name, kind, method in cases[:len(trees) + 1]:
         timing, hit = timed(f"primary/{name}", lambda: jax.block_until_ready(
             jv.trace(trees[kind], o, d, method=method)))
         timings[f"primary/{name}"]["mrays_s"] = width * height / timing["median_s"] / 1e6
@@ -147,13 +150,16 @@ def worker(spec: dict) -> dict:
 
 
 def chart(rows, path):
+    import matplotlib.ticker
+
     fig, (left, right) = _common.new_figure(2)
     for mesh in sorted({r["mesh"] for r in rows}):
         mine = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
         res = [r["resolution"] for r in mine]
         for case, style in (("dag-esvo", "o-"), ("dag-stack", "s--"), ("svo-esvo", "^:"), ("embree", "k-")):
-            left.plot(res, [r["timings"][f"primary/{case}"]["mrays_s"] for r in mine], style,
-                      label=f"{mesh} {case}")
+            points = [(r["resolution"], r["timings"][f"primary/{case}"]["mrays_s"]) for r in mine
+                      if f"primary/{case}" in r["timings"]]
+            left.plot(*zip(*points), style, label=f"{mesh} {case}")
         naive = [(r["resolution"], r["timings"]["primary/naive-dda"]["mrays_s"]) for r in mine
                  if "primary/naive-dda" in r["timings"]]
         if naive:
@@ -162,13 +168,17 @@ def chart(rows, path):
         right.plot(err, [r["timings"]["primary/dag-esvo"]["mrays_s"] for r in mine], "o-", label=f"{mesh} DAG (esvo)")
         for r, e in zip(mine, err):
             right.annotate(f"{r['resolution']}", (e, r["timings"]["primary/dag-esvo"]["mrays_s"]), fontsize=7)
-        right.plot([0], [np.median([r["timings"]["primary/embree"]["mrays_s"] for r in mine])], "k*",
-                   label=f"{mesh} Embree (triangles)")
+        right.axhline(np.median([r["timings"]["primary/embree"]["mrays_s"] for r in mine]),
+                      color=right.lines[-1].get_color(), ls="--", label=f"{mesh} Embree (triangles, exact)")
+    resolutions = sorted({r["resolution"] for r in rows})
     left.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="Mrays/s (1920x1080 primary)",
-             title="traversal speed")
-    left.set_xticks(sorted({r["resolution"] for r in rows}), [str(x) for x in sorted({r["resolution"] for r in rows})])
-    right.set(xscale="symlog", xlabel="median depth error / mesh extent", ylabel="Mrays/s", yscale="log",
-              title="speed vs depth error (primary rays)")
+             title="traversal speed (2-core CPU)")
+    left.set_xticks(resolutions, [str(x) for x in resolutions])
+    left.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
+    right.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    right.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    right.set(xscale="log", xlabel="median depth error (mesh t - voxel t) / mesh extent", ylabel="Mrays/s",
+              yscale="log", title="speed vs depth error (primary rays)")
     for ax in (left, right):
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
@@ -181,9 +191,11 @@ def main():
     parser.add_argument("--resolutions", nargs="+", type=int, default=[512, 1024, 2048])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--naive-max", type=int, default=1024)
+    parser.add_argument("--svo-max", type=int, default=4096, help="largest R at which the SVO is built too")
     parser.add_argument("--smoke", action="store_true")
     parser.add_argument("--update", action="store_true", help="merge into the existing JSON instead of replacing it")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
+    parser.add_argument("--plot-only", action="store_true", help="redraw the table and chart from the JSON")
     parser.add_argument("--worker")
     args = parser.parse_args()
     if args.worker:
@@ -193,11 +205,11 @@ def main():
     resolutions = args.resolutions if not args.smoke else [64, 128]
     stem = "bench_trace" + ("_smoke" if args.smoke else "")
     path = args.out / f"{stem}.json"
-    rows = json.loads(path.read_text())["rows"] if args.update and path.exists() else []
-    for mesh in _common.progress(args.meshes, desc="meshes"):
+    rows = json.loads(path.read_text())["rows"] if (args.update or args.plot_only) and path.exists() else []
+    for mesh in _common.progress(args.meshes if not args.plot_only else [], desc="meshes"):
         for R in resolutions:
             spec = dict(mesh=mesh, resolution=R, width=width, height=height, incoherent=n_inc,
-                        repeats=args.repeats, naive_max=args.naive_max)
+                        repeats=args.repeats, naive_max=args.naive_max, svo_max=args.svo_max)
             row = _common.run_worker(__file__, spec, timeout=3600)
             if "error" in row:
                 print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
@@ -210,7 +222,7 @@ def main():
             rows = [r for r in rows if (r["mesh"], r["resolution"]) != (mesh, R)] + [row]
             t = row["timings"]
             print(f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
-                  f"{t['primary/dag-stack']['mrays_s']:.2f}, SVO esvo {t['primary/svo-esvo']['mrays_s']:.2f}, "
+                  f"{t['primary/dag-stack']['mrays_s']:.2f}, SVO esvo {t.get('primary/svo-esvo', {}).get('mrays_s', 0):.2f}, "
                   f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
                   f"{row['agreement']['pixels_agree']:.4f}", flush=True)
             _common.write_json(path, dict(machine=_common.machine_info(["jax", "embreex", "numpy"]), rows=rows))
@@ -226,7 +238,7 @@ def main():
         rate = lambda k: t[k]["mrays_s"]
         table.append(dict(
             mesh=r["mesh"], resolution=r["resolution"], dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
-            dag_stack=f"{rate('primary/dag-stack'):.2f}", svo_esvo=f"{rate('primary/svo-esvo'):.2f}",
+            dag_stack=f"{rate('primary/dag-stack'):.2f}", svo_esvo=f"{rate('primary/svo-esvo'):.2f}" if "primary/svo-esvo" in t else "-",
             embree=f"{rate('primary/embree'):.2f}", ratio=f"{rate('primary/embree') / rate('primary/dag-esvo'):.1f}x",
             naive=f"{rate('primary/naive-dda'):.3f}" if "primary/naive-dda" in t else "-",
             incoherent=f"{rate('incoherent/dag-esvo'):.2f} / {rate('incoherent/embree'):.2f}",

@@ -532,3 +532,8 @@ def test_cli_build_and_run(tmp_path, capsys, meshes_dir):
     scene = jv.load(tmp_path / "run" / "scene.jvx")
     assert set(jv.load_attributes(tmp_path / "run" / "scene.jvx")) == {"triangle", "normal", "color"}
     assert int(scene.voxel_count) > 0 and (tmp_path / "run" / "voxels.png").stat().st_size > 0
+    import imageio.v3 as iio
+
+    render = iio.imread(tmp_path / "run" / "render.png")  # depth | gap | normals, 640x480 each
+    assert render.shape == (480, 2 * 640 + 8, 3) and "Mrays/s" in printed
+    assert (render[:, :640] < 255).any(axis=-1).mean() > 0.05  # the scene covers part of the image

@@ -19,6 +19,7 @@ from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP
 from .reference import first_hit
 
 TINY = 2.0**-100
+FULL = os.environ.get("JAXVOX_SLOW_SCALE") == "full"
 
 
 def brute_force(ijk, origins, directions, t_max=np.inf, tie=1e-4):
@@ -102,6 +103,21 @@ def test_trace_matches_brute_force(scene, trees, kind, method):
     voxel = np.asarray(hit.voxel)
     np.testing.assert_array_equal(np.asarray(hit.index)[hits], np.asarray(jv.voxel_index(tree, voxel[hits])))
     np.testing.assert_array_equal(np.asarray(hit.index)[~hits], -1)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["cow", "fandisk", "stanford-bunny"])
+def test_shared_meshes_against_brute_force(meshes_dir, name):
+    """Every shared mesh's DAG at 128^3 (64^3 unless JAXVOX_SLOW_SCALE=full), 2000 rays each."""
+    resolution = 128 if FULL else 64
+    mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+    v = np.asarray(mesh.vertices)
+    v = (v - v.min(0)) / np.ptp(v, 0).max() * (resolution - 2) + 1
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=resolution)
+    vox = jv.voxelize(jv.Mesh(v, mesh.faces), grid)
+    ijk = vox.to_numpy()
+    o, d = rays(np.random.default_rng(len(name)), 2000, resolution, ijk)
+    assert_matches(jv.trace(jv.build_dag(vox), o, d), ijk, o, d)
 
 
 def test_methods_and_drivers_agree_ray_for_ray(scene, trees):
