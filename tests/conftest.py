@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
 
 import pytest
+
+# The command line keeps compiled programs in a persistent cache; calling it from a test
+# would switch that cache on for the whole test process (and notebooks): keep it off.
+os.environ["JAXVOX_CACHE_DIR"] = ""
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
