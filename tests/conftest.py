@@ -21,3 +21,16 @@ def meshes_dir() -> pathlib.Path:
     if not SHARED_MESHES.is_dir():
         pytest.skip(f"shared test meshes not found at {SHARED_MESHES}")
     return SHARED_MESHES
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fresh_jax_caches():
+    """Drops compiled programs after each test module.
+
+    The suite compiles many hundreds of programs in one process; keeping them all alive
+    crashed XLA's CPU compiler (a segfault while compiling, late in the run).
+    """
+    yield
+    import jax
+
+    jax.clear_caches()

@@ -106,7 +106,7 @@ def test_trace_matches_brute_force(scene, trees, kind, method):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["cow", "fandisk", "stanford-bunny"])
+@pytest.mark.parametrize("name", ["cow", "stanford-bunny"])
 def test_shared_meshes_against_brute_force(meshes_dir, name):
     """Every shared mesh's DAG at 128^3 (64^3 unless JAXVOX_SLOW_SCALE=full), 2000 rays each."""
     resolution = 128 if FULL else 64
@@ -250,7 +250,7 @@ def test_empty_tree_and_bad_arguments(scene):
         jv.trace_dense(np.zeros((8, 8, 8), bool), vox.grid, np.zeros((1, 3)), np.ones((1, 3)))
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([4, 16]))
 def test_random_sets_and_lattice_rays(seed, resolution):
     """Random voxel sets at small R; rays with integer and half-integer coordinates (ties everywhere)."""
