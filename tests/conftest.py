@@ -24,13 +24,15 @@ def meshes_dir() -> pathlib.Path:
 
 
 @pytest.fixture(autouse=True, scope="module")
-def _fresh_jax_caches():
-    """Drops compiled programs after each test module.
+def _fresh_jax_caches(request):
+    """Drops compiled programs after the modules that compile the most distinct programs.
 
-    The suite compiles many hundreds of programs in one process; keeping them all alive
-    crashed XLA's CPU compiler (a segfault while compiling, late in the run).
+    Keeping every program of the suite alive in one process crashed XLA's CPU compiler
+    (a segfault while compiling, late in the run); the other modules share programs, so
+    they keep theirs.
     """
     yield
-    import jax
+    if request.module.__name__.rsplit(".", 1)[-1] in ("test_distance", "test_trace"):
+        import jax
 
-    jax.clear_caches()
+        jax.clear_caches()
