@@ -72,7 +72,8 @@ def worker(spec: dict) -> dict:
     trees = {"dag": jv.build_dag(vox)}
     if R <= spec["svo_max"]:  # the SVO at 8192^3 (74 M nodes) and its build do not fit beside the DAG's
         trees["svo"] = jv.build_octree(vox)
-    result = dict(spec, voxels=int(vox.count), rays=width * height,
+    result = dict(spec, voxels=int(vox.count), rays=width * height, voxel_size_world=h,
+                  extent_world=float(np.ptp(np.asarray(mesh.vertices), 0).max()),
                   nodes={k: t.num_nodes for k, t in trees.items()},
                   bytes={k: t.nbytes for k, t in trees.items()},
                   mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes))
@@ -91,21 +92,19 @@ def worker(spec: dict) -> dict:
 
     timings, hits = {}, {}
 
-    def timed(name, fn):
+    def timed(name, fn, rays):
+        """Times `fn` (median of repeats after a warm-up) and records its Mrays/s."""
         timing, out = _common.time_calls(fn, spec["repeats"])
-        timings[name] = dict(timing, mrays_s=None)
-        return timing, out
+        timings[name] = dict(timing, rays=rays, mrays_s=rays / timing["median_s"] / 1e6)
+        return out
 
     cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
     for name, kind, method in cases[:len(trees) + 1]:
-        timing, hit = timed(f"primary/{name}", lambda: jax.block_until_ready(
-            jv.trace(trees[kind], o, d, method=method)))
-        timings[f"primary/{name}"]["mrays_s"] = width * height / timing["median_s"] / 1e6
-        hits[name] = hit
+        hits[name] = timed(f"primary/{name}", lambda: jax.block_until_ready(
+            jv.trace(trees[kind], o, d, method=method)), width * height)
     hit = hits["dag-esvo"]
     o_np, d_np = np.asarray(o), np.asarray(d)
-    timing, t_mesh = timed("primary/embree", lambda: embree(o_np, d_np))
-    timings["primary/embree"]["mrays_s"] = width * height / timing["median_s"] / 1e6
+    t_mesh = timed("primary/embree", lambda: embree(o_np, d_np), width * height)
     t_vox, vox_hit = np.asarray(hit.t), np.asarray(hit.status) == jv.HIT
     mesh_hit = np.isfinite(t_mesh)
     both = vox_hit & mesh_hit
@@ -119,20 +118,15 @@ def worker(spec: dict) -> dict:
         within_diagonal=float((np.abs(gap) <= np.sqrt(3)).mean()) if both.any() else None)
     # incoherent and shadow rays
     for name, kind, method in cases[:2]:
-        timing, _ = timed(f"incoherent/{name}", lambda: jax.block_until_ready(
-            jv.trace(trees[kind], o_inc, d_inc, method=method)))
-        timings[f"incoherent/{name}"]["mrays_s"] = n_inc / timing["median_s"] / 1e6
-    timing, _ = timed("incoherent/embree", lambda: embree(o_inc, d_inc))
-    timings["incoherent/embree"]["mrays_s"] = n_inc / timing["median_s"] / 1e6
+        timed(f"incoherent/{name}", lambda: jax.block_until_ready(
+            jv.trace(trees[kind], o_inc, d_inc, method=method)), n_inc)
+    timed("incoherent/embree", lambda: embree(o_inc, d_inc), n_inc)
     p = o_np[vox_hit] + t_vox[vox_hit, None] * d_np[vox_hit] + np.asarray(hit.normal)[vox_hit] * h
     s_dir = np.broadcast_to(light, p.shape).astype(np.float32)
     p = p.astype(np.float32)
     result["shadow_rays"] = len(p)
-    for name, kind, method in cases[:1]:
-        timing, _ = timed(f"shadow/{name}", lambda: jax.block_until_ready(jv.trace(trees[kind], p, s_dir, method=method)))
-        timings[f"shadow/{name}"]["mrays_s"] = len(p) / timing["median_s"] / 1e6
-    timing, _ = timed("shadow/embree", lambda: embree(p, s_dir))
-    timings["shadow/embree"]["mrays_s"] = len(p) / timing["median_s"] / 1e6
+    timed("shadow/dag-esvo", lambda: jax.block_until_ready(jv.trace(trees["dag"], p, s_dir)), len(p))
+    timed("shadow/embree", lambda: embree(p, s_dir), len(p))
     if R <= spec["naive_max"]:
         occupancy = np.zeros((R,) * 3, bool)
         occupancy[tuple(vox.to_numpy().T)] = True
@@ -140,10 +134,8 @@ def worker(spec: dict) -> dict:
         o_sub = o_np.reshape(height, width, 3)[sub].reshape(-1, 3)
         d_sub = d_np.reshape(height, width, 3)[sub].reshape(-1, 3)
         for name, lanes in (("naive-dda", None), ("dda-lanes", 16384)):
-            timing, _ = timed(f"primary/{name}", lambda: jax.block_until_ready(
-                jv.trace_dense(occupancy, grid, o_sub, d_sub, lanes=lanes)))
-            timings[f"primary/{name}"]["mrays_s"] = len(o_sub) / timing["median_s"] / 1e6
-            timings[f"primary/{name}"]["rays"] = len(o_sub)
+            timed(f"primary/{name}", lambda: jax.block_until_ready(
+                jv.trace_dense(occupancy, grid, o_sub, d_sub, lanes=lanes)), len(o_sub))
     result["timings"] = timings
     result["peak_rss_mib"] = _common.peak_rss_mib()
     return result
@@ -214,11 +206,6 @@ def main():
             if "error" in row:
                 print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
                 continue
-            import jaxvox as jv
-
-            m = jv.load_mesh(_common.MESH_DIR / f"{mesh}.obj")
-            row["voxel_size_world"] = float(jv.Grid.fit(m, R).voxel_size)
-            row["extent_world"] = float(np.ptp(np.asarray(m.vertices), 0).max())
             rows = [r for r in rows if (r["mesh"], r["resolution"]) != (mesh, R)] + [row]
             t = row["timings"]
             print(f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "

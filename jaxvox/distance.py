@@ -94,14 +94,19 @@ def _distance_to(points, tris, ids):
     return jnp.where(ids >= 0, _pair_distance(points, tris[jnp.maximum(ids, 0)]), jnp.inf)
 
 
-def _chunked_min(points, tris, fn, init):
-    """``min`` over all triangles of ``fn(points [c, 1, 3], tris [1, F, 3, 3])``, chunked over points."""
+def _per_point(points, tris, fn):
+    """``fn(points [c, 1, 3], tris [1, F, 3, 3]) -> [c]`` over all points, in chunks of points."""
     n = points.shape[0]
     chunk = max(1, min(n, _PAIRS_PER_CHUNK // max(tris.shape[0], 1)))
     pad = -n % chunk
     pts = jnp.concatenate([points, jnp.zeros((pad, 3), points.dtype)]).reshape(-1, chunk, 3)
-    out = jax.lax.map(lambda p: fn(p[:, None], tris[None]).min(1, initial=init), pts)
+    out = jax.lax.map(lambda p: fn(p[:, None], tris[None]), pts)
     return out.reshape(-1)[:n]
+
+
+def _mesh_distance(points, tris):
+    """Exact distance [n] from points [n, 3] to the nearest of all triangles (inf if none)."""
+    return _per_point(points, tris, lambda p, t: _pair_distance(p, t).min(1, initial=jnp.inf))
 
 
 def _pair_distance(p, t):
@@ -125,12 +130,7 @@ def _solid_angle(p, t):
 
 def _winding_numbers(points, tris):
     """Generalized winding number [n] of the mesh at points [n, 3] (grid units), chunked."""
-    n = points.shape[0]
-    chunk = max(1, min(n, _PAIRS_PER_CHUNK // max(tris.shape[0], 1)))
-    pad = -n % chunk
-    pts = jnp.concatenate([points, jnp.zeros((pad, 3), points.dtype)]).reshape(-1, chunk, 3)
-    out = jax.lax.map(lambda p: _solid_angle(p[:, None], tris[None]).sum(1), pts)
-    return out.reshape(-1)[:n]
+    return _per_point(points, tris, lambda p, t: _solid_angle(p, t).sum(1))
 
 
 # ------------------------------------------------------------------------- seeds
@@ -454,7 +454,7 @@ def _unsigned(tris, coords, triangle, grid: Grid, *, method: str, band: int, swe
     """Unsigned field in grid units, [R, R, R] float32 (inf when there is no triangle)."""
     r = grid.resolution
     if method == "exact":
-        return _chunked_min(_centres(r), tris, _pair_distance, jnp.inf).reshape(r, r, r)
+        return _mesh_distance(_centres(r), tris).reshape(r, r, r)
     ids, dist = _seed(tris, coords, triangle, r)
     ids, dist = _jfa(ids, dist, tris, _offsets([1] * band, True), r)
     if method in ("jfa", "jfa-separable"):
@@ -628,7 +628,7 @@ def clipmap_corners(camera, origin, voxel_size, resolution: int, num_cascades: i
 @jax.jit
 def _cascade_values(points, tris, limit):
     """Signed distances clamped to +-limit at world points [n, 3] (triangles [F, 3, 3] world)."""
-    d = _chunked_min(points, tris, _pair_distance, jnp.inf)
+    d = _mesh_distance(points, tris)
     inside = _winding_numbers(points, tris) > 0.5
     d = jnp.minimum(d, limit)
     return jnp.where(inside, -d, d)

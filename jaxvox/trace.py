@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -52,7 +52,7 @@ import numpy as np
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
-from jaxvox.octree import EMPTY, MISSING, Octree, _voxel_index
+from jaxvox.octree import MISSING, Octree, _voxel_index
 
 HIT, MISS, STEP_CAP, INVALID = 0, 1, 2, 3  # `Hit.status` values
 _RUNNING = -1  # status while a ray is being traced
@@ -154,10 +154,11 @@ def _child_row(tree: Octree, row, slot):
     return flat[jnp.minimum(row, tree.child.shape[0] - 1) * 8 + slot].astype(jnp.int32)
 
 
-def _stack_get(stack, level):
-    value = stack[0]
-    for k in range(1, len(stack)):
-        value = jnp.where(level == k, stack[k], value)
+def _pick(values, index):
+    """``values[index]`` for a tuple of scalars and a traced index, as a chain of selects."""
+    value = values[0]
+    for k in range(1, len(values)):
+        value = jnp.where(index == k, values[k], value)
     return value
 
 
@@ -201,7 +202,7 @@ def _esvo_step(tree: Octree, ray: _Ray, s: _Esvo) -> _Esvo:
     live = _mask_bit(tree, s.parent, slot) & (t_out > 0) & (t_in < t_out)
     push = live & (s.level < depth)
     axis = _argmin3(t1)
-    before = _stack_get(s.corner, axis)
+    before = _pick(s.corner, axis)
     status = _status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
     row = _child_row(tree, s.parent, slot)
     # XLA would otherwise recompute these in the fusion of every output.
@@ -217,7 +218,7 @@ def _esvo_step(tree: Octree, ray: _Ray, s: _Esvo) -> _Esvo:
     stepped = _Esvo(
         level=jnp.where(push, s.level + 1, pop_level),
         corner=_vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
-        parent=jnp.where(push, row, _stack_get(s.stack, pop_level - 1)),
+        parent=jnp.where(push, row, _pick(s.stack, pop_level - 1)),
         stack=_stack_set(s.stack, s.level, row, push),
         status=status)
     return _select(status == _RUNNING, stepped, s._replace(status=status))
@@ -276,10 +277,10 @@ def _stacked_step(tree: Octree, ray: _Ray, s: _Stacked) -> _Stacked:
     up_mask = -jnp.left_shift(1, depth - up)
     stepped = _Stacked(
         level=jnp.where(descend, s.level + 1, jnp.where(pop, up, s.level)),
-        node=jnp.where(descend, row, jnp.where(pop, _stack_get(s.stack_node, up), s.node)),
+        node=jnp.where(descend, row, jnp.where(pop, _pick(s.stack_node, up), s.node)),
         corner=_vec(lambda a, b: jnp.where(descend, a, jnp.where(pop, b & up_mask, b)),
                     child_corner, s.corner),
-        child=jnp.where(descend, first, jnp.where(pop, _stack_get(s.stack_child, up),
+        child=jnp.where(descend, first, jnp.where(pop, _pick(s.stack_child, up),
                                                   jnp.where(live, s.child, next_child))),
         stack_node=_stack_set(s.stack_node, s.level, s.node, descend),
         stack_child=_stack_set(s.stack_child, s.level, next_child, descend),
@@ -322,7 +323,7 @@ def _dda_step(dense: _DenseGrid, ray: _Ray, s: _Dda) -> _Dda:
     i, j, k = _vec(lambda c, a: jnp.where((ray.flip >> a) & 1 == 1, res - 1 - c, c), s.cell, (0, 1, 2))
     live = dense.occupancy[(i * res + j) * res + k] & (t_out > 0) & (t_in < t_out)
     axis = _argmin3(t1)
-    status = _status((t_in > ray.t_max) | (~live & (_stack_get(s.cell, axis) + 1 >= res)), live)
+    status = _status((t_in > ray.t_max) | (~live & (_pick(s.cell, axis) + 1 >= res)), live)
     cell = tuple(jnp.where((axis == a) & (status == _RUNNING), c + 1, c) for a, c in enumerate(s.cell))
     return _Dda(cell, status)
 
@@ -387,8 +388,9 @@ def _lanes(structure, rays: _Ray, t_start, status, method: str, max_steps: int, 
 
     first = jnp.arange(lanes, dtype=jnp.int32)
     valid = first < queued
-    ray0, state0 = fetch(queue[jnp.minimum(first, n - 1)], valid)
-    carry = Carry(jnp.where(valid, queue[jnp.minimum(first, n - 1)], n), ray0, state0,
+    ids0 = queue[jnp.minimum(first, n - 1)]
+    ray0, state0 = fetch(ids0, valid)
+    carry = Carry(jnp.where(valid, ids0, n), ray0, state0,
                   jnp.zeros(lanes, jnp.int32), jnp.minimum(queued, lanes),
                   jnp.where(running, _RUNNING, status), jnp.full((n, 3), -1, jnp.int32))
 
@@ -440,7 +442,7 @@ def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes):
 def _run(structure, origins, directions, t_max, *, method, max_steps, lanes, shard):
     """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`."""
     grid = structure.grid
-    o = (jnp.asarray(origins, jnp.float32) - grid.origin) / grid.voxel_size
+    o = grid.to_grid_units(origins)
     d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
     shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
     o, d = jnp.broadcast_to(o, shape + (3,)).reshape(-1, 3), jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
@@ -462,10 +464,6 @@ def _run(structure, origins, directions, t_max, *, method, max_steps, lanes, sha
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), hits)
 
 
-def _max_steps(max_steps, resolution: int, depth: int) -> int:
-    return int(max_steps) if max_steps is not None else 6 * resolution + 16 * depth
-
-
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
     hit = _run(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
@@ -479,8 +477,8 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
           shard: bool = True) -> Hit:
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
-    Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps` and `lanes`
-    are static.
+    Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
+    `shard` are static.
 
     Args:
       tree: an `Octree` from `build_octree` or `build_dag`.
@@ -504,7 +502,7 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     """
     if method not in TRACE_METHODS:
         raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {TRACE_METHODS}")
-    steps = _max_steps(max_steps, tree.grid.resolution, tree.depth)
+    steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
     return _trace(tree, origins, directions, t_max, method=method, max_steps=steps, lanes=lanes,
                   shard=shard)
 
