@@ -413,37 +413,31 @@ def winding_number(vertices, faces, points) -> np.ndarray:
 def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
     """Closest points on triangles (a, b, c) to points p, all float64 ``[N, 3]`` (broadcast).
 
-    Ericson, *Real-Time Collision Detection*, 5.1.5: Voronoi regions of the vertices, the
-    edges and the face, tested in that order. Degenerate triangles fall into a vertex or
-    edge region, which is the right answer for a point or a segment.
+    The nearest of four candidates: the closest point of each edge (as a segment) and the
+    projection onto the plane when it falls inside the triangle (same side of all three
+    edges, by the normal). A degenerate triangle has a zero normal, so only its edges count:
+    the right answer for a segment or a point.
     """
     p, a, b, c = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (p, a, b, c)))
-    ab, ac, ap = b - a, c - a, p - a
     dot = lambda x, y: np.einsum("...k,...k->...", x, y)
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp, cp = p - b, p - c
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    out = np.empty_like(p)
-    done = np.zeros(p.shape[:-1], bool)
 
-    def take(mask, value):
-        mask = mask & ~done
-        out[mask] = value[mask]
-        done[mask] = True
+    def on_segment(x0, x1):
+        e = x1 - x0
+        ee = dot(e, e)
+        s = np.clip(dot(p - x0, e) / np.where(ee > 0, ee, 1.0), 0.0, 1.0)
+        return x0 + s[..., None] * e
 
-    with np.errstate(divide="ignore", invalid="ignore"):
-        take((d1 <= 0) & (d2 <= 0), a)
-        take((d3 >= 0) & (d4 <= d3), b)
-        take((d6 >= 0) & (d5 <= d6), c)
-        take((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + (d1 / (d1 - d3))[..., None] * ab)
-        take((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + (d2 / (d2 - d6))[..., None] * ac)
-        take((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
-             b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[..., None] * (c - b))
-        den = va + vb + vc
-        take(np.ones_like(done), a + (vb / den)[..., None] * ab + (vc / den)[..., None] * ac)
-    return out
+    n = np.cross(b - a, c - a)
+    nn = dot(n, n)
+    proj = p - (dot(p - a, n) / np.where(nn > 0, nn, 1.0))[..., None] * n
+    inside = nn > 0
+    for x0, x1 in ((a, b), (b, c), (c, a)):
+        inside &= dot(np.cross(x1 - x0, proj - x0), n) >= 0
+    candidates = [on_segment(a, b), on_segment(b, c), on_segment(c, a)]
+    best = candidates[0]
+    for q in candidates[1:]:
+        best = np.where((dot(q - p, q - p) < dot(best - p, best - p))[..., None], q, best)
+    return np.where(inside[..., None], proj, best)
 
 
 def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:

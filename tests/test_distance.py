@@ -224,6 +224,8 @@ def test_quantized_field_error(spot, fmt):
 
 @hypothesis.settings(deadline=None, max_examples=6)
 @hypothesis.given(st.lists(st.tuples(*[st.floats(-0.25, 1.25, width=32)] * 9), min_size=1, max_size=4))
+@hypothesis.example([(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)])  # two equal corners: a segment
+@hypothesis.example([(0.5, 0.5, 0.5) * 3])  # a point
 def test_random_triangles_jfa_bounds(corners):
     """Random triangles (possibly degenerate, possibly outside the grid): JFA never below
     the float64 distance and within its bound above."""
