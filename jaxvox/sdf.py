@@ -521,6 +521,8 @@ def normal(scene: SDF, points, *, method: str = "grad", h: float = 1e-3) -> jax.
     p = jnp.asarray(points, jnp.float32)
     if p.shape[-1:] != (3,):
         raise JaxvoxError(f"points must have shape [..., 3], got {p.shape}")
+    if _is_concrete(h) and not h > 0:
+        raise JaxvoxError(f"normal step h must be > 0, got {h}")
     if method == "grad":
         flat = p.reshape(-1, 3)
         g = jax.vmap(jax.grad(scene._distance))(flat).reshape(p.shape)

@@ -23,9 +23,7 @@ import numpy as np
 
 from jaxvox._errors import JaxvoxError
 from jaxvox.sdf import SDF, _is_concrete, _safe_norm
-from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
-
-_RUNNING = -1  # status while a ray is being traced
+from jaxvox.trace import _RUNNING, HIT, INVALID, MISS, STEP_CAP, Hit
 
 
 class _State(NamedTuple):
@@ -118,7 +116,8 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
 
     Returns:
       A `jaxvox.Hit`: ``t`` [...] float32 distance along the unit direction (inf unless
-      `HIT`); ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`);
+      `HIT`); ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`; not
+      differentiated);
       ``voxel`` -1 and ``index`` -1 (no voxels here); ``status`` [...] int32 `HIT`, `MISS`,
       `STEP_CAP` or `INVALID` (NaN origin, zero or NaN direction, NaN distance). With
       ``return_steps``, ``(hit, steps)`` with steps [...] int32. ``t`` is differentiable

@@ -296,6 +296,7 @@ def test_sphere_trace_edge_cases():
                   [-3.0, 0.0, 0.0], [-3.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], np.float32)
     d = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0],
                   [0.0, 0.0, 0.0], [np.nan, 1.0, 0.0], [1.0, 0.0, 0.0]], np.float32)
+    # epsilon 1e-7: the hit tolerance near t = 3 is 3e-7, below the 1e-6 miss distance of ray 2.
     hit = jv.sphere_trace(ball, o, d, t_max=10.0, max_steps=64, epsilon=1e-7, t_min=0.1)
     status, t = np.asarray(hit.status), np.asarray(hit.t)
     assert status[:2].tolist() == [HIT, HIT] and np.allclose(t[:2], 0.1)  # inside at t_min
