@@ -4,10 +4,12 @@ Exact conservative and 6-separating triangle voxelization, sparse voxel octrees 
 DAGs with per-node prefix sums for voxel attributes, ray traversal of octrees, DAGs and
 dense grids, dense distance fields (jump flooding, fast sweeping, solid voxelization for
 the sign) and cascaded clipmaps, all with fixed-capacity jittable cores and host-side
-APIs that size capacities by counting passes.
+APIs that size capacities by counting passes. Analytic signed distance function scenes
+(primitives, transforms, CSG) are jittable pytrees (`jaxvox.sdf`), rendered by sphere
+tracing and meshed by marching cubes.
 """
 
-from jaxvox import morton
+from jaxvox import morton, sdf
 from jaxvox._errors import JaxvoxError
 from jaxvox.camera import look_at_view, pinhole_rays
 from jaxvox.distance import (
@@ -41,6 +43,7 @@ from jaxvox.octree import (
     voxel_index,
 )
 from jaxvox.scene import default_scene
+from jaxvox.sphere_trace import sphere_trace
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
 from jaxvox.voxelize import (
     CONSERVATIVE,
@@ -112,6 +115,8 @@ __all__ = [
     "load_mesh",
     "morton",
     "pad_mesh",
+    "sdf",
+    "sphere_trace",
     "voxel_capacities",
     "voxelize",
     "voxelize_fixed",

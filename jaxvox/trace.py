@@ -76,6 +76,9 @@ class Hit:
         the C-order flat index into the occupancy grid (`trace_dense`); -1 unless hit.
       status: [...] int32 `HIT`, `MISS`, `STEP_CAP` (gave up after ``max_steps``) or
         `INVALID` (NaN origin or direction, zero direction, NaN ``t_max``).
+
+    `jaxvox.sphere_trace` returns the same type: there ``t`` is the distance along the
+    unit direction, ``normal`` the unit SDF gradient, and ``voxel`` and ``index`` are -1.
     """
 
     t: jax.Array  # [...] float32
