@@ -43,7 +43,7 @@ from jaxvox.octree import (
     voxel_index,
 )
 from jaxvox.scene import default_scene
-from jaxvox.sphere_trace import sphere_trace
+from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
 from jaxvox.voxelize import (
     CONSERVATIVE,
