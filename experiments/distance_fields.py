@@ -4,7 +4,9 @@ For each mesh and resolution R, on `jv.Grid.fit(mesh, resolution=R, padding=0.1)
 
 * methods: "jfa", "jfa-separable", "sweep" with 1, 2 and 3 iterations, "jfa+sweep"
   (one separable 3x3x3 band pass, then 3 sweep iterations); unsigned fields are timed
-  (median of repeats after a warm-up; the first call's extra time is `compile_s`);
+  (median of repeats after a warm-up; the first call's extra time is `compile_s`).
+  Above ``--all-methods-max`` (128) only "jfa-separable" and "jfa+sweep" run, once,
+  so their time includes compilation (seconds, against minutes of work);
 * reference (a): scipy's exact EDT of the conservative surface voxels (voxel
   centres to the nearest surface-voxel centre; itself within sqrt(3)/2 voxel of the
   true distance);
@@ -15,7 +17,9 @@ For each mesh and resolution R, on `jv.Grid.fit(mesh, resolution=R, padding=0.1)
 * sign: the solid voxelization jaxvox uses (parity for watertight meshes, winding
   number otherwise) against Open3D's ray-parity inside test (`compute_occupancy`,
   watertight meshes only) at voxel centres more than 0.01 voxel from the surface;
-  "sign errors" counts disagreements; the 16-bit formats' extra error is reported too.
+  "sign errors" counts disagreements (the winding number of open meshes costs
+  O(R^3 F) and is timed only up to ``--winding-max``); the 16-bit formats' extra
+  error is reported too.
 
 Each (mesh, R) case runs in a fresh process. Outputs distance_fields[_smoke].json,
 .md (table) and .png (time vs error, one point per method and resolution) plus
@@ -40,6 +44,7 @@ import _common
 METHODS = [("jfa", "jfa", {}), ("jfa-separable", "jfa-separable", {}),
            ("sweep x1", "sweep", dict(sweeps=1)), ("sweep x2", "sweep", dict(sweeps=2)),
            ("sweep x3", "sweep", dict(sweeps=3)), ("jfa+sweep", "jfa+sweep", dict(sweeps=3))]
+LARGE_METHODS = ("jfa-separable", "jfa+sweep")  # above --all-methods-max (the others take minutes)
 
 
 def _errors(field: np.ndarray, ref: np.ndarray) -> dict:
@@ -61,32 +66,44 @@ def worker(spec: dict) -> dict:
     r = spec["resolution"]
     grid = jv.Grid.fit(mesh, resolution=r, padding=0.1)
     h = float(grid.voxel_size)
-    ijk = np.indices((r, r, r)).reshape(3, -1).T
-    centres = (ijk + 0.5) * h + np.asarray(grid.origin, np.float64)
+    origin = np.asarray(grid.origin, np.float64)
+
+    def centres(flat):  # world centres [n, 3] of C-order voxel numbers
+        return (np.stack(np.unravel_index(flat, (r, r, r)), -1) + 0.5) * h + origin
+
+    def per_slab(fn):  # fn(float32 centres [r*r, 3]) -> [r*r], one x slab at a time (memory)
+        return np.stack([fn(centres(np.arange(i * r * r, (i + 1) * r * r)).astype(np.float32)).reshape(r, r)
+                         for i in range(r)])
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32))
-    exact = scene.compute_distance(centres.astype(np.float32)).numpy().reshape(r, r, r) / h
-    sample = np.random.default_rng(0).choice(len(centres), spec["subsample"], replace=False)
-    f64 = mesh_distance(mesh.vertices, mesh.faces, centres[sample]) / h
+    exact = per_slab(lambda c: scene.compute_distance(c).numpy()) / np.float32(h)
+    sample = np.random.default_rng(0).choice(r**3, spec["subsample"], replace=False)
+    f64 = mesh_distance(mesh.vertices, mesh.faces, centres(sample)) / h
     open3d_vs_f64 = float(np.abs(exact.reshape(-1)[sample] - f64).max())
     surface = np.ones((r, r, r), bool)
     surface[tuple(jv.voxelize(mesh, grid).to_numpy().T)] = False
-    edt = ndimage.distance_transform_edt(surface)
+    edt = ndimage.distance_transform_edt(surface).astype(np.float32)
+    del surface
 
     watertight = jv.open_edges(mesh) == 0
-    timing, solid = _common.time_calls(lambda: jax.block_until_ready(jv.solid_voxelize(mesh, grid)), 1)
-    solid = np.asarray(solid)
-    sign = dict(method="parity" if watertight else "winding", time_s=timing["median_s"])
+    sign = dict(method="parity" if watertight else "winding")
+    if watertight or r <= spec["winding_max"]:  # the winding number costs O(R^3 F)
+        timing, solid = _common.time_calls(lambda: jax.block_until_ready(jv.solid_voxelize(mesh, grid)), 1)
+        sign.update(time_s=timing["median_s"])
     if watertight:
-        inside = scene.compute_occupancy(centres.astype(np.float32)).numpy().reshape(r, r, r) > 0.5
+        solid = np.asarray(solid)
+        inside = per_slab(lambda c: scene.compute_occupancy(c).numpy()) > 0.5
         firm = exact > 0.01
         sign.update(errors=int((solid != inside)[firm].sum()), checked=int(firm.sum()))
+        del solid, inside, firm
 
     rows, slices = [], {}
-    for label, method, kw in METHODS:
+    methods = METHODS if r <= spec["all_methods_max"] else [m for m in METHODS if m[0] in LARGE_METHODS]
+    repeats = spec["repeats"] if r <= spec["all_methods_max"] else 0
+    for label, method, kw in methods:
         call = lambda: jax.block_until_ready(jv.distance_field(mesh, grid, method=method, signed=False, **kw))
-        timing, field = _common.time_calls(call, spec["repeats"])
+        timing, field = _common.time_calls(call, repeats)
         field = np.asarray(field) / h
         row = dict(method=label, **{k: timing[k] for k in ("median_s", "compile_s", "first_s")},
                    vs_exact=_errors(field, exact), vs_edt=_errors(field, edt))
@@ -108,7 +125,12 @@ def table(cases: list[dict]) -> str:
             out.append(dict(mesh=case["mesh"], R=case["resolution"], method=case["error"]))
             continue
         sign = case["sign"]
-        sign_text = (f"{sign['errors']} / {sign['checked']:,}" if "errors" in sign else "n/a (open mesh)")
+        if "errors" in sign:
+            sign_text = f"{sign['errors']} / {sign['checked']:,}"
+        elif "time_s" in sign:
+            sign_text = f"{sign['time_s']:.3g} s, no reference (open mesh)"
+        else:
+            sign_text = "not run (O(R^3 F))"
         for row in case["rows"]:
             a, b = row["vs_exact"], row["vs_edt"]
             out.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
@@ -155,6 +177,10 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--subsample", type=int, default=2000, help="float64 check points")
     parser.add_argument("--timeout", type=float, default=7200)
+    parser.add_argument("--all-methods-max", type=int, default=128,
+                        help=f"larger R run only {', '.join(LARGE_METHODS)}")
+    parser.add_argument("--winding-max", type=int, default=64,
+                        help="largest R at which the winding-number sign of open meshes is timed")
     parser.add_argument("--smoke", action="store_true", help="spot at R = 32, 64, one repeat")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -167,7 +193,8 @@ def main(argv=None) -> None:
     for mesh in args.meshes:
         for r in _common.progress(args.resolutions, desc=mesh):
             spec = dict(path=str(_common.MESH_DIR / f"{mesh}.obj"), resolution=r,
-                        repeats=args.repeats, subsample=args.subsample)
+                        repeats=args.repeats, subsample=args.subsample,
+                        all_methods_max=args.all_methods_max, winding_max=args.winding_max)
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=mesh, resolution=r)
             cases.append(case)
             print(f"{mesh} R={r}: {case.get('error', 'done')}", file=sys.stderr)
