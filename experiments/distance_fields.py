@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -102,7 +103,8 @@ def worker(spec: dict) -> dict:
     methods = METHODS if r <= spec["all_methods_max"] else [m for m in METHODS if m[0] in LARGE_METHODS]
     repeats = spec["repeats"] if r <= spec["all_methods_max"] else 0
     for label, method, kw in methods:
-        call = lambda: jax.block_until_ready(jv.distance_field(mesh, grid, method=method, signed=False, **kw))
+        call = lambda: jax.block_until_ready(jv.distance_field(mesh, grid, method=method, signed=False,
+                                                               max_bytes=spec.get("max_bytes"), **kw))
         timing, field = _common.time_calls(call, repeats)
         field = np.asarray(field) / h
         row = dict(method=label, **{k: timing[k] for k in ("median_s", "compile_s", "first_s")},
@@ -181,6 +183,10 @@ def main(argv=None) -> None:
                         help=f"larger R run only {', '.join(LARGE_METHODS)}")
     parser.add_argument("--winding-max", type=int, default=64,
                         help="largest R at which the winding-number sign of open meshes is timed")
+    parser.add_argument("--max-bytes", type=float, default=0.75,
+                        help="memory a field may use, as a fraction of physical memory")
+    parser.add_argument("--update", action="store_true",
+                        help="merge into the existing JSON (replacing the same mesh and R)")
     parser.add_argument("--smoke", action="store_true", help="spot at R = 32, 64, one repeat")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -189,16 +195,20 @@ def main(argv=None) -> None:
         return
     if args.smoke:
         args.meshes, args.resolutions, args.repeats, args.subsample = ["spot"], [32, 64], 1, 300
-    cases = []
+    stem = _common.RESULTS_DIR / ("distance_fields_smoke" if args.smoke else "distance_fields")
+    path = stem.with_suffix(".json")
+    cases = json.loads(path.read_text())["cases"] if args.update and path.exists() else []
     for mesh in args.meshes:
         for r in _common.progress(args.resolutions, desc=mesh):
             spec = dict(path=str(_common.MESH_DIR / f"{mesh}.obj"), resolution=r,
                         repeats=args.repeats, subsample=args.subsample,
-                        all_methods_max=args.all_methods_max, winding_max=args.winding_max)
+                        all_methods_max=args.all_methods_max, winding_max=args.winding_max,
+                        max_bytes=int(args.max_bytes * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")))
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=mesh, resolution=r)
-            cases.append(case)
+            cases = [c for c in cases if (c["mesh"], c["resolution"]) != (mesh, r)] + [case]
             print(f"{mesh} R={r}: {case.get('error', 'done')}", file=sys.stderr)
-    stem = _common.RESULTS_DIR / ("distance_fields_smoke" if args.smoke else "distance_fields")
+    order = {m: n for n, m in enumerate(args.meshes)}
+    cases.sort(key=lambda c: (order.get(c["mesh"], len(order)), c["mesh"], c["resolution"]))
     report = table(cases)
     _common.write_json(stem.with_suffix(".json"), dict(
         machine=_common.machine_info(["jax", "jaxlib", "open3d", "scipy", "numpy"]),

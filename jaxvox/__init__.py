@@ -43,6 +43,7 @@ from jaxvox.octree import (
     voxel_index,
 )
 from jaxvox.scene import default_scene
+from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
 from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
 from jaxvox.voxelize import (
@@ -117,6 +118,9 @@ __all__ = [
     "pad_mesh",
     "sdf",
     "sphere_trace",
+    "sphere_trace_octree",
+    "build_octree_from_sdf",
+    "voxelize_sdf",
     "voxel_capacities",
     "voxelize",
     "voxelize_fixed",

@@ -62,37 +62,45 @@ def _trace_one(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
     return jax.lax.while_loop(lambda s: s.status == _RUNNING, body, init)
 
 
+def _unit(directions):
+    """Unit directions [n, 3] (zero where the direction has zero length)."""
+    length = _safe_norm(directions)
+    u = directions / jnp.where(length > 0, length, 1.0)[:, None]
+    return jnp.where((length > 0)[:, None], u, 0.0)
+
+
+def _surface_hit(scene, o, u, t, status, on_surface) -> Hit:
+    """A flat `Hit` [n] from traced distances, with implicit gradients for ``t``.
+
+    The loops are not differentiated: the hit t gets its gradient from the implicit
+    function theorem (f(o + t u) = 0 => dt = -df / (grad f . u)), for hits on the surface
+    (`on_surface`; not rays that start inside). `voxel` and `index` are -1.
+    """
+    frozen_scene = jax.lax.stop_gradient(scene)
+    is_hit = status == HIT
+    t_star = jnp.where(is_hit, jax.lax.stop_gradient(t), 0.0)  # a finite point for misses ("safe where")
+    x_star = jax.lax.stop_gradient(o + t_star[:, None] * u)
+    g = jax.vmap(jax.grad(frozen_scene._distance))(x_star)  # [n, 3]
+    g_norm = _safe_norm(g)
+    n = jnp.where((is_hit & (g_norm > 0))[:, None], g / jnp.where(g_norm > 0, g_norm, 1.0)[:, None], 0.0)
+    den = jnp.sum(g * jax.lax.stop_gradient(u), axis=-1)
+    den_ok = is_hit & on_surface & (den != 0)
+    f = scene._distance(o + t_star[:, None] * u)
+    correction = jnp.where(den_ok, (f - jax.lax.stop_gradient(f)) / jnp.where(den_ok, den, 1.0), 0.0)
+    return Hit(t=jnp.where(is_hit, t_star - correction, jnp.inf), voxel=jnp.full(t.shape + (3,), -1, jnp.int32),
+               normal=n, index=jnp.full(t.shape, -1, jnp.int32), status=status)
+
+
 @functools.partial(jax.jit, static_argnames=("max_steps", "return_steps"))
 def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation, max_steps, return_steps):
     batch = origins.shape[:-1]
-    o, dirs = origins.reshape(-1, 3), directions.reshape(-1, 3)
-    length = _safe_norm(dirs)
-    u = dirs / jnp.where(length > 0, length, 1.0)[:, None]
-    u = jnp.where((length > 0)[:, None], u, 0.0)
-    # The loop is not differentiated: the hit t gets its gradient from the implicit
-    # function theorem below (f(o + t u) = 0 => dt = -df / (grad f . u)).
+    o, u = origins.reshape(-1, 3), _unit(directions.reshape(-1, 3))
     frozen = jax.lax.stop_gradient((scene, o, u))
     trace = lambda s, oo, uu: _trace_one(s, oo, uu, t_min, t_max, epsilon, relaxation, max_steps)
     final = jax.vmap(trace, in_axes=(None, 0, 0))(*frozen)
-    is_hit = final.status == HIT
-    t_star = jnp.where(is_hit, final.t, t_min)  # a finite point for misses ("safe where")
-    x_star = jax.lax.stop_gradient(o + t_star[:, None] * u)
-    g = jax.vmap(jax.grad(frozen[0]._distance))(x_star)  # [n, 3]
-    g_norm = _safe_norm(g)
-    n = jnp.where((is_hit & (g_norm > 0))[:, None], g / jnp.where(g_norm > 0, g_norm, 1.0)[:, None], 0.0)
-    # Only hits on the surface (not rays starting inside) move with the scene.
-    den = jnp.sum(g * frozen[2], axis=-1)
-    den_ok = is_hit & (jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)) & (den != 0)
-    f = scene._distance(o + t_star[:, None] * u)
-    correction = jnp.where(den_ok, (f - jax.lax.stop_gradient(f)) / jnp.where(den_ok, den, 1.0), 0.0)
-    t = jnp.where(is_hit, t_star - correction, jnp.inf)
-    hit = Hit(
-        t=t.reshape(batch),
-        voxel=jnp.full(batch + (3,), -1, jnp.int32),
-        normal=n.reshape(batch + (3,)),
-        index=jnp.full(batch, -1, jnp.int32),
-        status=final.status.reshape(batch),
-    )
+    on_surface = jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)
+    hit = _surface_hit(scene, o, u, final.t, final.status, on_surface)
+    hit = jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), hit)
     return (hit, final.steps.reshape(batch)) if return_steps else hit
 
 
@@ -128,8 +136,16 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
       JaxvoxError: bad shapes, ``max_steps < 1``, or (when concrete) ``epsilon <= 0``,
         relaxation outside [1, 2), NaN ``t_min`` / ``t_max``.
     """
+    o, d, scalars = _checked(scene, origins, directions, t_min=t_min, t_max=t_max, epsilon=epsilon,
+                             relaxation=relaxation, max_steps=max_steps)
+    return _sphere_trace(scene, o, d, scalars["t_min"], scalars["t_max"], scalars["epsilon"],
+                         scalars["relaxation"], int(max_steps), bool(return_steps))
+
+
+def _checked(scene, origins, directions, *, max_steps, **scalars):
+    """Validated (origins, directions) float32 [..., 3] broadcast, and float32 scalars."""
     if not isinstance(scene, SDF):
-        raise JaxvoxError(f"sphere_trace needs a jaxvox.sdf scene, got {type(scene).__name__}")
+        raise JaxvoxError(f"sphere tracing needs a jaxvox.sdf scene, got {type(scene).__name__}")
     o = jnp.asarray(origins, jnp.float32)
     d = jnp.asarray(directions, jnp.float32)
     if o.shape[-1:] != (3,) or d.shape[-1:] != (3,):
@@ -140,8 +156,7 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
         raise JaxvoxError(f"origins {o.shape} and directions {d.shape} do not broadcast") from exc
     if int(max_steps) != max_steps or max_steps < 1:
         raise JaxvoxError(f"max_steps must be a positive integer, got {max_steps!r}")
-    scalars = {name: jnp.asarray(v, jnp.float32) for name, v in
-               dict(t_min=t_min, t_max=t_max, epsilon=epsilon, relaxation=relaxation).items()}
+    scalars = {name: jnp.asarray(v, jnp.float32) for name, v in scalars.items()}
     for name, v in scalars.items():
         if v.shape != ():
             raise JaxvoxError(f"{name} must be a scalar, got shape {v.shape}")
@@ -151,5 +166,4 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
         raise JaxvoxError(f"epsilon must be > 0, got {float(scalars['epsilon'])}")
     if _is_concrete(scalars["relaxation"]) and not 1.0 <= float(scalars["relaxation"]) < 2.0:
         raise JaxvoxError(f"relaxation must lie in [1, 2), got {float(scalars['relaxation'])}")
-    return _sphere_trace(scene, o, d, scalars["t_min"], scalars["t_max"], scalars["epsilon"],
-                         scalars["relaxation"], int(max_steps), bool(return_steps))
+    return o, d, scalars
