@@ -119,7 +119,10 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
         travelled, absolute within unit distance of the origin.
       t_min: distance along the ray where tracing starts. A ray whose first point is inside
         (``f < 0`` at `t_min`) is a `HIT` at ``t = t_min``.
-      relaxation: over-relaxation factor omega in [1, 2); 1 is plain sphere tracing.
+      relaxation: step factor omega in (0, 2); 1 is plain sphere tracing, above 1
+        over-relaxes (with the fallback above), below 1 under-relaxes: steps of
+        ``omega * d`` are safe for a scene whose Lipschitz bound is at most ``1 / omega``
+        (e.g. ``1 / jaxvox.sdf.lipschitz_bound(scene)`` for `mix` or uncorrected scales).
       return_steps: also return the number of scene evaluations per ray (static).
 
     Returns:
@@ -134,7 +137,7 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
 
     Raises:
       JaxvoxError: bad shapes, ``max_steps < 1``, or (when concrete) ``epsilon <= 0``,
-        relaxation outside [1, 2), NaN ``t_min`` / ``t_max``.
+        relaxation outside (0, 2), NaN ``t_min`` / ``t_max``.
     """
     o, d, scalars = _checked(scene, origins, directions, t_min=t_min, t_max=t_max, epsilon=epsilon,
                              relaxation=relaxation, max_steps=max_steps)
@@ -164,6 +167,6 @@ def _checked(scene, origins, directions, *, max_steps, **scalars):
             raise JaxvoxError(f"{name} is NaN")
     if _is_concrete(scalars["epsilon"]) and not float(scalars["epsilon"]) > 0:
         raise JaxvoxError(f"epsilon must be > 0, got {float(scalars['epsilon'])}")
-    if _is_concrete(scalars["relaxation"]) and not 1.0 <= float(scalars["relaxation"]) < 2.0:
-        raise JaxvoxError(f"relaxation must lie in [1, 2), got {float(scalars['relaxation'])}")
+    if _is_concrete(scalars["relaxation"]) and not 0.0 < float(scalars["relaxation"]) < 2.0:
+        raise JaxvoxError(f"relaxation must lie in (0, 2), got {float(scalars['relaxation'])}")
     return o, d, scalars

@@ -333,6 +333,23 @@ def test_non_lipschitz_scene_reports_valid_statuses():
     o, u = _shell_rays(rng, 64)
     status = np.asarray(jv.sphere_trace(wild, o, u, t_max=20.0, max_steps=64).status)
     assert set(status.tolist()) <= STATUSES
+    # Under-relaxed by 1 / L the steps are safe: the first crossing of a fine float64 march.
+    o, u = o.astype(np.float32).astype(np.float64), u.astype(np.float32).astype(np.float64)
+
+    def f(p):  # 3 sphere - 2 box, float64
+        q = np.abs(p - (0.3, 0.0, 0.0)) - 0.5
+        box = np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0)
+        return 3 * (np.linalg.norm(p, axis=-1) - 1.0) - 2 * box
+
+    ts = np.arange(0.0, 20.0, 1e-3)
+    values = f(o[:, None] + ts[None, :, None] * u[:, None])  # [64, 20000]
+    crossed = values <= 0
+    t_ref = np.where(crossed.any(1), ts[crossed.argmax(1)], np.inf)
+    safe = jv.sphere_trace(wild, o, u, t_max=20.0, max_steps=4096, relaxation=1 / 5, epsilon=1e-5)
+    assert ((np.asarray(safe.status) == HIT) == np.isfinite(t_ref)).all()
+    hit = np.isfinite(t_ref)
+    assert hit.sum() > 10
+    np.testing.assert_allclose(np.asarray(safe.t)[hit], t_ref[hit], atol=2e-3)
 
 
 # ----------------------------------------------------------------------------- normals and meshing
