@@ -133,14 +133,15 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[tuple[str, str]]) -> 
     return "\n".join([header, rule, *body]) + "\n"
 
 
-def new_figure(ncols: int, *, width: float = 6.0, height: float = 4.5):
-    """A matplotlib figure with `ncols` side-by-side axes, drawn off-screen (Agg backend)."""
+def new_figure(ncols: int, *, rows: int = 1, width: float = 6.0, height: float = 4.5):
+    """A matplotlib figure with `rows` x `ncols` axes (each `width` x `height` inches),
+    drawn off-screen (Agg backend)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    return plt.subplots(1, ncols, figsize=(width * ncols, height), constrained_layout=True)
+    return plt.subplots(rows, ncols, figsize=(width * ncols, height * rows), constrained_layout=True)
 
 
 def save_figure(fig, path: Path) -> None:

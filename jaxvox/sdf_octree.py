@@ -146,7 +146,7 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         t_in = s.t + jnp.where(entered, leaf.t, 0.0)
         t_out = jnp.maximum(_exit_distance(tree.grid, leaf.voxel, o, u), t_in)
         budget = jnp.maximum(max_steps - s.steps, 1)
-        final = march(o, u, t_in, jnp.minimum(t_out, t_max), budget)
+        final = march(o, u, t_in, jnp.where(entered, jnp.minimum(t_out, t_max), -jnp.inf), budget)  # -inf: idle
         left = final.status == MISS  # left the leaf (or passed t_max) without a hit
         steps = s.steps + jnp.where(entered, final.steps, 0)
         leaves = s.leaves + entered
