@@ -589,9 +589,18 @@ class Clipmap:
     ``origin + g * h_c`` (g integer); its window is ``corner[c] <= g < corner[c] + R``
     and lattice voxel g lives in slot ``g mod R`` (per axis), so a move rewrites only
     the newly exposed slabs. A voxel holds the signed distance from its centre to the
-    whole mesh, clamped to ``truncation * h_c`` (negative inside by the generalized
-    winding number): a function of its position only, so any sequence of moves gives
-    the same cascade as a build from scratch. `truncation` is static.
+    whole mesh, clamped to ``truncation * h_c`` (negative inside).
+
+    With ``method="exact"`` a voxel's value is a function of its position only (the
+    brute-force distance, the generalized winding number for the sign), so any sequence
+    of moves gives the same cascade as a build from scratch. With a `distance_field`
+    method (e.g. "jfa+sweep", the seed's pipeline) an updated cascade runs the method
+    on its whole new window (jump flooding and sweeps need the neighbourhood) and
+    writes only the exposed slabs; kept voxels hold values from an older window, so an
+    incremental clipmap differs from a scratch build by at most the method's error
+    (both are within it of the exact field). The sign comes from the parity solid of the
+    window for watertight meshes, otherwise from winding numbers at the exposed voxels.
+    `truncation` and `method` are static.
 
     Attributes:
       fields: [N, R, R, R] float32 world units, toroidal slots.
@@ -599,6 +608,8 @@ class Clipmap:
       origin: [3] float32 world position of lattice point 0.
       voxel_size: [] float32 edge of the finest cascade's voxels.
       truncation: static float, clamp in voxels of the cascade.
+      method: static str, how exposed voxels are computed ("exact" or a
+        `distance_field` method).
     """
 
     fields: jax.Array  # [N, R, R, R] float32
@@ -606,6 +617,7 @@ class Clipmap:
     origin: jax.Array  # [3] float32
     voxel_size: jax.Array  # [] float32
     truncation: float = dataclasses.field(metadata=dict(static=True))
+    method: str = dataclasses.field(default="exact", metadata=dict(static=True))
 
     @property
     def resolution(self) -> int:
@@ -634,36 +646,52 @@ def _cascade_values(points, tris, limit):
     return jnp.where(inside, -d, d)
 
 
-def _refresh(fields, tris, cascade: int, old, new, origin, h0, truncation):
+def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
     """Writes the voxels of cascade `cascade` in window `new` that window `old` lacks."""
     r = fields.shape[-1]
     slot = np.arange(r)
-    g = new[:, None] + np.mod(slot[None] - new[:, None], r)  # [3, R] lattice index held by each slot
+    rel = np.mod(slot[None] - new[:, None], r)  # [3, R] window-relative index held by each slot
+    g = new[:, None] + rel  # [3, R] lattice index held by each slot
     fresh = (g < old[:, None]) | (g >= old[:, None] + r)
     mask = fresh[0][:, None, None] | fresh[1][None, :, None] | fresh[2][None, None, :]
     slots = np.argwhere(mask)
     if len(slots) == 0:
         return fields
+    h = float(clip.voxel_size) * 2.0**cascade
+    limit = clip.truncation * h
+    if tris is None:  # no triangles: everything is far outside
+        return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(np.float32(limit))
     lattice = g[np.arange(3), slots]  # [n, 3]
-    h = float(h0) * 2.0**cascade
     n = len(slots)
     cap = bucket_pow2(n, 256)
     centres = np.zeros((cap, 3), np.float32)
-    centres[:n] = np.asarray(origin, np.float64) + (lattice + 0.5) * h
-    if tris is None:  # no triangles: everything is far outside
-        values = jnp.full(cap, truncation * h, jnp.float32)
+    centres[:n] = np.asarray(clip.origin, np.float64) + (lattice + 0.5) * h
+    if clip.method == "exact":
+        values = _cascade_values(jnp.asarray(centres), tris, jnp.float32(limit))[:n]
     else:
-        values = _cascade_values(jnp.asarray(centres), tris, jnp.float32(truncation * h))
-    return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(values[:n])
+        window = Grid(np.asarray(clip.origin, np.float64) + new * h, h, r)
+        w = rel[np.arange(3), slots]  # [n, 3] window-relative voxel of each exposed slot
+        d = jnp.minimum(distance_field(mesh, window, method=clip.method, signed=False)[w[:, 0], w[:, 1], w[:, 2]],
+                        limit)
+        if open_edges(mesh) == 0:
+            inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "parity")[w[:, 0], w[:, 1], w[:, 2]]
+        else:
+            inside = (_winding_numbers(jnp.asarray(centres), tris) > 0.5)[:n]
+        values = jnp.where(inside, -d, d)
+    return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(values)
 
 
 def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, voxel_size: float,
-                  origin=(0.0, 0.0, 0.0), truncation: float = 8.0) -> Clipmap:
+                  origin=(0.0, 0.0, 0.0), truncation: float = 8.0, method: str = "jfa") -> Clipmap:
     """A clipmap around `camera` built from scratch (every voxel of every cascade).
 
-    Host-side. Exposed voxels get exact values: brute-force point-triangle distances
-    and winding numbers over all triangles (O(voxels * F)); a build costs N R^3 F
-    pairs, a move only the exposed slabs'.
+    Host-side. With ``method="exact"`` exposed voxels get brute-force point-triangle
+    distances and winding numbers over all triangles (O(voxels * F): a build costs
+    N R^3 F pairs, a move only the exposed slabs'). With a `distance_field` method each
+    updated cascade costs one distance field of R^3 (see `Clipmap`). The default "jfa"
+    stays within half a voxel of the exact value even where the mesh leaves the window;
+    sweeping is first-order from the seeds that geometry outside the window leaves on its
+    boundary (up to about 3 voxels above).
 
     Args:
       mesh: `Mesh` (validated).
@@ -673,6 +701,7 @@ def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, vox
       voxel_size: finest voxel edge, world units.
       origin: [3] world position of the lattice shared by all cascades.
       truncation: distances are clamped to this many voxels of their cascade.
+      method: "exact" or one of `distance_field`'s methods (static in the result).
 
     Returns:
       `Clipmap` with fields [N, R, R, R] float32 (4 N R^3 bytes).
@@ -683,7 +712,8 @@ def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, vox
         raise JaxvoxError(f"num_cascades must be at least 1, got {num_cascades}")
     far = np.full((num_cascades, 3), np.iinfo(np.int32).min // 2, np.int32)  # nothing in common
     empty = Clipmap(jnp.zeros((num_cascades, r, r, r), jnp.float32), jnp.asarray(far),
-                    jnp.asarray(origin, jnp.float32), jnp.float32(voxel_size), float(truncation))
+                    jnp.asarray(origin, jnp.float32), jnp.float32(voxel_size), float(truncation),
+                    _check_method(method))
     return update_clipmap(empty, mesh, camera)
 
 
@@ -710,7 +740,7 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
     fields = clip.fields
     tris = _padded(mesh).triangles() if mesh.num_faces else None
     for c in cascades:
-        fields = _refresh(fields, tris, c, corner[c], new[c], clip.origin, clip.voxel_size, clip.truncation)
+        fields = _refresh(fields, mesh, tris, c, corner[c], new[c], clip)
         corner[c] = new[c]
     return dataclasses.replace(clip, fields=fields, corner=jnp.asarray(corner))
 
