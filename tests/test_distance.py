@@ -238,7 +238,7 @@ def test_random_triangles_jfa_bounds(corners):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", ["jfa", "jfa+sweep"])
+@pytest.mark.parametrize("method", ["jfa", "sweep", "jfa+sweep"])
 def test_bunny_unsigned_bounds(meshes_dir, method):
     """The bunny (open, 69k triangles) against the float64 reference on a sample of voxels;
     64^3 with JAXVOX_SLOW_SCALE=full, 16^3 otherwise."""
