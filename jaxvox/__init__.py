@@ -6,7 +6,8 @@ dense grids, dense distance fields (jump flooding, fast sweeping, solid voxeliza
 the sign) and cascaded clipmaps, all with fixed-capacity jittable cores and host-side
 APIs that size capacities by counting passes. Analytic signed distance function scenes
 (primitives, transforms, CSG) are jittable pytrees (`jaxvox.sdf`), rendered by sphere
-tracing and meshed by marching cubes.
+tracing and meshed by marching cubes. A diffuse path tracer (`jaxvox.render`) renders
+voxel DAGs under an environment light to EXR and PNG files.
 """
 
 from jaxvox import morton, sdf
@@ -28,6 +29,7 @@ from jaxvox.distance import (
     solid_voxelize,
 )
 from jaxvox.grid import Grid
+from jaxvox.image import read_exr, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh
 from jaxvox.octree import (
@@ -41,6 +43,16 @@ from jaxvox.octree import (
     expand,
     voxel_attributes,
     voxel_index,
+)
+from jaxvox.render import (
+    Environment,
+    RenderResult,
+    load_environment,
+    render,
+    save_render,
+    sky_environment,
+    uniform_environment,
+    voxel_albedo,
 )
 from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
@@ -124,4 +136,16 @@ __all__ = [
     "voxel_capacities",
     "voxelize",
     "voxelize_fixed",
+    "Environment",
+    "RenderResult",
+    "load_environment",
+    "read_exr",
+    "render",
+    "save_render",
+    "sky_environment",
+    "tonemap",
+    "uniform_environment",
+    "voxel_albedo",
+    "write_exr",
+    "write_png",
 ]

@@ -1,6 +1,7 @@
-"""The ``jaxvox`` command line: ``run`` (the main job), ``voxelize``, ``build``.
+"""The ``jaxvox`` command line: ``run`` (the main job), ``render``, ``voxelize``, ``build``, ``info``.
 
-Errors (missing file, bad option, bad resolution) print one line and exit with status 2.
+Errors (missing file, unknown or bad option, bad resolution) print one line and exit
+with status 2.
 """
 
 from __future__ import annotations
@@ -150,6 +151,129 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
+    """Comma-separated floats, as many as one of `counts`; a `JaxvoxError` otherwise."""
+    from jaxvox._errors import JaxvoxError
+
+    try:
+        values = [float(x) for x in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in counts or not np.isfinite(values).all():
+        raise JaxvoxError(f"--{name} takes {' or '.join(map(str, counts))} comma-separated numbers, got {text!r}")
+    return values
+
+
+def _size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` -> (width, height)."""
+    from jaxvox._errors import JaxvoxError
+
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+        raise JaxvoxError(f"--size takes WIDTHxHEIGHT in pixels (e.g. 640x360), got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+def _environment(spec: str):
+    """``sky``, ``white``, ``black``, ``uniform:R,G,B`` or an .exr / .npy lat-long file."""
+    import jaxvox as jv
+
+    if spec == "sky":
+        return jv.sky_environment()
+    if spec in ("white", "black"):
+        return jv.uniform_environment(1.0 if spec == "white" else 0.0)
+    if spec.startswith("uniform:"):
+        return jv.uniform_environment(_numbers(spec[len("uniform:"):], "env uniform:", (1, 3)))
+    return jv.load_environment(spec)
+
+
+def _upright_default_scene():
+    """The default scene, modelled with +z up, turned so that +y is up as the renderer's sky."""
+    import jaxvox as jv
+
+    mesh = jv.default_scene()
+    v = np.asarray(mesh.vertices)
+    return jv.Mesh(np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1), mesh.faces, mesh.colors)
+
+
+def _render_scene(args):
+    """(tree, albedo, bounds, name) for `render`: a .jvx tree file, a mesh, or the default scene."""
+    import jaxvox as jv
+
+    if args.mesh is not None and args.mesh.endswith(".jvx"):
+        tree, attributes = jv.load(args.mesh), jv.load_attributes(args.mesh)
+        g = tree.grid
+        lo = np.asarray(g.origin)
+        bounds = (lo, lo + g.resolution * float(g.voxel_size))
+        name = os.path.basename(args.mesh)
+        print(f"{name}: {int(tree.voxel_count):,} voxels at {g.resolution}^3, {tree.num_nodes:,} nodes")
+    else:
+        mesh, name = (_upright_default_scene(), "default scene") if args.mesh is None else _load(args.mesh)
+        start = time.perf_counter()
+        vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=args.resolution), triangle_ids=True)
+        tree = jv.build_dag(vox)
+        attributes = jv.voxel_attributes(mesh, vox)
+        tree.mask.block_until_ready()
+        bounds = tuple(np.asarray(b) for b in (mesh.vertices.min(0), mesh.vertices.max(0)))
+        print(f"{name}: {mesh.num_faces:,} triangles -> {int(tree.voxel_count):,} voxels at {args.resolution}^3, "
+              f"DAG of {tree.num_nodes:,} nodes, in {time.perf_counter() - start:.1f} s")
+    material = _numbers(args.albedo, "albedo", (1, 3))
+    albedo = jv.voxel_albedo(attributes, default=np.broadcast_to(material, 3))
+    return tree, albedo, bounds, name
+
+
+def cmd_render(args) -> int:
+    """Path-traces a mesh (voxelized into a DAG), a saved tree, or the default scene; writes EXR + PNG."""
+    import jaxvox as jv
+
+    width, height = _size(args.size)
+    env = _environment(args.env)
+    tree, albedo, bounds, name = _render_scene(args)
+    camera = _numbers(args.camera, "camera", (2, 3, 6)) if args.camera else [35.0, 25.0]
+    if len(camera) == 6:
+        eye, target = camera[:3], camera[3:]
+    else:
+        eye, target = jv.look_at_view(bounds, azimuth=camera[0], elevation=camera[1],
+                                      **({"distance": camera[2]} if len(camera) == 3 else {}))
+    settings = dict(env=env, albedo=albedo, width=width, height=height, fov=args.fov, spp=args.spp,
+                    bounces=args.bounces, key=args.seed, batch_rays=args.batch_rays)
+    start = time.perf_counter()
+    result = jv.render(tree, eye, target, **settings)
+    result.radiance.block_until_ready()
+    seconds = time.perf_counter() - start
+    out_dir = os.path.dirname(os.path.abspath(args.out))
+    os.makedirs(out_dir, exist_ok=True)
+    exr, png = jv.save_render(args.out, result, exposure=args.exposure)
+    samples = width * height * args.spp
+    print(f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed} "
+          f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)"
+          + (f"; {int(result.stopped)} paths stopped early" if int(result.stopped) else ""))
+    print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
+    print(f"wrote {exr} (linear HDR: R, G, B, depth Z, normal N.X N.Y N.Z)")
+    print(f"wrote {png} (tone-mapped sRGB)")
+    return 0
+
+
+def cmd_info(args) -> int:
+    """Prints the levels, nodes, bytes and bits per voxel of a saved tree file."""
+    import jaxvox as jv
+
+    tree = jv.load(args.file)
+    attributes = jv.load_attributes(args.file)
+    voxels = int(tree.voxel_count)
+    g = tree.grid
+    print(f"{args.file}: {'DAG' if tree.dag else 'octree'} ({tree.mode} voxels)")
+    print(f"  grid: {g.resolution}^3, voxel size {float(g.voxel_size):.6g}, origin "
+          f"{', '.join(f'{x:.6g}' for x in np.asarray(g.origin))}")
+    print(f"  levels: {tree.depth}, nodes per level: {list(tree.level_sizes)}")
+    print(f"  nodes: {tree.num_nodes:,}, voxels: {voxels:,}")
+    print(f"  bytes: {tree.nbytes:,} ({tree.nbytes / 2**20:.2f} MiB), "
+          f"{8 * tree.nbytes / max(voxels, 1):.2f} bits per voxel")
+    names = ", ".join(f"{k} {tuple(v.shape)} {v.dtype}" for k, v in sorted(attributes.items()))
+    print(f"  attributes: {names or 'none'}")
+    return 0
+
+
 def _enable_compilation_cache() -> None:
     """Keeps compiled XLA programs on disk so repeated commands skip recompiling.
 
@@ -164,9 +288,17 @@ def _enable_compilation_cache() -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (no usage block), exit status 2."""
+
+    def error(self, message):
+        """Prints ``jaxvox: error: message`` and exits with status 2."""
+        self.exit(2, f"jaxvox: error: {message} (see jaxvox --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``jaxvox`` command."""
-    parser = argparse.ArgumentParser(prog="jaxvox", description="Voxel geometry in JAX.")
+    parser = _Parser(prog="jaxvox", description="Voxel geometry in JAX.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     def command(name, func, help, resolution, out, out_help):
@@ -186,6 +318,23 @@ def build_parser() -> argparse.ArgumentParser:
     build = command("build", cmd_build, "voxelize a mesh and save its DAG (or octree) with attributes", 512,
                     "tree.jvx", "output tree file")
     build.add_argument("--kind", choices=["dag", "octree"], default="dag")
+    render = command("render", cmd_render, "path-trace the default scene (or MESH, or a .jvx tree file) to an "
+                     "EXR and a PNG", 256, "render.exr", "output .exr file; the PNG is written beside it")
+    render.add_argument("--size", default="640x360", help="image WIDTHxHEIGHT in pixels (default 640x360)")
+    render.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
+    render.add_argument("--bounces", type=int, default=8, help="diffuse bounces (default 8)")
+    render.add_argument("--env", default="sky", help="lighting: sky (procedural, with a sun), white, black, "
+                        "uniform:R,G,B, or a lat-long .exr/.npy file")
+    render.add_argument("--camera", default=None, help="AZIMUTH,ELEVATION[,DISTANCE] in degrees around the scene "
+                        "(default 35,25), or EYE_X,EYE_Y,EYE_Z,TARGET_X,TARGET_Y,TARGET_Z")
+    render.add_argument("--fov", type=float, default=40.0, help="vertical field of view in degrees")
+    render.add_argument("--albedo", default="0.7", help="material colour where the mesh has no vertex colours")
+    render.add_argument("--seed", type=int, default=0)
+    render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    render.add_argument("--batch-rays", type=int, default=1 << 18, help="paths traced per batch (memory)")
+    info = sub.add_parser("info", help="levels, nodes, bytes and bits per voxel of a saved tree file")
+    info.add_argument("file", help="a .jvx file written by jaxvox build or run")
+    info.set_defaults(func=cmd_info)
     return parser
 
 
@@ -201,7 +350,8 @@ def main(argv: list[str] | None = None) -> int:
     from jaxvox.grid import check_resolution
 
     try:
-        check_resolution(args.resolution)
+        if getattr(args, "resolution", None) is not None:
+            check_resolution(args.resolution)
         return args.func(args)
     except (JaxvoxError, OSError) as exc:
         print(f"jaxvox: error: {exc}", file=sys.stderr)

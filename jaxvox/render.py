@@ -1,0 +1,528 @@
+"""A diffuse path tracer over voxel octrees and DAGs, lit by an environment.
+
+Light transport. Every voxel is a Lambertian (diffuse) surface with a per-voxel albedo
+and an optional per-voxel emitted radiance; the light comes from an `Environment`: a
+smooth part (a lat-long image, a uniform colour or a gradient sky) and optionally a sun,
+a directional light of given irradiance. The estimator is the simplest unbiased one:
+
+* camera rays are jittered uniformly over each pixel (box filter);
+* at a surface hit the path adds ``throughput * emission`` and continues in a
+  cosine-weighted direction about the face normal, from a point just off the face
+  (``throughput *= albedo``: the cosine and the BRDF's ``1/pi`` cancel against the pdf);
+* a ray that escapes adds ``throughput * env(direction)``: the smooth environment is
+  only ever found by bounce rays;
+* the sun, a delta light that no bounce ray can hit, is only found by a shadow ray at
+  each hit (next-event estimation): ``throughput * albedo / pi * E_sun * cos`` when the
+  ray toward the sun escapes. No sample can reach the same light both ways, so no
+  multiple importance sampling is needed. Camera rays also see the sun's disc (angular
+  radius from ``sun_cos``) so that it shows in the image; light never bounces off it.
+
+A path has at most ``bounces + 1`` segments; ``bounces=0`` shows emission, the direct
+sun and the environment behind the scene. A path whose ray hits the traversal's step
+cap, or starts inside a voxel (a float32 tie at a voxel edge), ends there and is counted
+in `RenderResult.stopped`.
+
+Randomness. Each pixel sample (sample ``s`` of pixel ``p``) draws from its own key,
+``fold_in(key, s * H * W + p)``, so an image depends on the key and the settings, not on
+how the samples are split into batches (with a different ``batch_rays`` the sums are
+taken in another order: equal to float32 rounding). The same key and settings give the
+same bits.
+
+Memory. Pixel samples are traced in batches of ``batch_rays`` paths (a host loop with a
+progress bar); the traversal's own memory is bounded by its lanes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import os
+import sys
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox._errors import JaxvoxError
+from jaxvox._pytree import pytree_dataclass
+from jaxvox.octree import Octree
+from jaxvox.trace import HIT, STEP_CAP, trace
+
+_OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
+_SUN_COS = math.cos(math.radians(0.53))  # default sun disc: 0.53 degrees in radius (2x the real sun)
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class Environment:
+    """Radiance arriving from infinitely far away, as a function of direction (y is up).
+
+    ``radiance(d) = image(d) + sky(d)`` plus, when `sun` is set, a directional light
+    of irradiance `sun_irradiance` from `sun_direction`. Build one with
+    `uniform_environment`, `sky_environment` or `load_environment`. `sun` is static
+    (changing it recompiles, and so does a new image shape).
+
+    Attributes:
+      image: [Hi, Wi, 3] float32 lat-long radiance: row 0 looks straight up (+y), row
+        ``Hi - 1`` straight down; column ``j`` is the azimuth ``2 pi (j + 0.5) / Wi - pi``
+        measured from -z towards +x, so the image centre looks along -z. Looked up
+        nearest-neighbour; a [1, 1, 3] image is a uniform environment.
+      zenith, horizon, ground: [3] float32 radiance of a gradient sky added to the image:
+        ``horizon`` blends into ``zenith`` as ``sqrt(d_y)`` above the horizon, and into
+        ``ground`` within 5 degrees below it. Zero for image environments.
+      sun_direction: [3] float32 unit vector towards the sun.
+      sun_irradiance: [3] float32 irradiance on a surface facing the sun.
+      sun_cos: [] float32 cosine of the sun disc's angular radius (camera rays only).
+      sun: static bool, whether the sun is traced (one shadow ray per hit).
+    """
+
+    image: jax.Array  # [Hi, Wi, 3] float32
+    zenith: jax.Array  # [3] float32
+    horizon: jax.Array  # [3] float32
+    ground: jax.Array  # [3] float32
+    sun_direction: jax.Array  # [3] float32
+    sun_irradiance: jax.Array  # [3] float32
+    sun_cos: jax.Array  # [] float32
+    sun: bool = dataclasses.field(metadata=dict(static=True))
+
+    def radiance(self, directions: jax.Array) -> jax.Array:
+        """Radiance [..., 3] float32 from directions [..., 3] (need not be unit; zero gives the horizon).
+
+        The sun is not included (it is a delta light; see `Environment`).
+        """
+        d = jnp.asarray(directions, jnp.float32)
+        length = jnp.linalg.norm(d, axis=-1, keepdims=True)
+        d = d / jnp.where(length > 0, length, 1.0)
+        x, y, z = d[..., 0], d[..., 1], d[..., 2]
+        h, w = self.image.shape[:2]
+        row = jnp.clip(jnp.floor(jnp.arccos(jnp.clip(y, -1.0, 1.0)) / jnp.pi * h), 0, h - 1).astype(jnp.int32)
+        phi = jnp.arctan2(x, -z)  # 0 along -z, pi / 2 along +x
+        col = jnp.clip(jnp.floor((phi + jnp.pi) / (2 * jnp.pi) * w), 0, w - 1).astype(jnp.int32)
+        up = jnp.sqrt(jnp.clip(y, 0.0, 1.0))[..., None]
+        below = jnp.clip(-y / math.sin(math.radians(5.0)), 0.0, 1.0)[..., None]
+        sky = jnp.where(y[..., None] >= 0, self.horizon + (self.zenith - self.horizon) * up,
+                        self.horizon + (self.ground - self.horizon) * below)
+        return self.image[row, col] + sky
+
+    def camera_radiance(self, directions: jax.Array) -> jax.Array:
+        """`radiance` plus the sun disc (radiance ``E / solid angle``), for camera rays: [..., 3] float32."""
+        d = jnp.asarray(directions, jnp.float32)
+        d = d / jnp.maximum(jnp.linalg.norm(d, axis=-1, keepdims=True), 1e-30)
+        solid_angle = 2 * jnp.pi * (1 - self.sun_cos)
+        disc = jnp.sum(d * self.sun_direction, axis=-1, keepdims=True) >= self.sun_cos
+        sun = jnp.where(disc & self.sun, self.sun_irradiance / jnp.maximum(solid_angle, 1e-12), 0.0)
+        return self.radiance(d) + sun
+
+
+def _rgb(value, name: str) -> np.ndarray:
+    v = np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+    if not np.isfinite(v).all() or (v < 0).any():
+        raise JaxvoxError(f"{name} must be three finite non-negative numbers, got {value!r}")
+    return v
+
+
+def _environment(image, *, zenith=0.0, horizon=0.0, ground=0.0, sun_direction=(0.0, 1.0, 0.0),
+                 sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False) -> Environment:
+    image = np.asarray(image, np.float32)
+    if image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
+        raise JaxvoxError(f"an environment image must be [H, W, 3], got shape {image.shape}")
+    if not np.isfinite(image).all() or (image < 0).any():
+        raise JaxvoxError("the environment image has negative, NaN or inf values")
+    s = np.asarray(sun_direction, np.float64).reshape(3)
+    if not np.isfinite(s).all() or np.linalg.norm(s) == 0:
+        raise JaxvoxError(f"sun_direction must be a finite non-zero vector, got {sun_direction!r}")
+    env = Environment.__new__(Environment)
+    fields = dict(image=jnp.asarray(image), zenith=_rgb(zenith, "zenith"), horizon=_rgb(horizon, "horizon"),
+                  ground=_rgb(ground, "ground"), sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
+                  sun_irradiance=_rgb(sun_irradiance, "sun_irradiance"), sun_cos=np.float32(sun_cos),
+                  sun=bool(sun))
+    for name, value in fields.items():
+        object.__setattr__(env, name, jnp.asarray(value) if name != "sun" else value)
+    return env
+
+
+def uniform_environment(rgb=(1.0, 1.0, 1.0)) -> Environment:
+    """The same radiance ``rgb`` ([3] or a scalar, linear) from every direction; no sun."""
+    return _environment(_rgb(rgb, "rgb").reshape(1, 1, 3))
+
+
+def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.6, 2.45, 2.2),
+                    zenith=(0.22, 0.38, 0.75), horizon=(0.75, 0.82, 0.92), ground=(0.22, 0.2, 0.18),
+                    sun_radius_degrees: float = 0.53) -> Environment:
+    """A built-in procedural sky: a blue gradient over a dim ground, and a sun.
+
+    Args:
+      sun_direction: [3] direction towards the sun (normalised here; y is up).
+      sun_irradiance: [3] linear irradiance on a surface facing the sun (0 for no sun).
+      zenith, horizon, ground: [3] linear radiance of the gradient (see `Environment`).
+      sun_radius_degrees: angular radius of the sun disc seen by camera rays.
+    """
+    irradiance = _rgb(sun_irradiance, "sun_irradiance")
+    return _environment(np.zeros((1, 1, 3), np.float32), zenith=zenith, horizon=horizon, ground=ground,
+                        sun_direction=sun_direction, sun_irradiance=irradiance,
+                        sun_cos=math.cos(math.radians(sun_radius_degrees)), sun=bool(irradiance.any()))
+
+
+def load_environment(path: str | os.PathLike, *, scale: float = 1.0) -> Environment:
+    """An environment from a lat-long (equirectangular) HDR image file, times `scale`.
+
+    Reads ``.exr`` files with OpenEXR (channels R, G, B; a single channel Y is grey) and
+    ``.npy`` arrays [H, W, 3]; see `Environment` for the layout. No sun.
+
+    Raises:
+      JaxvoxError: missing file, unsupported format, or bad contents.
+    """
+    from jaxvox.image import read_exr
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise JaxvoxError(f"environment file not found: {path}")
+    ext = os.path.splitext(path)[1].lower()
+    if ext == ".exr":
+        channels = read_exr(path)
+        if all(c in channels for c in "RGB"):
+            image = np.stack([channels[c] for c in "RGB"], axis=-1)
+        elif "Y" in channels:
+            image = np.repeat(channels["Y"][..., None], 3, axis=-1)
+        else:
+            raise JaxvoxError(f"{path}: an environment EXR needs channels R, G, B (or Y), has {sorted(channels)}")
+    elif ext == ".npy":
+        image = np.load(path)
+    else:
+        raise JaxvoxError(f"{path}: environment maps are read from .exr or .npy files, not {ext or 'no extension'}")
+    return _environment(np.asarray(image, np.float32) * np.float32(scale))
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class RenderResult:
+    """A rendered image and its auxiliary outputs (AOVs).
+
+    Attributes:
+      radiance: [H, W, 3] float32 linear radiance, the mean over the pixel's samples.
+      depth: [H, W] float32 distance from the eye to the first surface through the pixel
+        centre, inf where the ray escapes.
+      normal: [H, W, 3] float32 unit normal of that surface (a voxel face normal, or the
+        triangle normal for meshes), 0 where the ray escapes.
+      stopped: [] int32 paths ended early: a ray reached the traversal's step cap or
+        started inside a voxel (see the module docstring).
+    """
+
+    radiance: jax.Array  # [H, W, 3] float32
+    depth: jax.Array  # [H, W] float32
+    normal: jax.Array  # [H, W, 3] float32
+    stopped: jax.Array  # [] int32
+
+
+class _Path(NamedTuple):
+    """The state of a batch of [N] paths between segments."""
+
+    origin: jax.Array  # [N, 3] float32 world position
+    direction: jax.Array  # [N, 3] float32 unit, zero once the path has ended
+    throughput: jax.Array  # [N, 3] float32
+    radiance: jax.Array  # [N, 3] float32 gathered so far
+    stopped: jax.Array  # [N] bool the path ended early
+
+
+class _Surface(NamedTuple):
+    """What a batch of [N] rays found."""
+
+    hit: jax.Array  # [N] bool a surface was hit
+    escaped: jax.Array  # [N] bool the ray left the scene
+    stopped: jax.Array  # [N] bool neither: step cap, or the ray started inside a voxel
+    point: jax.Array  # [N, 3] float32 hit point moved just off the surface, on the ray's side
+    normal: jax.Array  # [N, 3] float32 unit normal facing the ray's side
+    index: jax.Array  # [N] int32 primitive index (voxel in Morton order, or triangle), 0 unless hit
+
+
+def _camera_basis(eye, target, up):
+    forward = target - eye
+    forward = forward / jnp.linalg.norm(forward)
+    right = jnp.cross(forward, up)
+    right = right / jnp.linalg.norm(right)
+    return forward, right, jnp.cross(right, forward)
+
+
+def _camera_rays(camera, px, py, *, width: int, height: int):
+    """Unit directions [N, 3] through continuous pixel positions (``px`` right, ``py`` down).
+
+    Pixel centres (``px = j + 0.5``) give exactly the rays of `jaxvox.pinhole_rays`.
+    """
+    eye, target, up, fov = camera
+    forward, right, true_up = _camera_basis(eye, target, up)
+    scale = jnp.tan(jnp.radians(fov) / 2)
+    ys = (1 - 2 * py / height) * scale
+    xs = (2 * px / width - 1) * scale * width / height
+    d = forward + xs[:, None] * right + ys[:, None] * true_up
+    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _cosine_direction(normal, u):
+    """Cosine-weighted unit directions [N, 3] about unit normals [N, 3], from uniforms [N, 2].
+
+    Uses the branchless orthonormal basis of Duff et al. (2017).
+    """
+    x, y, z = normal[:, 0], normal[:, 1], normal[:, 2]
+    sign = jnp.where(z >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    t1 = jnp.stack([1 + sign * x * x * a, sign * b, -sign * x], -1)
+    t2 = jnp.stack([b, sign + y * y * a, -y], -1)
+    r, phi = jnp.sqrt(u[:, 0:1]), 2 * jnp.pi * u[:, 1:2]
+    local_z = jnp.sqrt(jnp.maximum(1 - u[:, 0:1], 0.0))
+    d = r * jnp.cos(phi) * t1 + r * jnp.sin(phi) * t2 + local_z * normal
+    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _voxel_surface(tree: Octree, origin, direction, hit) -> _Surface:
+    """The surface a voxel `Hit` found; the offset point is inside the face, just outside the voxel."""
+    grid = tree.grid
+    is_hit = hit.status == HIT
+    entered = jnp.any(hit.normal != 0, axis=-1)  # False when the ray started inside the voxel
+    t = jnp.where(is_hit, hit.t, 0.0)
+    p = grid.to_grid_units(origin + t[:, None] * direction)
+    v = jnp.maximum(hit.voxel, 0).astype(jnp.float32)
+    n = hit.normal
+    inside = jnp.clip(p, v + _OFFSET, v + 1 - _OFFSET)
+    p = jnp.where(n != 0, v + 0.5 + n * (0.5 + _OFFSET), inside)
+    point = grid.origin + p * grid.voxel_size
+    live = jnp.any(direction != 0, axis=-1)
+    return _Surface(hit=is_hit & entered, escaped=live & (hit.status != HIT) & (hit.status != STEP_CAP),
+                    stopped=live & ((hit.status == STEP_CAP) | (is_hit & ~entered)),
+                    point=point, normal=n, index=jnp.maximum(hit.index, 0))
+
+
+def _lookup(table, index):
+    """Rows of a [1 or V, 3] per-primitive table (a single row is a constant)."""
+    return table[jnp.minimum(index, table.shape[0] - 1)]
+
+
+def _shade(path: _Path, surf: _Surface, sun_visible, u, *, albedo, emission, env: Environment,
+           first: bool, last) -> _Path:
+    """One path vertex: gathers emission, escape and the sun; samples the next direction."""
+    live = jnp.any(path.direction != 0, axis=-1)
+    sky = (env.camera_radiance if first else env.radiance)(path.direction)
+    radiance = path.radiance + jnp.where(surf.escaped[:, None], path.throughput * sky, 0.0)
+    rho = _lookup(albedo, surf.index)
+    gathered = _lookup(emission, surf.index)
+    if env.sun:
+        cos = jnp.maximum(jnp.sum(surf.normal * env.sun_direction, -1), 0.0)
+        sun = rho / jnp.pi * env.sun_irradiance * (cos * sun_visible)[:, None]
+        gathered = gathered + sun
+    radiance = radiance + jnp.where(surf.hit[:, None], path.throughput * gathered, 0.0)
+    go_on = surf.hit & ~last & live
+    direction = jnp.where(go_on[:, None], _cosine_direction(jnp.where(surf.hit[:, None], surf.normal,
+                                                                      jnp.array([0.0, 0.0, 1.0])), u), 0.0)
+    return _Path(origin=jnp.where(go_on[:, None], surf.point, path.origin), direction=direction,
+                 throughput=path.throughput * jnp.where(go_on[:, None], rho, 1.0), radiance=radiance,
+                 stopped=path.stopped | surf.stopped)
+
+
+def _uniforms(keys, stream: int, n: int):
+    """[N, n] float32 uniforms, one draw per path key for the given stream number."""
+    return jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, stream), (n,)))(keys)
+
+
+def _camera_path(camera, key, ids, *, width: int, height: int) -> tuple[_Path, jax.Array]:
+    """Jittered camera rays for global pixel-sample ids [N]; returns (path, per-path keys)."""
+    keys = jax.vmap(lambda i: jax.random.fold_in(key, i))(ids)
+    u = _uniforms(keys, 0, 2)
+    pixel = ids % (width * height)
+    px = (pixel % width).astype(jnp.float32) + u[:, 0]
+    py = (pixel // width).astype(jnp.float32) + u[:, 1]
+    d = _camera_rays(camera, px, py, width=width, height=height)
+    zeros = jnp.zeros_like(d)
+    path = _Path(origin=jnp.broadcast_to(camera[0], d.shape), direction=d, throughput=jnp.ones_like(d),
+                 radiance=zeros, stopped=jnp.zeros(d.shape[0], bool))
+    return path, keys
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "batch", "max_steps", "lanes"))
+def _render_batch(tree, albedo, emission, env, camera, key, start, total, bounces, image, stopped, *, width,
+                  height, batch, max_steps, lanes):
+    """Traces pixel samples ``start .. start + batch`` (those below `total`) and adds them to `image`."""
+    ids = start + jnp.arange(batch, dtype=jnp.int32)
+    valid = ids < total
+    path, keys = _camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
+    path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
+    go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False)
+
+    def segment(k, path, first):
+        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction))
+        visible = jnp.zeros(batch, jnp.float32)
+        if env.sun:
+            towards = jnp.where((surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None],
+                                env.sun_direction, 0.0)
+            visible = (go(surf.point, towards).status != HIT).astype(jnp.float32)
+        return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), albedo=albedo, emission=emission, env=env,
+                      first=first, last=k >= bounces)
+
+    path = segment(0, path, True)
+    path = jax.lax.fori_loop(1, bounces + 1, lambda k, p: segment(k, p, False), path)
+    pixel = jnp.where(valid, ids % (width * height), width * height)
+    image = image.at[pixel].add(path.radiance, mode="drop")
+    return image, stopped + jnp.sum(path.stopped & valid).astype(jnp.int32)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height", "max_steps", "lanes"))
+def _aovs(tree, camera, *, width, height, max_steps, lanes):
+    """Depth [H, W] and normal [H, W, 3] of the first voxel through each pixel centre."""
+    j, i = jnp.meshgrid(jnp.arange(width), jnp.arange(height))
+    d = _camera_rays(camera, j.reshape(-1) + 0.5, i.reshape(-1) + 0.5, width=width, height=height)
+    hit = trace(tree, jnp.broadcast_to(camera[0], d.shape), d, max_steps=max_steps, lanes=lanes, shard=False)
+    is_hit = (hit.status == HIT)[:, None]
+    depth = jnp.where(is_hit[:, 0], hit.t, jnp.inf).reshape(height, width)
+    return depth, jnp.where(is_hit, hit.normal, 0.0).reshape(height, width, 3)
+
+
+def _table(value, rows: int, name: str, default) -> jax.Array:
+    """A [1 or rows, 3] float32 table from None, an RGB triple or a per-voxel array."""
+    a = np.asarray(default if value is None else value, np.float32)
+    if a.ndim == 1:
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] < 3 or not (a.shape[0] == 1 or a.shape[0] >= rows):
+        raise JaxvoxError(f"{name} must be an RGB triple or a [voxels, 3] array with at least {rows} rows, "
+                          f"got shape {np.shape(value)}")
+    a = a[:, :3]
+    if not np.isfinite(a).all() or (a < 0).any():
+        raise JaxvoxError(f"{name} has negative, NaN or inf values")
+    return jnp.asarray(a)
+
+
+def _check_settings(width, height, spp, bounces, fov, batch_rays) -> None:
+    for name, value, low in (("width", width, 1), ("height", height, 1), ("spp", spp, 1), ("bounces", bounces, 0),
+                             ("batch_rays", batch_rays, 1)):
+        if int(value) != value or value < low:
+            raise JaxvoxError(f"{name} must be an integer >= {low}, got {value!r}")
+    if not 0 < fov < 180:
+        raise JaxvoxError(f"fov must be between 0 and 180 degrees, got {fov!r}")
+    if width * height * spp >= 2**31:
+        raise JaxvoxError(f"{width}x{height} pixels at {spp} spp is more than 2^31 samples; render fewer")
+
+
+def _as_key(key):
+    if isinstance(key, (int, np.integer)):
+        return jax.random.key(int(key))
+    key = jnp.asarray(key)
+    return key if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else jax.random.wrap_key_data(key)
+
+
+def _camera(eye, target, up, fov):
+    eye, target, up = (np.asarray(v, np.float32).reshape(3) for v in (eye, target, up))
+    forward = target - eye
+    if not (np.isfinite(eye).all() and np.isfinite(target).all()) or np.linalg.norm(forward) == 0:
+        raise JaxvoxError("the camera needs finite eye and target positions that differ")
+    if np.linalg.norm(np.cross(forward, up)) <= 1e-6 * np.linalg.norm(forward) * np.linalg.norm(up):
+        raise JaxvoxError("the camera's up direction is parallel to its viewing direction")
+    return tuple(jnp.asarray(v) for v in (eye, target, up, np.float32(fov)))
+
+
+def _progress(total: int, progress: bool | None, what: str):
+    from tqdm.auto import tqdm
+
+    disable = (not sys.stderr.isatty()) if progress is None else not progress
+    return tqdm(total=total, desc=what, unit="batch", disable=disable, leave=False)
+
+
+def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=None, emission=None,
+           width: int = 320, height: int = 240, fov: float = 40.0, up=(0.0, 1.0, 0.0), spp: int = 16,
+           bounces: int = 8, key=0, batch_rays: int = 1 << 18, max_steps: int | None = None,
+           lanes: int | None = 16384, progress: bool | None = None) -> RenderResult:
+    """Path-traces an image of a voxel octree or DAG (see the module docstring).
+
+    Args:
+      tree: an `Octree` (SVO or DAG).
+      eye, target: [3] camera position and the point it looks at (see `look_at_view`).
+      env: the lighting, an `Environment` (default `sky_environment()`).
+      albedo: diffuse reflectance in [0, 1], linear: an RGB triple for every voxel, or a
+        [V, 3] array (V >= ``voxel_count``) indexed by Morton-order voxel index, e.g.
+        `voxel_albedo` of `voxel_attributes`. Default 0.7 grey.
+      emission: emitted radiance, linear: None (nothing emits), an RGB triple, or a
+        [V, 3] per-voxel array.
+      width, height: image size in pixels.
+      fov: vertical field of view in degrees; up: approximate up direction [3].
+      spp: samples (paths) per pixel.
+      bounces: diffuse bounces after the first hit (the slides use 8).
+      key: an int seed or a `jax.random` key; the same key and settings give the same image.
+      batch_rays: pixel samples traced per batch (memory grows with it); the last batch
+        is padded. Static, as is the image size: changing them recompiles (``spp``,
+        ``bounces``, the camera, the key and the lighting's arrays do not).
+      max_steps, lanes: passed to `trace` for every ray.
+      progress: show a progress bar over batches; None shows one on a terminal only.
+
+    Returns:
+      A `RenderResult` with [H, W] images.
+
+    Raises:
+      JaxvoxError: bad settings, camera, albedo or emission, or a truncated tree.
+    """
+    _check_settings(width, height, spp, bounces, fov, batch_rays)
+    if int(tree.overflow):
+        raise JaxvoxError(f"cannot render a truncated tree (overflow flags {int(tree.overflow)})")
+    env = sky_environment() if env is None else env
+    if not isinstance(env, Environment):
+        raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
+    rows = int(tree.voxel_count)
+    albedo = _table(albedo, rows, "albedo", (0.7, 0.7, 0.7))
+    emission = _table(emission, rows, "emission", (0.0, 0.0, 0.0))
+    camera = _camera(eye, target, up, fov)
+    steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
+    key = _as_key(key)
+    total = width * height * spp
+    batch = min(int(batch_rays), total)
+    image = jnp.zeros((width * height, 3), jnp.float32)
+    stopped = jnp.zeros((), jnp.int32)
+    n_batches = -(-total // batch)
+    with _progress(n_batches, progress, "render") as bar:
+        for b in range(n_batches):
+            image, stopped = _render_batch(tree, albedo, emission, env, camera, key, jnp.int32(b * batch),
+                                           jnp.int32(total), jnp.int32(bounces), image, stopped, width=width,
+                                           height=height, batch=batch, max_steps=steps, lanes=lanes)
+            bar.update(1)
+    depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)
+    return RenderResult(radiance=(image / spp).reshape(height, width, 3), depth=depth, normal=normal,
+                        stopped=stopped)
+
+
+def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True) -> jax.Array:
+    """Per-voxel linear albedo from `voxel_attributes` (or `load_attributes`) output.
+
+    Args:
+      attributes: dict with an optional ``"color"`` [V, 3 or 4] array in [0, 1].
+      default: RGB used when there are no colours (a material colour).
+      srgb: the colours are sRGB-encoded (vertex colours usually are): decode to linear.
+
+    Returns:
+      [V, 3] float32 (or [1, 3] when there are no colours), for `render`'s ``albedo``.
+    """
+    from jaxvox.image import srgb_to_linear
+
+    color = attributes.get("color") if attributes else None
+    if color is None:
+        return jnp.asarray(_rgb(default, "default")[None])
+    c = np.asarray(color, np.float32)[:, :3]
+    return jnp.asarray((srgb_to_linear(c) if srgb else np.clip(c, 0.0, 1.0)).astype(np.float32))
+
+
+def save_render(path: str | os.PathLike, result: RenderResult, *, exposure: float = 0.0,
+                curve: str = "aces") -> tuple[str, str]:
+    """Writes a render as a linear EXR at `path` and a tone-mapped sRGB PNG beside it.
+
+    The EXR holds ``R, G, B`` (radiance), ``Z`` (depth) and ``N.X, N.Y, N.Z`` (normal),
+    float32. The PNG has the same name with the suffix ``.png``.
+
+    Returns:
+      (exr path, png path).
+    """
+    from jaxvox.image import tonemap, write_exr, write_png
+
+    path = os.fspath(path)
+    rgb, depth, normal = (np.asarray(a) for a in (result.radiance, result.depth, result.normal))
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Z": depth,
+                "N.X": normal[..., 0], "N.Y": normal[..., 1], "N.Z": normal[..., 2]}
+    png = os.path.splitext(path)[0] + ".png"
+    write_exr(path, channels)
+    write_png(png, tonemap(rgb, exposure=exposure, curve=curve))
+    return path, png

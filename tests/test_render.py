@@ -1,0 +1,256 @@
+"""Path tracing of voxel DAGs: determinism, a white furnace, emission, the sun, EXR and PNG, the CLI.
+
+All renders share one scene (a slab with a sphere above it, 32^3) and one image size
+(64x48, one batch), so the suite compiles the renderer twice (with and without a sun).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import jaxvox as jv
+
+W, H = 64, 48
+SETTINGS = dict(width=W, height=H, spp=2, batch_rays=W * H * 2)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """(tree, eye, target): a thin slab and a sphere above it, voxelized at 32^3."""
+    slab = trimesh.creation.box(extents=[2.0, 0.2, 2.0])
+    slab.apply_translation([0.0, -0.6, 0.0])
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.45)
+    ball.apply_translation([0.2, 0.0, 0.1])
+    both = trimesh.util.concatenate([slab, ball])
+    mesh = jv.Mesh(np.asarray(both.vertices, np.float32), np.asarray(both.faces, np.int32))
+    tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=32)))
+    eye, target = jv.look_at_view(mesh, azimuth=30.0, elevation=35.0, distance=1.6)
+    return tree, eye, target
+
+
+def _interior(mask):
+    """Pixels whose 3x3 neighbourhood lies entirely in `mask` (jittered samples stay there)."""
+    m = np.pad(mask, 1, constant_values=False)
+    out = np.ones_like(mask)
+    for di in (0, 1, 2):
+        for dj in (0, 1, 2):
+            out &= m[di:di + mask.shape[0], dj:dj + mask.shape[1]]
+    return out
+
+
+def test_same_seed_same_image_and_finite(scene):
+    tree, eye, target = scene
+    env = jv.sky_environment()
+    a = jv.render(tree, eye, target, env=env, bounces=3, key=7, **SETTINGS)
+    b = jv.render(tree, eye, target, env=env, bounces=3, key=7, **SETTINGS)
+    assert a.radiance.shape == (H, W, 3) and a.depth.shape == (H, W) and a.normal.shape == (H, W, 3)
+    np.testing.assert_array_equal(np.asarray(a.radiance), np.asarray(b.radiance))
+    rgb = np.asarray(a.radiance)
+    assert np.isfinite(rgb).all() and (rgb >= 0).all() and rgb.max() > 0
+    assert int(a.stopped) == 0
+    other = jv.render(tree, eye, target, env=env, bounces=3, key=8, **SETTINGS)
+    assert not np.array_equal(np.asarray(other.radiance), rgb)
+    # Another batch size draws the same samples: equal up to float32 summation order.
+    split = jv.render(tree, eye, target, env=env, bounces=3, key=7, **dict(SETTINGS, batch_rays=W * H // 2 + 5))
+    np.testing.assert_allclose(np.asarray(split.radiance), rgb, rtol=1e-5, atol=1e-6)
+
+
+def test_aovs_match_primary_trace(scene):
+    tree, eye, target = scene
+    result = jv.render(tree, eye, target, env=jv.uniform_environment(0.0), bounces=0, key=0, **SETTINGS)
+    origins, directions = jv.pinhole_rays(eye, target, width=W, height=H)
+    hit = jv.trace(tree, origins, directions)
+    hits = np.asarray(hit.status) == jv.HIT
+    depth, normal = np.asarray(result.depth), np.asarray(result.normal)
+    assert np.mean(np.isfinite(depth) == hits) > 0.99  # pixel-centre rays, up to float32 ties
+    both = hits & np.isfinite(depth)
+    np.testing.assert_allclose(depth[both], np.asarray(hit.t)[both], rtol=1e-4)
+    assert np.mean((normal == np.asarray(hit.normal)).all(-1)[both]) > 0.99
+    assert (normal[~np.isfinite(depth)] == 0).all()
+
+
+def test_white_furnace(scene):
+    """Albedo 1 under a uniform environment of radiance 1: every path carries exactly 1 out."""
+    tree, eye, target = scene
+    result = jv.render(tree, eye, target, env=jv.uniform_environment(1.0), albedo=(1.0, 1.0, 1.0), bounces=48,
+                       key=1, **SETTINGS)
+    rgb = np.asarray(result.radiance)
+    hits = np.isfinite(np.asarray(result.depth))
+    assert hits.mean() > 0.3  # the scene covers much of the image
+    assert rgb.max() <= 1.0 + 1e-6
+    assert abs(rgb.mean() - 1.0) < 1e-3
+    # Grey albedo: energy is lost at every bounce, nothing gains any.
+    grey = jv.render(tree, eye, target, env=jv.uniform_environment(1.0), albedo=(0.5, 0.5, 0.5), bounces=48,
+                     key=1, **SETTINGS)
+    g = np.asarray(grey.radiance)
+    assert g.max() <= 1.0 + 1e-6 and (g[_interior(hits)] < 1.0).all()
+    np.testing.assert_array_equal(g[_interior(~hits)], 1.0)
+
+
+def test_black_environment_and_emission(scene):
+    tree, eye, target = scene
+    black = jv.uniform_environment(0.0)
+    dark = jv.render(tree, eye, target, env=black, bounces=4, key=2, **SETTINGS)
+    np.testing.assert_array_equal(np.asarray(dark.radiance), 0.0)
+    # Every voxel emits, nothing reflects: surface pixels show exactly the emission.
+    glow = jv.render(tree, eye, target, env=black, albedo=(0, 0, 0), emission=(1.0, 2.0, 3.0), bounces=4, key=2,
+                     **SETTINGS)
+    rgb = np.asarray(glow.radiance)
+    hits = np.isfinite(np.asarray(glow.depth))
+    np.testing.assert_array_equal(rgb[_interior(hits)], np.float32([1.0, 2.0, 3.0]))
+    np.testing.assert_array_equal(rgb[_interior(~hits)], 0.0)
+    # A few emissive voxels light their surroundings; the background stays black.
+    n = int(tree.voxel_count)
+    emission = np.zeros((n, 3), np.float32)
+    emission[::7] = 4.0
+    lit = jv.render(tree, eye, target, env=black, albedo=(0.8, 0.8, 0.8), emission=emission, bounces=4, key=2,
+                    **SETTINGS)
+    rgb = np.asarray(lit.radiance)
+    assert np.isfinite(rgb).all() and rgb.max() > 0
+    np.testing.assert_array_equal(rgb[_interior(~hits)], 0.0)
+
+
+def test_sun_on_upward_faces(scene):
+    """No sky, sun straight up, no bounces: lit upward faces show albedo / pi * E exactly."""
+    tree, eye, target = scene
+    env = jv.sky_environment(sun_direction=(0, 1, 0), sun_irradiance=(3.0, 2.0, 1.0), zenith=0, horizon=0, ground=0)
+    result = jv.render(tree, eye, target, env=env, albedo=(0.6, 0.6, 0.6), bounces=0, key=3, **SETTINGS)
+    rgb = np.asarray(result.radiance)
+    up = _interior((np.asarray(result.normal) == [0, 1, 0]).all(-1))
+    side = _interior((np.asarray(result.normal)[..., 1] == 0) & np.isfinite(np.asarray(result.depth)))
+    expected = np.float32(0.6) / np.pi * np.float32([3.0, 2.0, 1.0])
+    assert up.sum() > 20 and side.sum() > 5
+    assert np.mean(np.isclose(rgb[up], expected, rtol=1e-5).all(-1)) > 0.9  # the rest lies in the ball's shadow
+    np.testing.assert_array_equal(rgb[side], 0.0)  # the sun grazes vertical faces
+
+
+def test_environment_lookup(tmp_path):
+    image = np.zeros((4, 8, 3), np.float32)
+    image[0] = 1.0  # the row looking up
+    image[2, 4] = [0.0, 5.0, 0.0]  # below the horizon, just right of -z
+    np.save(tmp_path / "env.npy", image)
+    env = jv.load_environment(tmp_path / "env.npy")
+    out = np.asarray(env.radiance(np.array([[0, 1, 0], [0.01, -0.2, -1.0], [0, -1, 0]], np.float32)))
+    np.testing.assert_array_equal(out, [[1, 1, 1], [0, 5, 0], [0, 0, 0]])
+    uniform = jv.uniform_environment((0.1, 0.2, 0.3))
+    np.testing.assert_allclose(np.asarray(uniform.radiance(np.eye(3, dtype=np.float32))),
+                               np.tile([0.1, 0.2, 0.3], (3, 1)), rtol=1e-7)
+    sky = jv.sky_environment(sun_direction=(0, 1, 0))
+    assert np.asarray(sky.camera_radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] > 1e3  # the sun disc
+    assert np.asarray(sky.radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] < 1.0
+
+
+def test_exr_round_trip_is_exact(tmp_path):
+    rng = np.random.default_rng(0)
+    channels = {name: rng.standard_normal((7, 5)).astype(np.float32) * 1e3 for name in ("R", "G", "B", "Z", "N.X")}
+    channels["Z"][0, 0] = np.inf
+    channels["R"][1, 1] = np.float32(1e-40)  # subnormal
+    channels["G"][2, 2] = -0.0
+    path = tmp_path / "a.exr"
+    jv.write_exr(path, channels)
+    back = jv.read_exr(path)
+    assert set(back) == set(channels)
+    for name, a in channels.items():
+        assert back[name].dtype == np.float32 and back[name].shape == a.shape
+        np.testing.assert_array_equal(back[name].view(np.uint32), a.view(np.uint32))
+    env = jv.load_environment(path)  # R, G, B: a lat-long environment
+    assert env.image.shape == (7, 5, 3)
+
+
+def test_save_render_writes_exr_and_png(scene, tmp_path):
+    import imageio.v3 as iio
+
+    tree, eye, target = scene
+    result = jv.render(tree, eye, target, env=jv.sky_environment(), bounces=2, key=4, **SETTINGS)
+    exr, png = jv.save_render(tmp_path / "img.exr", result)
+    assert png == str(tmp_path / "img.png")
+    back = jv.read_exr(exr)
+    np.testing.assert_array_equal(np.stack([back[c] for c in "RGB"], -1), np.asarray(result.radiance))
+    np.testing.assert_array_equal(back["Z"], np.asarray(result.depth))
+    np.testing.assert_array_equal(np.stack([back[f"N.{c}"] for c in "XYZ"], -1), np.asarray(result.normal))
+    picture = iio.imread(png)
+    assert picture.shape == (H, W, 3) and picture.dtype == np.uint8 and picture.max() > 0
+
+
+def test_tonemap():
+    x = np.array([[0.0, 0.0, 0.0], [0.18, 0.18, 0.18], [1e6, 1e6, 1e6], [np.nan, -1.0, 0.5]], np.float32)
+    out = jv.tonemap(x)
+    assert out.dtype == np.uint8
+    assert out[0].tolist() == [0, 0, 0] and out[2].tolist() == [255, 255, 255] and out[3, 0] == 0
+    assert 0 < out[1, 0] < 255
+    assert jv.tonemap(x, curve="clip", exposure=1.0)[1, 0] > jv.tonemap(x, curve="clip")[1, 0]
+    with pytest.raises(jv.JaxvoxError, match="tone curve"):
+        jv.tonemap(x, curve="filmic")
+
+
+def test_voxel_albedo():
+    colours = np.array([[1.0, 0.5, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0]], np.float32)
+    albedo = np.asarray(jv.voxel_albedo({"color": colours}))
+    np.testing.assert_allclose(albedo, [[1.0, 0.21404114, 0.0], [0, 0, 0]], rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(jv.voxel_albedo({}, default=(0.2, 0.3, 0.4))), [[0.2, 0.3, 0.4]])
+
+
+def test_bad_inputs(scene, tmp_path):
+    tree, eye, target = scene
+    env = jv.uniform_environment(1.0)
+    for bad, match in ((dict(width=0), "width"), (dict(spp=0), "spp"), (dict(bounces=-1), "bounces"),
+                       (dict(fov=180.0), "fov"), (dict(albedo=np.ones((3, 3))), "albedo"),
+                       (dict(emission=(1.0, -1.0, 0.0)), "emission"), (dict(env="sky"), "Environment")):
+        with pytest.raises(jv.JaxvoxError, match=match):
+            jv.render(tree, eye, target, **{"env": env, **bad})
+    with pytest.raises(jv.JaxvoxError, match="differ"):
+        jv.render(tree, eye, eye, env=env)
+    with pytest.raises(jv.JaxvoxError, match="parallel"):
+        jv.render(tree, (0, 2, 0), (0, 0, 0), env=env)
+    with pytest.raises(jv.JaxvoxError, match="not found"):
+        jv.load_environment(tmp_path / "missing.exr")
+    (tmp_path / "sky.hdr").write_bytes(b"#?RADIANCE\n")
+    with pytest.raises(jv.JaxvoxError, match=".exr or .npy"):
+        jv.load_environment(tmp_path / "sky.hdr")
+    with pytest.raises(jv.JaxvoxError, match="negative"):
+        jv.uniform_environment((1.0, -1.0, 0.0))
+
+
+def test_cli_info_and_errors(scene, tmp_path, capsys):
+    from jaxvox.cli import main
+
+    tree, _, _ = scene
+    path = tmp_path / "scene.jvx"
+    jv.save(path, tree)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "levels: 5" in out and "bits per voxel" in out and f"voxels: {int(tree.voxel_count):,}" in out
+    assert main(["info", str(tmp_path / "missing.jvx")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing.jvx" in err[0]
+    for argv, match in ((["render", "--size", "64by48"], "WIDTHxHEIGHT"), (["render", "--camera", "1,2,3,4"], "camera"),
+                        (["render", "--env", str(tmp_path / "nope.exr")], "not found"),
+                        (["render", "--resolution", "100"], "power of two"),
+                        (["render", "nope.obj"], "not found")):
+        assert main(argv + ["--out", str(tmp_path / "x.exr")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], (argv, err)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["render", "--no-such-option"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--no-such-option" in err[0]
+
+
+def test_cli_render_subprocess(tmp_path):
+    out = tmp_path / "tiny.exr"
+    env = dict(os.environ, JAXVOX_CACHE_DIR="")
+    result = subprocess.run([sys.executable, "-m", "jaxvox", "render", "--resolution", "16", "--size", "24x16",
+                             "--spp", "1", "--bounces", "1", "--out", str(out)], capture_output=True, text=True,
+                            env=env, timeout=600, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert out.exists() and (tmp_path / "tiny.png").exists()
+    assert str(tmp_path / "tiny.png") in result.stdout
+    channels = jv.read_exr(out)
+    assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(channels) and channels["R"].shape == (16, 24)
