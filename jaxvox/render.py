@@ -299,14 +299,17 @@ def _lookup(table, index):
     return table[jnp.minimum(index, table.shape[0] - 1)]
 
 
-def _shade(path: _Path, surf: _Surface, sun_visible, u, *, albedo, emission, env: Environment,
-           first: bool, last) -> _Path:
-    """One path vertex: gathers emission, escape and the sun; samples the next direction."""
+def _shade(path: _Path, surf: _Surface, sun_visible, u, *, rho, emitted, env: Environment, first: bool,
+           last) -> _Path:
+    """One path vertex: gathers emission, escape and the sun; samples the next direction.
+
+    ``rho`` and ``emitted`` are the [N, 3] albedo and emission at the hits, ``u`` [N, 2]
+    uniforms, ``sun_visible`` [N] float32 whether the shadow ray escaped.
+    """
     live = jnp.any(path.direction != 0, axis=-1)
     sky = (env.camera_radiance if first else env.radiance)(path.direction)
     radiance = path.radiance + jnp.where(surf.escaped[:, None], path.throughput * sky, 0.0)
-    rho = _lookup(albedo, surf.index)
-    gathered = _lookup(emission, surf.index)
+    gathered = emitted
     if env.sun:
         cos = jnp.maximum(jnp.sum(surf.normal * env.sun_direction, -1), 0.0)
         sun = rho / jnp.pi * env.sun_irradiance * (cos * sun_visible)[:, None]
@@ -356,8 +359,8 @@ def _render_batch(tree, albedo, emission, env, camera, key, start, total, bounce
             towards = jnp.where((surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None],
                                 env.sun_direction, 0.0)
             visible = (go(surf.point, towards).status != HIT).astype(jnp.float32)
-        return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), albedo=albedo, emission=emission, env=env,
-                      first=first, last=k >= bounces)
+        return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), rho=_lookup(albedo, surf.index),
+                      emitted=_lookup(emission, surf.index), env=env, first=first, last=k >= bounces)
 
     path = segment(0, path, True)
     path = jax.lax.fori_loop(1, bounces + 1, lambda k, p: segment(k, p, False), path)
@@ -484,6 +487,146 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
     depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)
     return RenderResult(radiance=(image / spp).reshape(height, width, 3), depth=depth, normal=normal,
                         stopped=stopped)
+
+
+def _embree(mesh):
+    """An Embree intersector of `mesh`: (o [N, 3], d [N, 3]) -> (t, prim, u, v, unit Ng), numpy."""
+    try:
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+    except ImportError:
+        raise JaxvoxError("render_mesh needs Embree: pip install 'jaxvox[bench]' (embreex)") from None
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.asarray(mesh.vertices, np.float32)[np.asarray(mesh.faces)])
+
+    def intersect(o, d):
+        out = scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
+        ng = out["Ng"]
+        length = np.linalg.norm(ng, axis=-1, keepdims=True)
+        return out["tfar"], out["primID"], out["u"], out["v"], ng / np.where(length > 0, length, 1.0)
+
+    return intersect
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height"))
+def _mesh_camera(camera, key, ids, valid, *, width, height):
+    path, keys = _camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
+    return path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0)), keys
+
+
+@functools.partial(jax.jit, static_argnames=("first",))
+def _mesh_shade(path, surf, visible, keys, k, rho, emitted, env, last, *, first):
+    return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), rho=rho, emitted=emitted, env=env, first=first,
+                  last=last)
+
+
+def _mesh_tables(mesh, albedo, emission):
+    """(albedo, emission) for `render_mesh`: [F, 3] per-face or [V, 3] per-vertex (flag) tables."""
+    faces = mesh.num_faces
+    if isinstance(albedo, str):
+        if albedo != "vertex":
+            raise JaxvoxError(f"albedo must be an RGB triple, a [faces, 3] array or 'vertex', got {albedo!r}")
+        if mesh.colors is None:
+            raise JaxvoxError("albedo='vertex' but the mesh has no vertex colours")
+        from jaxvox.image import srgb_to_linear
+
+        rho, per_vertex = srgb_to_linear(np.asarray(mesh.colors)[:, :3]).astype(np.float32), True
+    else:
+        rho, per_vertex = np.asarray(_table(albedo, faces, "albedo", (0.7, 0.7, 0.7))), False
+    return rho, per_vertex, np.asarray(_table(emission, faces, "emission", (0.0, 0.0, 0.0)))
+
+
+def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=None, emission=None,
+                width: int = 320, height: int = 240, fov: float = 40.0, up=(0.0, 1.0, 0.0), spp: int = 16,
+                bounces: int = 8, key=0, batch_rays: int = 1 << 18, progress: bool | None = None) -> RenderResult:
+    """Path-traces a triangle mesh with Embree: `render`'s estimator on the exact surface.
+
+    Needs embreex (the ``bench`` extra). The shading, the lighting and the random
+    numbers are `render`'s (the same key gives the same camera rays and bounce samples),
+    so a voxel render and a mesh render differ only by the geometry. Surfaces are
+    two-sided Lambertian with the geometric triangle normal; bounce origins move off the
+    surface by ``1e-4`` of the mesh's extent. Embree runs on the host, one call per path
+    segment, so this is not jittable.
+
+    Args:
+      mesh: a `Mesh`.
+      albedo: an RGB triple, a [F, 3] per-face array, or ``"vertex"``: the mesh's vertex
+        colours (sRGB, decoded to linear) interpolated at the hit. Default 0.7 grey.
+      emission: None, an RGB triple or a [F, 3] per-face array.
+      eye, target, env, width, height, fov, up, spp, bounces, key, batch_rays, progress:
+        as in `render`.
+
+    Returns:
+      A `RenderResult`; ``depth`` and ``normal`` are those of the triangles (normals face
+      the camera).
+    """
+    _check_settings(width, height, spp, bounces, fov, batch_rays)
+    env = sky_environment() if env is None else env
+    if not isinstance(env, Environment):
+        raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
+    rho_table, per_vertex, emit_table = _mesh_tables(mesh, albedo, emission)
+    faces = np.asarray(mesh.faces)
+    vertices = np.asarray(mesh.vertices, np.float64)
+    eps = 1e-4 * float(np.max(vertices.max(0) - vertices.min(0))) if len(vertices) else 1e-4
+    intersect = _embree(mesh)
+    camera = _camera(eye, target, up, fov)
+    key = _as_key(key)
+    total = width * height * spp
+    batch = min(int(batch_rays), total)
+    image = np.zeros((width * height, 3), np.float64)
+    sun = np.asarray(env.sun_direction)
+
+    def surface(o, d):
+        live = (d != 0).any(-1)
+        n = len(o)
+        t, prim, u, v, ng = (np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32),
+                             np.zeros(n, np.float32), np.zeros((n, 3), np.float32))
+        if live.any():
+            t[live], prim[live], u[live], v[live], ng[live] = intersect(o[live], d[live])
+        hit = prim >= 0
+        ng = np.where((np.sum(ng * d, -1) > 0)[:, None], -ng, ng)
+        point = np.where(hit[:, None], o + np.where(hit, t, 0)[:, None] * d + eps * ng, o).astype(np.float32)
+        face = np.maximum(prim, 0)
+        if per_vertex:
+            w = np.stack([1 - u - v, u, v], -1)[..., None]
+            rho = np.sum(w * rho_table[faces[face]], axis=1)
+        else:
+            rho = rho_table[np.minimum(face, len(rho_table) - 1)]
+        emitted = emit_table[np.minimum(face, len(emit_table) - 1)]
+        surf = _Surface(hit=hit, escaped=live & ~hit, stopped=np.zeros(n, bool), point=point, normal=ng,
+                        index=face)
+        return surf, t, rho.astype(np.float32), emitted
+
+    n_batches = -(-total // batch)
+    with _progress(n_batches, progress, "render mesh") as bar:
+        for b in range(n_batches):
+            ids = np.int32(b * batch) + np.arange(batch, dtype=np.int32)
+            valid = ids < total
+            path, keys = _mesh_camera(camera, key, jnp.asarray(ids), jnp.asarray(valid), width=width, height=height)
+            for k in range(bounces + 1):
+                o, d = np.asarray(path.origin), np.asarray(path.direction)
+                if not (d != 0).any():
+                    break
+                surf, _, rho, emitted = surface(o, d)
+                visible = np.zeros(batch, np.float32)
+                if env.sun:
+                    lit = surf.hit & (np.sum(surf.normal * sun, -1) > 0)
+                    if lit.any():
+                        _, prim, _, _, _ = intersect(surf.point[lit], np.broadcast_to(sun, (int(lit.sum()), 3)))
+                        visible[lit] = prim < 0
+                path = _mesh_shade(path, jax.tree.map(jnp.asarray, surf), jnp.asarray(visible), keys, k,
+                                   jnp.asarray(rho), jnp.asarray(emitted), env, jnp.asarray(k >= bounces),
+                                   first=k == 0)
+            np.add.at(image, ids[valid] % (width * height), np.asarray(path.radiance, np.float64)[valid])
+            bar.update(1)
+    j, i = np.meshgrid(np.arange(width), np.arange(height))
+    d = np.asarray(_camera_rays(camera, jnp.asarray(j.reshape(-1) + 0.5, jnp.float32),
+                                jnp.asarray(i.reshape(-1) + 0.5, jnp.float32), width=width, height=height))
+    surf, t, _, _ = surface(np.broadcast_to(np.asarray(camera[0]), d.shape).astype(np.float32), d)
+    depth = np.where(surf.hit, t, np.inf).astype(np.float32).reshape(height, width)
+    normal = np.where(surf.hit[:, None], surf.normal, 0.0).astype(np.float32).reshape(height, width, 3)
+    return RenderResult(radiance=jnp.asarray((image / spp).astype(np.float32).reshape(height, width, 3)),
+                        depth=jnp.asarray(depth), normal=jnp.asarray(normal), stopped=jnp.int32(0))
 
 
 def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True) -> jax.Array:
