@@ -227,9 +227,10 @@ def cmd_render(args) -> int:
     import jaxvox as jv
 
     width, height = _size(args.size)
+    camera = _numbers(args.camera, "camera", (2, 3, 6)) if args.camera else [35.0, 25.0]
+    _numbers(args.albedo, "albedo", (1, 3))
     env = _environment(args.env)
     tree, albedo, bounds, name = _render_scene(args)
-    camera = _numbers(args.camera, "camera", (2, 3, 6)) if args.camera else [35.0, 25.0]
     if len(camera) == 6:
         eye, target = camera[:3], camera[3:]
     else:

@@ -123,11 +123,11 @@ def test_sun_on_upward_faces(scene):
     result = jv.render(tree, eye, target, env=env, albedo=(0.6, 0.6, 0.6), bounces=0, key=3, **SETTINGS)
     rgb = np.asarray(result.radiance)
     up = _interior((np.asarray(result.normal) == [0, 1, 0]).all(-1))
-    side = _interior((np.asarray(result.normal)[..., 1] == 0) & np.isfinite(np.asarray(result.depth)))
+    side = _interior((np.asarray(result.normal)[..., 1] <= 0) & np.isfinite(np.asarray(result.depth)))
     expected = np.float32(0.6) / np.pi * np.float32([3.0, 2.0, 1.0])
     assert up.sum() > 20 and side.sum() > 5
     assert np.mean(np.isclose(rgb[up], expected, rtol=1e-5).all(-1)) > 0.9  # the rest lies in the ball's shadow
-    np.testing.assert_array_equal(rgb[side], 0.0)  # the sun grazes vertical faces
+    assert np.mean((rgb[side] == 0).all(-1)) > 0.95  # no sun on side and bottom faces (a pixel may straddle)
 
 
 def test_environment_lookup(tmp_path):
@@ -159,8 +159,11 @@ def test_exr_round_trip_is_exact(tmp_path):
     for name, a in channels.items():
         assert back[name].dtype == np.float32 and back[name].shape == a.shape
         np.testing.assert_array_equal(back[name].view(np.uint32), a.view(np.uint32))
-    env = jv.load_environment(path)  # R, G, B: a lat-long environment
-    assert env.image.shape == (7, 5, 3)
+    sky = {c: np.full((2, 4), v, np.float32) for c, v in zip("RGB", (0.5, 1.0, 2.0))}
+    jv.write_exr(tmp_path / "sky.exr", sky)
+    env = jv.load_environment(tmp_path / "sky.exr", scale=2.0)  # a lat-long environment map
+    assert env.image.shape == (2, 4, 3)
+    np.testing.assert_array_equal(np.asarray(env.radiance(np.float32([[1, 0, 0]]))), [[1.0, 2.0, 4.0]])
 
 
 def test_save_render_writes_exr_and_png(scene, tmp_path):
