@@ -29,7 +29,7 @@ from jaxvox.distance import (
     solid_voxelize,
 )
 from jaxvox.grid import Grid
-from jaxvox.image import read_exr, tonemap, write_exr, write_png
+from jaxvox.image import read_exr, read_hdr, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh
 from jaxvox.octree import (
@@ -141,6 +141,7 @@ __all__ = [
     "RenderResult",
     "load_environment",
     "read_exr",
+    "read_hdr",
     "render",
     "render_mesh",
     "save_render",

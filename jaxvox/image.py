@@ -59,6 +59,62 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise JaxvoxError(f"cannot read EXR file {path}: {exc}") from None
 
 
+def read_hdr(path: str | os.PathLike) -> np.ndarray:
+    """Reads a Radiance RGBE (``.hdr``) image: [H, W, 3] float32, row 0 at the top.
+
+    Handles flat and run-length encoded scanlines and the standard ``-Y H +X W``
+    orientation (the one every common tool writes).
+
+    Raises:
+      JaxvoxError: missing file, not an RGBE file, another orientation, or truncated data.
+    """
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise JaxvoxError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if not data.startswith(b"#?"):
+        raise JaxvoxError(f"{path} is not a Radiance HDR file")
+    end = data.find(b"\n\n")
+    line_end = data.find(b"\n", end + 2)
+    if end < 0 or line_end < 0:
+        raise JaxvoxError(f"{path}: truncated HDR header")
+    if b"FORMAT=" in data[:end] and b"FORMAT=32-bit_rle_rgbe" not in data[:end]:
+        raise JaxvoxError(f"{path}: only 32-bit_rle_rgbe HDR files are read")
+    size = data[end + 2:line_end].split()
+    if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X":
+        raise JaxvoxError(f"{path}: unsupported HDR orientation {data[end + 2:line_end]!r} (expected -Y H +X W)")
+    height, width = int(size[1]), int(size[3])
+    buf, pos = np.frombuffer(data, np.uint8), line_end + 1
+    rgbe = np.empty((height, width, 4), np.uint8)
+    try:
+        for row in range(height):
+            head = buf[pos:pos + 4]
+            if 8 <= width < 32768 and head[0] == 2 and head[1] == 2 and (int(head[2]) << 8 | head[3]) == width:
+                pos += 4
+                for c in range(4):  # each channel run-length encoded on its own
+                    x = 0
+                    while x < width:
+                        count = int(buf[pos])
+                        if count > 128:
+                            rgbe[row, x:x + count - 128, c] = buf[pos + 1]
+                            x, pos = x + count - 128, pos + 2
+                        else:
+                            if count == 0 or x + count > width:
+                                raise IndexError
+                            rgbe[row, x:x + count, c] = buf[pos + 1:pos + 1 + count]
+                            x, pos = x + count, pos + 1 + count
+            else:
+                rgbe[row] = buf[pos:pos + 4 * width].reshape(width, 4)
+                pos += 4 * width
+    except (IndexError, ValueError):
+        raise JaxvoxError(f"{path}: truncated or corrupt HDR pixel data") from None
+    exponent = rgbe[..., 3:].astype(np.int32)
+    scale = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0)
+    return (rgbe[..., :3].astype(np.float64) * scale).astype(np.float32)
+
+
 def tonemap(radiance, *, exposure: float = 0.0, curve: str = "aces") -> np.ndarray:
     """Linear radiance [..., 3] -> 8-bit sRGB [..., 3] uint8.
 

@@ -168,13 +168,14 @@ def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.6, 2.4
 def load_environment(path: str | os.PathLike, *, scale: float = 1.0) -> Environment:
     """An environment from a lat-long (equirectangular) HDR image file, times `scale`.
 
-    Reads ``.exr`` files with OpenEXR (channels R, G, B; a single channel Y is grey) and
-    ``.npy`` arrays [H, W, 3]; see `Environment` for the layout. No sun.
+    Reads ``.exr`` files with OpenEXR (channels R, G, B; a single channel Y is grey),
+    Radiance ``.hdr`` files (`read_hdr`) and ``.npy`` arrays [H, W, 3]; see `Environment`
+    for the layout. No sun.
 
     Raises:
       JaxvoxError: missing file, unsupported format, or bad contents.
     """
-    from jaxvox.image import read_exr
+    from jaxvox.image import read_exr, read_hdr
 
     path = os.fspath(path)
     if not os.path.isfile(path):
@@ -188,10 +189,13 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0) -> Environm
             image = np.repeat(channels["Y"][..., None], 3, axis=-1)
         else:
             raise JaxvoxError(f"{path}: an environment EXR needs channels R, G, B (or Y), has {sorted(channels)}")
+    elif ext == ".hdr":
+        image = read_hdr(path)
     elif ext == ".npy":
         image = np.load(path)
     else:
-        raise JaxvoxError(f"{path}: environment maps are read from .exr or .npy files, not {ext or 'no extension'}")
+        raise JaxvoxError(f"{path}: environment maps are read from .exr, .hdr or .npy files, "
+                          f"not {ext or 'no extension'}")
     return _environment(np.asarray(image, np.float32) * np.float32(scale))
 
 

@@ -166,6 +166,50 @@ def test_exr_round_trip_is_exact(tmp_path):
     np.testing.assert_array_equal(np.asarray(env.radiance(np.float32([[1, 0, 0]]))), [[1.0, 2.0, 4.0]])
 
 
+def _rgbe(image):
+    """Float RGB [H, W, 3] -> RGBE bytes [H, W, 4] (the reference encoding: mantissas below 256)."""
+    peak = image.max(-1)
+    exponent = np.where(peak > 0, np.floor(np.log2(np.maximum(peak, 1e-38))) + 1, 0).astype(int)
+    mantissa = np.where(peak[..., None] > 0, np.floor(image * 256.0 / np.exp2(exponent)[..., None]), 0)
+    return np.concatenate([mantissa, np.where(peak > 0, exponent + 128, 0)[..., None]], -1).astype(np.uint8)
+
+
+def test_read_hdr_flat_and_run_length_encoded(tmp_path):
+    rng = np.random.default_rng(1)
+    image = (rng.random((3, 40, 3)) * 4.0).astype(np.float32)
+    image[1, 5:30] = [0.5, 1.0, 2.0]  # a run
+    rgbe = _rgbe(image)
+    expected = rgbe[..., :3] * np.exp2(rgbe[..., 3:].astype(float) - 136)
+    header = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 3 +X 40\n"
+    (tmp_path / "flat.hdr").write_bytes(header + rgbe.tobytes())
+    rle = bytearray(header)
+    for row in rgbe:
+        rle += bytes([2, 2, 0, 40])
+        for c in range(4):
+            x, values = 0, row[:, c]
+            while x < 40:
+                run = 1
+                while x + run < 40 and run < 127 and values[x + run] == values[x]:
+                    run += 1
+                if run >= 3:
+                    rle += bytes([128 + run, values[x]])
+                    x += run
+                else:
+                    n = min(2, 40 - x)
+                    rle += bytes([n]) + values[x:x + n].tobytes()
+                    x += n
+    (tmp_path / "rle.hdr").write_bytes(bytes(rle))
+    for name in ("flat.hdr", "rle.hdr"):
+        got = jv.read_hdr(tmp_path / name)
+        assert got.dtype == np.float32 and got.shape == (3, 40, 3)
+        np.testing.assert_allclose(got, expected, rtol=1e-6)
+        assert (np.abs(got - image) <= image.max(-1, keepdims=True) / 64).all()  # shared exponent, 8-bit mantissas
+    assert jv.load_environment(tmp_path / "rle.hdr").image.shape == (3, 40, 3)
+    (tmp_path / "short.hdr").write_bytes(bytes(rle[:-30]))
+    with pytest.raises(jv.JaxvoxError, match="truncated"):
+        jv.read_hdr(tmp_path / "short.hdr")
+
+
 def test_save_render_writes_exr_and_png(scene, tmp_path):
     import imageio.v3 as iio
 
@@ -213,8 +257,11 @@ def test_bad_inputs(scene, tmp_path):
         jv.render(tree, (0, 2, 0), (0, 0, 0), env=env)
     with pytest.raises(jv.JaxvoxError, match="not found"):
         jv.load_environment(tmp_path / "missing.exr")
+    (tmp_path / "sky.png").write_bytes(b"\x89PNG")
+    with pytest.raises(jv.JaxvoxError, match=".exr, .hdr or .npy"):
+        jv.load_environment(tmp_path / "sky.png")
     (tmp_path / "sky.hdr").write_bytes(b"#?RADIANCE\n")
-    with pytest.raises(jv.JaxvoxError, match=".exr or .npy"):
+    with pytest.raises(jv.JaxvoxError, match="truncated"):
         jv.load_environment(tmp_path / "sky.hdr")
     with pytest.raises(jv.JaxvoxError, match="negative"):
         jv.uniform_environment((1.0, -1.0, 0.0))
