@@ -12,8 +12,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
 
-run: $(STAMP)  ## voxelize the built-in default scene, print a report, write out/voxels.png
+run: $(STAMP)  ## voxelize the built-in default scene, report, write out/voxels.png; path-trace it to out/image.exr + .png
 	$(PY) -m jaxvox run --out out
+	$(PY) -m jaxvox render --resolution 256 --size 384x216 --spp 16 --bounces 8 --env sky --out out/image.exr
 
 test: $(STAMP)  ## the whole test suite (slow checks run at a small size unless JAXVOX_SLOW_SCALE=full)
 	$(PY) -m pytest -q
