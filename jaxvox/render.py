@@ -148,8 +148,8 @@ def uniform_environment(rgb=(1.0, 1.0, 1.0)) -> Environment:
     return _environment(_rgb(rgb, "rgb").reshape(1, 1, 3))
 
 
-def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.6, 2.45, 2.2),
-                    zenith=(0.22, 0.38, 0.75), horizon=(0.75, 0.82, 0.92), ground=(0.22, 0.2, 0.18),
+def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1, 1.9),
+                    zenith=(0.10, 0.20, 0.45), horizon=(0.45, 0.50, 0.58), ground=(0.12, 0.11, 0.10),
                     sun_radius_degrees: float = 0.53) -> Environment:
     """A built-in procedural sky: a blue gradient over a dim ground, and a sun.
 
