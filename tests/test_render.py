@@ -326,3 +326,32 @@ def test_mesh_renderer_furnace_and_agreement_with_voxels(scene):
     assert up.sum() > 50
     diff = np.abs(np.asarray(a.radiance)[up] - np.asarray(voxels.radiance)[up])
     assert np.median(diff) < 0.05 * np.median(np.asarray(a.radiance)[up])
+
+
+def test_cosine_sampling_moments():
+    """Cosine-weighted directions: unit, in the hemisphere, E[cos] = 2/3, E[cos^2] = 1/2, no preferred azimuth."""
+    import jax
+
+    from jaxvox.render import _cosine_direction
+
+    rng = np.random.default_rng(3)
+    normals = rng.standard_normal((6, 3))
+    normals = np.concatenate([np.eye(3), -np.eye(3), normals / np.linalg.norm(normals, axis=1, keepdims=True)])
+    u = np.asarray(jax.random.uniform(jax.random.key(0), (40000, 2)))
+    for n in normals.astype(np.float32):
+        d = np.asarray(_cosine_direction(np.broadcast_to(n, (len(u), 3)), u), np.float64)
+        cos = d @ n
+        np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+        assert (cos > 0).all()
+        assert abs(cos.mean() - 2 / 3) < 0.01 and abs((cos**2).mean() - 0.5) < 0.01
+        tangential = d - cos[:, None] * n
+        assert np.linalg.norm(tangential.mean(0)) < 0.01
+
+
+def test_empty_tree_shows_the_environment():
+    mesh = jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    tree = jv.build_dag(jv.voxelize(mesh, jv.Grid(origin=(-1, -1, -1), voxel_size=2 / 16, resolution=16)))
+    result = jv.render(tree, (0, 0, 3), (0, 0, 0), env=jv.uniform_environment((0.25, 0.5, 1.0)), bounces=2, key=0,
+                       **SETTINGS)
+    np.testing.assert_array_equal(np.asarray(result.radiance), np.broadcast_to(np.float32([0.25, 0.5, 1.0]), (H, W, 3)))
+    assert np.isinf(np.asarray(result.depth)).all() and (np.asarray(result.normal) == 0).all()
