@@ -278,6 +278,11 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
     assert main(["info", str(path)]) == 0
     out = capsys.readouterr().out
     assert "levels: 5" in out and "bits per voxel" in out and f"voxels: {int(tree.voxel_count):,}" in out
+    out_exr = tmp_path / "from_tree.exr"
+    assert main(["render", str(path), "--size", f"{W}x{H}", "--spp", "2", "--bounces", "1", "--batch-rays",
+                 str(W * H * 2), "--camera", "30,35,1.6", "--albedo", "0.5,0.6,0.7", "--out", str(out_exr)]) == 0
+    assert str(tmp_path / "from_tree.png") in capsys.readouterr().out
+    assert jv.read_exr(out_exr)["R"].shape == (H, W)
     assert main(["info", str(tmp_path / "missing.jvx")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.jvx" in err[0]
