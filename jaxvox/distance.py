@@ -72,12 +72,14 @@ SIGN_METHODS = ("auto", "parity", "winding")
 NO_TRIANGLE = -1  # triangle id of a voxel no seed has reached yet
 FORMATS = ("float16", "fixed16")
 
-# Estimated peak working memory per voxel of each method (bytes), counted from the
-# arrays each step holds (ids, distances, pass copies; for sweeping the skewed
-# [3R-2, R, R] copies) with room to spare; add SIGN_BYTES_PER_VOXEL for a signed field.
-BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 96, "jfa+sweep": 96}
+# Peak working memory per voxel of each method (bytes), measured as the process's peak
+# resident memory at 64^3-256^3 with room to spare (jump flooding works on blocks of
+# voxels: ~30 measured; sweeping holds several skewed [3R-2, R, R] copies and their
+# gather indices: ~400-500 measured); add SIGN_BYTES_PER_VOXEL for a signed field.
+BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 448, "jfa+sweep": 448}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
+_VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds its temporaries)
 
 
 # ------------------------------------------------------------------------ helpers
@@ -178,24 +180,34 @@ def _offsets(steps, separable: bool) -> np.ndarray:
 def _jfa(ids, dist, tris, offsets: np.ndarray, resolution: int):
     """Jump-flooding passes on triangle ids: each voxel keeps the nearest of its own and
     its neighbours' triangles (ties to the lower id); neighbours are read from the ids
-    at the start of the pass, outside the grid there are none (no wrap-around)."""
+    at the start of the pass, outside the grid there are none (no wrap-around).
+
+    Each neighbour offset is applied to blocks of `_VOXELS_PER_BLOCK` voxels in turn
+    (`jax.lax.map`), so the temporaries of the point-triangle distances stay bounded.
+    """
     if offsets.shape[0] == 0:
         return ids, dist
     r = resolution
-    centres = _centres(r)
-    ijk = centres.astype(jnp.int32)  # floor of the centres: the voxel indices
+    n = r**3
+    block = min(n, _VOXELS_PER_BLOCK)  # both powers of two
 
     def one_pass(state, pass_offsets):
         prev = state[0]
 
         def candidate(state, offset):
-            ids, dist = state
-            q = ijk + offset
-            ok = jnp.all((q >= 0) & (q < r), axis=1)
-            cand = jnp.where(ok, prev[(q[:, 0] * r + q[:, 1]) * r + q[:, 2]], NO_TRIANGLE)
-            d = _distance_to(centres, tris, cand)
-            better = (d < dist) | ((d == dist) & (cand >= 0) & ((cand < ids) | (ids < 0)))
-            return (jnp.where(better, cand, ids), jnp.where(better, d, dist)), None
+            def one_block(args):
+                start, ids, dist = args
+                ijk = jnp.stack(jnp.unravel_index(start + jnp.arange(block, dtype=jnp.int32), (r, r, r)), -1)
+                q = ijk + offset
+                ok = jnp.all((q >= 0) & (q < r), axis=1)
+                cand = jnp.where(ok, prev[(q[:, 0] * r + q[:, 1]) * r + q[:, 2]], NO_TRIANGLE)
+                d = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, cand)
+                better = (d < dist) | ((d == dist) & (cand >= 0) & ((cand < ids) | (ids < 0)))
+                return jnp.where(better, cand, ids), jnp.where(better, d, dist)
+
+            starts = jnp.arange(0, n, block, dtype=jnp.int32)
+            ids, dist = jax.lax.map(one_block, (starts, state[0].reshape(-1, block), state[1].reshape(-1, block)))
+            return (ids.reshape(-1), dist.reshape(-1)), None
 
         return jax.lax.scan(candidate, state, pass_offsets)[0], None
 
