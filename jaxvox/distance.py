@@ -6,9 +6,11 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
 1. **Closest-triangle voxelization.** Every voxel the surface touches (conservative
    voxelization) gets the id of the triangle nearest its centre among the triangles
    that touch it, ties to the lower id (`jaxvox.voxelize` with ``triangle_ids=True``,
-   a lexicographic sort on (voxel, distance, id)). Each triangle also seeds the voxel
-   holding its centroid clamped into the grid, merged with a scatter-min on
-   (distance bits, id), so that geometry outside the grid still reaches it.
+   a lexicographic sort on (voxel, distance, id)). Each triangle also seeds the voxels
+   holding its centroid and its three corners clamped into the grid, merged with a
+   scatter-min on (distance bits, id), so that geometry outside the grid still reaches
+   it (only through those voxels: a triangle outside the grid whose nearest region in
+   the grid is cut off from them is found late, see the test suite's bounds).
 2. **Narrow band.** ``band`` separable 3x3x3 passes of jump flooding on triangle ids
    (one axis at a time, neighbours at -1, +1): every voxel within ``band`` voxels
    (Chebyshev) of a seeded voxel holds the exact point-triangle distance to the best
@@ -142,15 +144,16 @@ def _seed(tris, coords, triangle, resolution: int):
     """Closest-triangle seeds: ([R^3] int32 ids, [R^3] float32 distances, inf where none).
 
     Candidates are the voxelizer's (voxel, closest triangle) pairs and, per triangle,
-    the voxel of its centroid clamped into the grid; each voxel keeps the nearest
+    the voxels of its centroid and corners clamped into the grid; each voxel keeps the nearest
     candidate, ties to the lower id (a scatter-min on distance bits, then on ids).
     """
     r = resolution
     inside = coords[:, 0] >= 0
-    cent = jnp.clip(jnp.floor(tris.mean(1)), 0, r - 1).astype(jnp.int32)
-    ijk = jnp.concatenate([coords, cent])
-    tri = jnp.concatenate([triangle, jnp.arange(tris.shape[0], dtype=jnp.int32)])
-    valid = jnp.concatenate([inside, jnp.all(jnp.isfinite(tris), (1, 2))])
+    points = jnp.concatenate([tris.mean(1), tris[:, 0], tris[:, 1], tris[:, 2]])  # [4F, 3]
+    clamped = jnp.clip(jnp.floor(points), 0, r - 1).astype(jnp.int32)
+    ijk = jnp.concatenate([coords, clamped])
+    tri = jnp.concatenate([triangle, jnp.tile(jnp.arange(tris.shape[0], dtype=jnp.int32), 4)])
+    valid = jnp.concatenate([inside, jnp.tile(jnp.all(jnp.isfinite(tris), (1, 2)), 4)])
     flat = jnp.where(valid, (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], r**3)  # r^3: dropped
     dist = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, jnp.where(valid, tri, NO_TRIANGLE))
     bits = jax.lax.bitcast_convert_type(dist, jnp.int32)  # non-negative floats order as ints
