@@ -67,25 +67,28 @@ def scenes() -> dict:
 
 
 def reference(scene, o, u, march: float):
-    """First crossing t [n] (inf if none) of a fine march plus bisection, in float32."""
+    """First crossing t [n] (inf if none) of a fine march plus bisection, in float32.
+
+    Every call has the full batch shape (one compiled program): the march records each
+    ray's first bracketing interval, then all rays are bisected together.
+    """
     f = jax.jit(jax.vmap(lambda oo, uu, t: scene(oo + t * uu)))
     n = len(o)
-    t_hit = np.full(n, np.inf)
-    prev_t, prev_v = np.zeros(n, np.float32), np.asarray(f(o, u, jnp.zeros(n)))
-    inside = prev_v < 0
-    t_hit[inside] = 0.0
+    lo, hi = np.zeros(n, np.float32), np.full(n, np.inf, np.float32)
+    inside = np.asarray(f(o, u, jnp.zeros(n))) < 0
+    hi[inside] = 0.0
+    prev = 0.0
     for t in np.arange(march, T_MAX + march, march, dtype=np.float32):
-        v = np.asarray(f(o, u, jnp.full(n, t)))
-        new = np.isinf(t_hit) & (v <= 0)
-        if new.any():  # bisection between the previous sample and this one
-            lo, hi = prev_t[new].copy(), np.full(new.sum(), t, np.float32)
-            for _ in range(24):
-                mid = (lo + hi) / 2
-                below = np.asarray(f(o[new], u[new], jnp.asarray(mid))) <= 0
-                hi, lo = np.where(below, mid, hi), np.where(below, lo, mid)
-            t_hit[new] = hi
-        prev_t[:] = t
-    return t_hit
+        new = np.isinf(hi) & (np.asarray(f(o, u, jnp.full(n, t))) <= 0)
+        lo[new], hi[new] = prev, t
+        prev = t
+    found = np.isfinite(hi) & ~inside
+    a, b = lo.copy(), np.where(found, hi, 0.0).astype(np.float32)
+    for _ in range(24):
+        mid = (a + b) / 2
+        below = np.asarray(f(o, u, jnp.asarray(mid))) <= 0
+        b, a = np.where(below, mid, b), np.where(below, a, mid)
+    return np.where(found, b, np.where(inside, 0.0, np.inf))
 
 
 def run_method(name, scene, tree, o, u, repeats):
@@ -117,7 +120,8 @@ def failure_map(t_ref, hit, voxel, shape) -> np.ndarray:
     status, t = np.asarray(hit.status), np.asarray(hit.t)
     ref_hit, is_hit = np.isfinite(t_ref), status == jv.HIT
     out = np.zeros(status.shape, np.int8)
-    out[ref_hit & is_hit & (np.abs(t - t_ref) > voxel)] = 1
+    both = ref_hit & is_hit
+    out[both] = np.where(np.abs(t[both] - t_ref[both]) > voxel, 1, 0)
     out[ref_hit & ~is_hit] = 2
     out[~ref_hit & is_hit] = 3
     out[status == jv.STEP_CAP] = 4

@@ -6,9 +6,11 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
 1. **Closest-triangle voxelization.** Every voxel the surface touches (conservative
    voxelization) gets the id of the triangle nearest its centre among the triangles
    that touch it, ties to the lower id (`jaxvox.voxelize` with ``triangle_ids=True``,
-   a lexicographic sort on (voxel, distance, id)). Each triangle also seeds the voxel
-   holding its centroid clamped into the grid, merged with a scatter-min on
-   (distance bits, id), so that geometry outside the grid still reaches it.
+   a lexicographic sort on (voxel, distance, id)). Each triangle also seeds the voxels
+   holding its centroid and its three corners clamped into the grid, merged with a
+   scatter-min on (distance bits, id), so that geometry outside the grid still reaches
+   it (only through those voxels: a triangle outside the grid whose nearest region in
+   the grid is cut off from them is found late, see the test suite's bounds).
 2. **Narrow band.** ``band`` separable 3x3x3 passes of jump flooding on triangle ids
    (one axis at a time, neighbours at -1, +1): every voxel within ``band`` voxels
    (Chebyshev) of a seeded voxel holds the exact point-triangle distance to the best
@@ -72,12 +74,14 @@ SIGN_METHODS = ("auto", "parity", "winding")
 NO_TRIANGLE = -1  # triangle id of a voxel no seed has reached yet
 FORMATS = ("float16", "fixed16")
 
-# Estimated peak working memory per voxel of each method (bytes), counted from the
-# arrays each step holds (ids, distances, pass copies; for sweeping the skewed
-# [3R-2, R, R] copies) with room to spare; add SIGN_BYTES_PER_VOXEL for a signed field.
-BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 96, "jfa+sweep": 96}
+# Peak working memory per voxel of each method (bytes), measured as the process's peak
+# resident memory at 64^3-256^3 with room to spare (jump flooding works on blocks of
+# voxels: ~30 measured; sweeping holds several skewed [3R-2, R, R] copies and their
+# gather indices: ~400-500 measured); add SIGN_BYTES_PER_VOXEL for a signed field.
+BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 448, "jfa+sweep": 448}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
+_VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds its temporaries)
 
 
 # ------------------------------------------------------------------------ helpers
@@ -140,15 +144,16 @@ def _seed(tris, coords, triangle, resolution: int):
     """Closest-triangle seeds: ([R^3] int32 ids, [R^3] float32 distances, inf where none).
 
     Candidates are the voxelizer's (voxel, closest triangle) pairs and, per triangle,
-    the voxel of its centroid clamped into the grid; each voxel keeps the nearest
+    the voxels of its centroid and corners clamped into the grid; each voxel keeps the nearest
     candidate, ties to the lower id (a scatter-min on distance bits, then on ids).
     """
     r = resolution
     inside = coords[:, 0] >= 0
-    cent = jnp.clip(jnp.floor(tris.mean(1)), 0, r - 1).astype(jnp.int32)
-    ijk = jnp.concatenate([coords, cent])
-    tri = jnp.concatenate([triangle, jnp.arange(tris.shape[0], dtype=jnp.int32)])
-    valid = jnp.concatenate([inside, jnp.all(jnp.isfinite(tris), (1, 2))])
+    points = jnp.concatenate([tris.mean(1), tris[:, 0], tris[:, 1], tris[:, 2]])  # [4F, 3]
+    clamped = jnp.clip(jnp.floor(points), 0, r - 1).astype(jnp.int32)
+    ijk = jnp.concatenate([coords, clamped])
+    tri = jnp.concatenate([triangle, jnp.tile(jnp.arange(tris.shape[0], dtype=jnp.int32), 4)])
+    valid = jnp.concatenate([inside, jnp.tile(jnp.all(jnp.isfinite(tris), (1, 2)), 4)])
     flat = jnp.where(valid, (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], r**3)  # r^3: dropped
     dist = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, jnp.where(valid, tri, NO_TRIANGLE))
     bits = jax.lax.bitcast_convert_type(dist, jnp.int32)  # non-negative floats order as ints
@@ -178,24 +183,34 @@ def _offsets(steps, separable: bool) -> np.ndarray:
 def _jfa(ids, dist, tris, offsets: np.ndarray, resolution: int):
     """Jump-flooding passes on triangle ids: each voxel keeps the nearest of its own and
     its neighbours' triangles (ties to the lower id); neighbours are read from the ids
-    at the start of the pass, outside the grid there are none (no wrap-around)."""
+    at the start of the pass, outside the grid there are none (no wrap-around).
+
+    Each neighbour offset is applied to blocks of `_VOXELS_PER_BLOCK` voxels in turn
+    (`jax.lax.map`), so the temporaries of the point-triangle distances stay bounded.
+    """
     if offsets.shape[0] == 0:
         return ids, dist
     r = resolution
-    centres = _centres(r)
-    ijk = centres.astype(jnp.int32)  # floor of the centres: the voxel indices
+    n = r**3
+    block = min(n, _VOXELS_PER_BLOCK)  # both powers of two
 
     def one_pass(state, pass_offsets):
         prev = state[0]
 
         def candidate(state, offset):
-            ids, dist = state
-            q = ijk + offset
-            ok = jnp.all((q >= 0) & (q < r), axis=1)
-            cand = jnp.where(ok, prev[(q[:, 0] * r + q[:, 1]) * r + q[:, 2]], NO_TRIANGLE)
-            d = _distance_to(centres, tris, cand)
-            better = (d < dist) | ((d == dist) & (cand >= 0) & ((cand < ids) | (ids < 0)))
-            return (jnp.where(better, cand, ids), jnp.where(better, d, dist)), None
+            def one_block(args):
+                start, ids, dist = args
+                ijk = jnp.stack(jnp.unravel_index(start + jnp.arange(block, dtype=jnp.int32), (r, r, r)), -1)
+                q = ijk + offset
+                ok = jnp.all((q >= 0) & (q < r), axis=1)
+                cand = jnp.where(ok, prev[(q[:, 0] * r + q[:, 1]) * r + q[:, 2]], NO_TRIANGLE)
+                d = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, cand)
+                better = (d < dist) | ((d == dist) & (cand >= 0) & ((cand < ids) | (ids < 0)))
+                return jnp.where(better, cand, ids), jnp.where(better, d, dist)
+
+            starts = jnp.arange(0, n, block, dtype=jnp.int32)
+            ids, dist = jax.lax.map(one_block, (starts, state[0].reshape(-1, block), state[1].reshape(-1, block)))
+            return (ids.reshape(-1), dist.reshape(-1)), None
 
         return jax.lax.scan(candidate, state, pass_offsets)[0], None
 

@@ -23,6 +23,7 @@ the value checks are skipped for traced values, so scenes can be built inside `j
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 
 import jax
@@ -44,6 +45,12 @@ def _safe_norm(v: jax.Array) -> jax.Array:
     sq = jnp.sum(v * v, axis=-1)
     positive = sq > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def _axial(p, center):
+    """Distance from the y axis through `center` and the height along it: ([...], [...])."""
+    q = p - center
+    return _safe_norm(q[..., 0::2]), q[..., 1]
 
 
 def _is_concrete(x) -> bool:
@@ -74,7 +81,7 @@ def _check_scene(scene, name: str = "scene") -> "SDF":
     return scene
 
 
-class SDF:
+class SDF(abc.ABC):
     """Base class of scene nodes: ``scene(points f32[..., 3]) -> f32[...]`` signed distances.
 
     Subclasses are pytree dataclasses; build them with the constructor functions
@@ -90,8 +97,9 @@ class SDF:
             raise JaxvoxError(f"points must have shape [..., 3], got {p.shape}")
         return self._distance(p)
 
+    @abc.abstractmethod
     def _distance(self, p: jax.Array) -> jax.Array:
-        raise NotImplementedError
+        """Signed distance at float32 points [..., 3] -> [...] (no checks)."""
 
 
 def _node(cls):
@@ -153,9 +161,8 @@ class Torus(SDF):
     exact = True
 
     def _distance(self, p):
-        q = p - self.center
-        ring = _safe_norm(q[..., 0::2]) - self.major_radius
-        return _safe_norm(jnp.stack([ring, q[..., 1]], axis=-1)) - self.minor_radius
+        radial, height = _axial(p, self.center)
+        return _safe_norm(jnp.stack([radial - self.major_radius, height], axis=-1)) - self.minor_radius
 
 
 @_node
@@ -185,9 +192,7 @@ class Cylinder(SDF):
     exact = True
 
     def _distance(self, p):
-        q = p - self.center
-        d = jnp.abs(jnp.stack([_safe_norm(q[..., 0::2]), q[..., 1]], axis=-1)) - jnp.stack(
-            [self.radius, self.half_height])
+        d = jnp.abs(jnp.stack(_axial(p, self.center), axis=-1)) - jnp.stack([self.radius, self.half_height])
         return jnp.minimum(jnp.max(d, axis=-1), 0.0) + _safe_norm(jnp.maximum(d, 0.0))
 
 

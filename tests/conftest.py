@@ -32,7 +32,7 @@ def _fresh_jax_caches(request):
     they keep theirs.
     """
     yield
-    if request.module.__name__.rsplit(".", 1)[-1] in ("test_distance", "test_trace"):
+    if request.module.__name__.rsplit(".", 1)[-1] in ("test_distance", "test_sdf_octree", "test_trace"):
         import jax
 
         jax.clear_caches()

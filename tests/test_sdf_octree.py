@@ -159,7 +159,7 @@ def test_against_analytic_sphere_and_edge_cases(trees):
     both = firm & np.isfinite(t_ref)
     # |f| < 1e-4 t at the hit: t is off by at most that over the cosine of incidence.
     cos = np.abs(np.sum((oc + t_ref[:, None] * u) / radius * u, 1))
-    assert (np.abs(t - t_ref)[both] <= 1.5e-4 * np.maximum(t_ref, 1)[both] / cos[both] + 1e-5).all()
+    assert (np.abs(t[both] - t_ref[both]) <= 1.5e-4 * np.maximum(t_ref[both], 1) / cos[both] + 1e-5).all()
     # t_max (traced, same program), any batch shape of the same size, the leaf and step caps.
     short, _ = jv.sphere_trace_octree(scene, tree, o.reshape(3, -1, 3), d.reshape(3, -1, 3), **(TRACE | dict(t_max=0.1)))
     assert short.t.shape == (3, N_RAYS // 3)
