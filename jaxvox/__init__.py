@@ -31,7 +31,7 @@ from jaxvox.distance import (
 from jaxvox.grid import Grid
 from jaxvox.image import read_exr, read_hdr, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
-from jaxvox.mesh import Mesh, load_mesh, pad_mesh
+from jaxvox.mesh import Mesh, load_mesh, pad_mesh, sample_texture
 from jaxvox.octree import (
     EMPTY,
     MISSING,
@@ -129,6 +129,7 @@ __all__ = [
     "load_mesh",
     "morton",
     "pad_mesh",
+    "sample_texture",
     "sdf",
     "sphere_trace",
     "sphere_trace_octree",

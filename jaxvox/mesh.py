@@ -27,16 +27,26 @@ class Mesh:
       vertices: [V, 3] float32 positions in world units.
       faces: [F, 3] int32 vertex indices, counter-clockwise seen from outside.
       colors: [V, C] float32 vertex colours in [0, 1] (C = 3 RGB or 4 RGBA), or None.
+      uvs: [V, 2] float32 texture coordinates (OBJ convention: v = 0 is the image's
+        bottom row; repeating outside [0, 1]), or None.
+      texture: [H, W, C] float32 image in [0, 1] (row 0 on top, C = 3 or 4), or None;
+        given together with `uvs`. Where present it is the surface colour (see
+        `sample_texture`) and takes precedence over `colors`.
     """
 
     vertices: jax.Array  # [V, 3] float32
     faces: jax.Array  # [F, 3] int32
     colors: jax.Array | None = None  # [V, C] float32
+    uvs: jax.Array | None = None  # [V, 2] float32
+    texture: jax.Array | None = None  # [H, W, C] float32
 
-    def __init__(self, vertices, faces, colors=None):
+    def __init__(self, vertices, faces, colors=None, uvs=None, texture=None):
+        optional = lambda a: None if a is None else jnp.asarray(a, jnp.float32)
         object.__setattr__(self, "vertices", jnp.asarray(vertices, jnp.float32))
         object.__setattr__(self, "faces", jnp.asarray(faces, jnp.int32))
-        object.__setattr__(self, "colors", None if colors is None else jnp.asarray(colors, jnp.float32))
+        object.__setattr__(self, "colors", optional(colors))
+        object.__setattr__(self, "uvs", optional(uvs))
+        object.__setattr__(self, "texture", optional(texture))
 
     @property
     def num_faces(self) -> int:
@@ -57,7 +67,8 @@ def validate_mesh(mesh: Mesh) -> None:
     """Raises `JaxvoxError` naming the problem when `mesh` is malformed (host-side check).
 
     Checks shapes, that every vertex coordinate is finite, that every face index lies
-    in ``[0, V)``, and that colours (if any) are [V, 3] or [V, 4] and finite.
+    in ``[0, V)``, that colours (if any) are [V, 3] or [V, 4] and finite, and that
+    texture coordinates and a texture come together, [V, 2] and [H, W, 3 or 4], finite.
     """
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
@@ -82,13 +93,49 @@ def validate_mesh(mesh: Mesh) -> None:
             raise JaxvoxError(f"mesh colors must have shape [V, 3] or [V, 4] with V = {len(v)}, got {c.shape}")
         if not np.isfinite(c).all():
             raise JaxvoxError("mesh colors hold NaN or inf")
+    if (mesh.uvs is None) != (mesh.texture is None):
+        raise JaxvoxError("a mesh texture needs both uvs [V, 2] and texture [H, W, C]; got only one")
+    if mesh.uvs is not None:
+        uv, tex = np.asarray(mesh.uvs), np.asarray(mesh.texture)
+        if uv.shape != (len(v), 2):
+            raise JaxvoxError(f"mesh uvs must have shape [V, 2] with V = {len(v)}, got {uv.shape}")
+        if tex.ndim != 3 or min(tex.shape[:2]) < 1 or tex.shape[2] not in (3, 4):
+            raise JaxvoxError(f"mesh texture must have shape [H, W, 3] or [H, W, 4], got {tex.shape}")
+        if not (np.isfinite(uv).all() and np.isfinite(tex).all()):
+            raise JaxvoxError("mesh uvs or texture hold NaN or inf")
+
+
+def sample_texture(texture: jax.Array, uv: jax.Array) -> jax.Array:
+    """Bilinear texture lookup with repeat wrapping (jittable, vmappable).
+
+    Args:
+      texture: [H, W, C] float32, row 0 on top.
+      uv: [..., 2] float32 texture coordinates; v = 0 is the bottom row (OBJ/glTF
+        images are stored top row first, so v is flipped).
+
+    Returns:
+      [..., C] float32.
+    """
+    h, w = texture.shape[:2]
+    x = uv[..., 0] * w - 0.5
+    y = (1.0 - uv[..., 1]) * h - 0.5
+    x0, y0 = jnp.floor(x), jnp.floor(y)
+    fx, fy = (x - x0)[..., None], (y - y0)[..., None]
+    x0, y0 = x0.astype(jnp.int32), y0.astype(jnp.int32)
+    texel = lambda dy, dx: texture[jnp.mod(y0 + dy, h), jnp.mod(x0 + dx, w)]
+    top = texel(0, 0) * (1 - fx) + texel(0, 1) * fx
+    bottom = texel(1, 0) * (1 - fx) + texel(1, 1) * fx
+    return top * (1 - fy) + bottom * fy
 
 
 def load_mesh(path: str | os.PathLike) -> Mesh:
     """Loads a triangle mesh from any file format trimesh can read.
 
     Scenes are flattened into one mesh; polygons are triangulated by trimesh. Vertex
-    colours, when the file has them, become `Mesh.colors` (RGBA in [0, 1]).
+    colours, when the file has them, become `Mesh.colors` (RGBA in [0, 1]); a colour
+    texture (an OBJ material's ``map_Kd``, a glTF base colour texture) with texture
+    coordinates becomes `Mesh.uvs` and `Mesh.texture`. Texture coordinates without an
+    image are dropped.
 
     Args:
       path: file path (OBJ, PLY, STL, OFF, GLB, ...).
@@ -111,10 +158,17 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         raise JaxvoxError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise JaxvoxError(f"{path} holds no triangles")
-    colors = None
-    if getattr(loaded.visual, "kind", None) == "vertex":
+    colors = uvs = texture = None
+    kind = getattr(loaded.visual, "kind", None)
+    if kind == "vertex":
         colors = np.asarray(loaded.visual.vertex_colors, np.float32) / 255.0
-    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors)
+    elif kind == "texture" and loaded.visual.uv is not None:
+        material = loaded.visual.material
+        image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
+        if image is not None:
+            uvs = np.asarray(loaded.visual.uv, np.float32)
+            texture = np.asarray(image.convert("RGBA"), np.float32) / 255.0
+    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors, uvs, texture)
     validate_mesh(mesh)
     return mesh
 
@@ -132,5 +186,5 @@ def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
         raise JaxvoxError("pad_mesh: target size is smaller than the mesh")
     repeat_first = lambda a: np.concatenate([a, np.repeat(a[:1], num_vertices - len(a), axis=0)])
     f_pad = np.concatenate([f, np.zeros((num_faces - len(f), 3), np.int32)])
-    colors = None if mesh.colors is None else repeat_first(np.asarray(mesh.colors))
-    return Mesh(repeat_first(v), f_pad, colors)
+    colors, uvs = (None if a is None else repeat_first(np.asarray(a)) for a in (mesh.colors, mesh.uvs))
+    return Mesh(repeat_first(v), f_pad, colors, uvs, mesh.texture)

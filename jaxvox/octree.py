@@ -48,7 +48,7 @@ from jaxvox._buffers import bucket_pow2, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh
+from jaxvox.mesh import Mesh, sample_texture
 from jaxvox.voxelize import UNUSED, Voxels
 
 EMPTY = morton.EMPTY  # uint32 0xFFFFFFFF: an absent child (no node has that row index)
@@ -586,9 +586,10 @@ def voxel_attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
 
       * ``"triangle"``: int32 [capacity] triangle id (-1 in unused slots);
       * ``"normal"``: float32 [capacity, 3] unit face normal (0 for degenerate faces);
-      * ``"color"``: float32 [capacity, C], only when the mesh has vertex colours: the
-        colour interpolated at the point of the triangle's plane nearest the voxel centre
-        (barycentric weights clipped to the triangle).
+      * ``"color"``: float32 [capacity, C], only when the mesh has a texture or vertex
+        colours: the texture (`sample_texture` at the interpolated texture coordinates)
+        or the vertex colours, interpolated at the point of the triangle's plane nearest
+        the voxel centre (barycentric weights clipped to the triangle).
     """
     if vox.triangle is None:
         raise JaxvoxError("these voxels carry no triangle ids; voxelize with triangle_ids=True")
@@ -605,10 +606,13 @@ def _attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
     length = jnp.linalg.norm(normal, axis=-1, keepdims=True)
     unit = jnp.where(length > 0, normal / jnp.where(length > 0, length, 1.0), 0.0)
     out = {"triangle": jnp.where(valid, vox.triangle, -1), "normal": jnp.where(valid[:, None], unit, 0.0)}
-    if mesh.colors is not None:
+    if mesh.texture is not None or mesh.colors is not None:
         centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
         weights = _barycentric(corners, centre, normal)
-        colour = jnp.einsum("ck,ckd->cd", weights, mesh.colors[mesh.faces[tri]])
+        if mesh.texture is not None:
+            colour = sample_texture(mesh.texture, jnp.einsum("ck,ckd->cd", weights, mesh.uvs[mesh.faces[tri]]))
+        else:
+            colour = jnp.einsum("ck,ckd->cd", weights, mesh.colors[mesh.faces[tri]])
         out["color"] = jnp.where(valid[:, None], colour, 0.0)
     return out
 

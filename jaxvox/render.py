@@ -47,6 +47,7 @@ import numpy as np
 
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
+from jaxvox.mesh import sample_texture
 from jaxvox.octree import Octree
 from jaxvox.trace import HIT, STEP_CAP, trace
 
@@ -525,19 +526,31 @@ def _mesh_shade(path, surf, visible, keys, k, rho, emitted, env, last, *, first)
 
 
 def _mesh_tables(mesh, albedo, emission):
-    """(albedo, emission) for `render_mesh`: [F, 3] per-face or [V, 3] per-vertex (flag) tables."""
+    """(albedo, per-vertex flag, emission) for `render_mesh`: [F, 3] per-face tables, or
+    None and True for the mesh's own colours (interpolated at each hit)."""
     faces = mesh.num_faces
     if isinstance(albedo, str):
-        if albedo != "vertex":
-            raise JaxvoxError(f"albedo must be an RGB triple, a [faces, 3] array or 'vertex', got {albedo!r}")
-        if mesh.colors is None:
-            raise JaxvoxError("albedo='vertex' but the mesh has no vertex colours")
-        from jaxvox.image import srgb_to_linear
-
-        rho, per_vertex = srgb_to_linear(np.asarray(mesh.colors)[:, :3]).astype(np.float32), True
+        if albedo != "mesh":
+            raise JaxvoxError(f"albedo must be an RGB triple, a [faces, 3] array or 'mesh', got {albedo!r}")
+        if mesh.colors is None and mesh.texture is None:
+            raise JaxvoxError("albedo='mesh' but the mesh has neither a texture nor vertex colours")
+        rho, per_vertex = None, True
     else:
         rho, per_vertex = np.asarray(_table(albedo, faces, "albedo", (0.7, 0.7, 0.7))), False
     return rho, per_vertex, np.asarray(_table(emission, faces, "emission", (0.0, 0.0, 0.0)))
+
+
+def _mesh_colour(mesh, face, weights):
+    """Linear albedo [N, 3] of a mesh's texture (or vertex colours) at barycentric `weights` [N, 3] of `face` [N]."""
+    from jaxvox.image import srgb_to_linear
+
+    corners = np.asarray(mesh.faces)[face]
+    if mesh.texture is not None:
+        uv = np.einsum("nk,nkd->nd", weights, np.asarray(mesh.uvs)[corners])
+        colour = np.asarray(sample_texture(mesh.texture, jnp.asarray(uv, jnp.float32)))
+    else:
+        colour = np.einsum("nk,nkd->nd", weights, np.asarray(mesh.colors)[corners])
+    return srgb_to_linear(colour[:, :3]).astype(np.float32)
 
 
 def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=None, emission=None,
@@ -554,8 +567,9 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
 
     Args:
       mesh: a `Mesh`.
-      albedo: an RGB triple, a [F, 3] per-face array, or ``"vertex"``: the mesh's vertex
-        colours (sRGB, decoded to linear) interpolated at the hit. Default 0.7 grey.
+      albedo: an RGB triple, a [F, 3] per-face array, or ``"mesh"``: the mesh's texture
+        or else its vertex colours (sRGB, decoded to linear) at the hit, as
+        `voxel_attributes` takes them for voxels. Default 0.7 grey.
       emission: None, an RGB triple or a [F, 3] per-face array.
       eye, target, env, width, height, fov, up, spp, bounces, key, batch_rays, progress:
         as in `render`.
@@ -569,7 +583,6 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
     if not isinstance(env, Environment):
         raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
     rho_table, per_vertex, emit_table = _mesh_tables(mesh, albedo, emission)
-    faces = np.asarray(mesh.faces)
     vertices = np.asarray(mesh.vertices, np.float64)
     eps = 1e-4 * float(np.max(vertices.max(0) - vertices.min(0))) if len(vertices) else 1e-4
     intersect = _embree(mesh)
@@ -592,8 +605,7 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
         point = np.where(hit[:, None], o + np.where(hit, t, 0)[:, None] * d + eps * ng, o).astype(np.float32)
         face = np.maximum(prim, 0)
         if per_vertex:
-            w = np.stack([1 - u - v, u, v], -1)[..., None]
-            rho = np.sum(w * rho_table[faces[face]], axis=1)
+            rho = _mesh_colour(mesh, face, np.stack([1 - u - v, u, v], -1))
         else:
             rho = rho_table[np.minimum(face, len(rho_table) - 1)]
         emitted = emit_table[np.minimum(face, len(emit_table) - 1)]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import pathlib
 
+import numpy as np
 import pytest
 
 # The command line keeps compiled programs in a persistent cache; calling it from a test
@@ -36,3 +37,19 @@ def _fresh_jax_caches(request):
         import jax
 
         jax.clear_caches()
+
+
+@pytest.fixture
+def textured_quad(tmp_path):
+    """(path, texels): an OBJ unit quad in z = 0 whose uv is its (x, y), with a 4x4 PNG
+    texture of four 2x2 quadrants (top row first: red, green / blue, yellow), texels as
+    float64 [4, 4, 3] in [0, 1]."""
+    import imageio.v3 as iio
+
+    texels = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 0]]], np.uint8)
+    (tmp_path / "quad.mtl").write_text("newmtl m\nKd 1 1 1\nmap_Kd tex.png\n")
+    (tmp_path / "quad.obj").write_text("mtllib quad.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+                                       "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    texels = texels.repeat(2, axis=0).repeat(2, axis=1)
+    iio.imwrite(tmp_path / "tex.png", texels)
+    return tmp_path / "quad.obj", texels / 255.0

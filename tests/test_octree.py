@@ -178,6 +178,51 @@ def test_load_mesh_reads_vertex_colours(tmp_path):
         validate_mesh(jv.Mesh(mesh.vertices, mesh.faces, np.zeros((3, 3))))
 
 
+def _bilinear_reference(texture, uv):
+    """float64 bilinear lookup with repeat wrap; v = 0 is the bottom row."""
+    h, w = texture.shape[:2]
+    x, y = uv[:, 0] * w - 0.5, (1.0 - uv[:, 1]) * h - 0.5
+    out = np.zeros((len(uv), texture.shape[2]))
+    for n in range(len(uv)):
+        x0, y0 = int(np.floor(x[n])), int(np.floor(y[n]))
+        for dy in (0, 1):
+            for dx in (0, 1):
+                weight = (1 - abs(x[n] - x0 - dx)) * (1 - abs(y[n] - y0 - dy))
+                out[n] += weight * texture[(y0 + dy) % h, (x0 + dx) % w]
+    return out
+
+
+def test_sample_texture_is_bilinear_with_repeat():
+    rng = np.random.default_rng(0)
+    texture = rng.random((5, 7, 4)).astype(np.float32)
+    uv = rng.uniform(-1.5, 2.5, size=(200, 2)).astype(np.float32)
+    got = np.asarray(jax.jit(jv.sample_texture)(texture, uv))
+    np.testing.assert_allclose(got, _bilinear_reference(texture.astype(np.float64), uv.astype(np.float64)), atol=1e-5)
+    centres = np.array([[(0 + 0.5) / 7, 1 - (0 + 0.5) / 5], [(6 + 0.5) / 7, 1 - (4 + 0.5) / 5]], np.float32)
+    np.testing.assert_allclose(np.asarray(jv.sample_texture(texture, centres)), texture[[0, 4], [0, 6]], atol=1e-6)
+
+
+def test_load_mesh_reads_a_texture_and_voxels_sample_it(textured_quad):
+    path, texels = textured_quad
+    mesh = jv.load_mesh(path)
+    assert mesh.texture.shape == (4, 4, 4) and mesh.uvs.shape == (mesh.num_vertices, 2)
+    np.testing.assert_allclose(np.asarray(mesh.texture)[..., :3], texels, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(mesh.uvs), np.asarray(mesh.vertices)[:, :2])
+    vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=16), triangle_ids=True)
+    n = int(vox.count)
+    colour = np.asarray(jv.voxel_attributes(mesh, vox)["color"])[:n, :3]
+    # The plane point nearest a voxel centre is its (x, y) clipped to the quad, and uv = (x, y).
+    xy = np.clip(np.asarray(vox.grid.origin)[:2] + (np.asarray(vox.coords)[:n, :2] + 0.5) * float(vox.grid.voxel_size),
+                 0.0, 1.0)
+    np.testing.assert_allclose(colour, _bilinear_reference(texels, xy), atol=1e-5)
+    padded = jv.pad_mesh(mesh, mesh.num_vertices + 3, mesh.num_faces + 2)
+    assert padded.texture.shape == mesh.texture.shape and padded.uvs.shape == (mesh.num_vertices + 3, 2)
+    with pytest.raises(jv.JaxvoxError, match="both uvs"):
+        validate_mesh(jv.Mesh(mesh.vertices, mesh.faces, uvs=mesh.uvs))
+    with pytest.raises(jv.JaxvoxError, match="uvs must have shape"):
+        validate_mesh(jv.Mesh(mesh.vertices, mesh.faces, uvs=np.zeros((2, 2)), texture=mesh.texture))
+
+
 # ------------------------------------------------------------------ hypothesis voxel sets
 
 

@@ -333,6 +333,32 @@ def test_mesh_renderer_furnace_and_agreement_with_voxels(scene):
     assert np.median(diff) < 0.05 * np.median(np.asarray(a.radiance)[up])
 
 
+def test_mesh_renderer_samples_the_texture(textured_quad):
+    """A textured quad facing the camera, lit by a sun along its normal, no bounces: each
+    quadrant shows its texel's linear colour / pi * E (as the voxels' albedo does)."""
+    pytest.importorskip("embreex")
+    from jaxvox.image import srgb_to_linear
+
+    path, texels = textured_quad
+    mesh = jv.load_mesh(path)
+    env = jv.sky_environment(sun_direction=(0, 0, 1), sun_irradiance=(2.0, 2.0, 2.0), zenith=0, horizon=0, ground=0)
+    result = jv.render_mesh(mesh, (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), env=env, albedo="mesh", bounces=0, key=0,
+                            fov=20.0, **SETTINGS)
+    rgb = np.asarray(result.radiance)
+    # Pixel rows run top to bottom, as do texture rows (v = 1, y = 1 on top). Quadrant
+    # centres, x and y = 0.25 and 0.75, lie where the bilinear lookup blends one colour.
+    scale = H / (2 * 2.0 * np.tan(np.radians(10.0)))  # pixels per world unit at distance 2
+    for row in (0, 1):
+        for col in (0, 1):
+            i = int(H / 2 + (row - 0.5) * 0.5 * scale)
+            j = int(W / 2 + (col - 0.5) * 0.5 * scale)
+            expected = srgb_to_linear(texels[2 * row, 2 * col]) / np.pi * 2.0
+            np.testing.assert_allclose(rgb[i, j], expected, atol=1e-4)
+    with pytest.raises(jv.JaxvoxError, match="neither a texture nor vertex colours"):
+        jv.render_mesh(jv.Mesh(mesh.vertices, mesh.faces), (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), albedo="mesh",
+                       **SETTINGS)
+
+
 def test_cosine_sampling_moments():
     """Cosine-weighted directions: unit, in the hemisphere, E[cos] = 2/3, E[cos^2] = 1/2, no preferred azimuth."""
     import jax
