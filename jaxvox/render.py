@@ -9,16 +9,22 @@ a directional light of given irradiance. The estimator is the simplest unbiased 
 * at a surface hit the path adds ``throughput * emission`` and continues in a
   cosine-weighted direction about the face normal, from a point just off the face
   (``throughput *= albedo``: the cosine and the BRDF's ``1/pi`` cancel against the pdf);
-* a ray that escapes adds ``throughput * env(direction)``: the smooth environment is
-  only ever found by bounce rays;
+* a ray that escapes adds ``throughput * env(direction)``;
+* an environment image is also sampled directly (next-event estimation with importance
+  sampling): at each hit that the path leaves by a bounce, one direction is drawn with
+  probability proportional to the image's luminance times its pixels' solid angle, and
+  a shadow ray toward it adds the light it sees. The two ways of finding the environment
+  are combined by multiple importance sampling (Veach's power heuristic), so the
+  estimate stays unbiased and a small bright region (a window, a sun in an HDR map) is
+  found by the sample that finds it best;
 * the sun, a delta light that no bounce ray can hit, is only found by a shadow ray at
   each hit (next-event estimation): ``throughput * albedo / pi * E_sun * cos`` when the
-  ray toward the sun escapes. No sample can reach the same light both ways, so no
-  multiple importance sampling is needed. Camera rays also see the sun's disc (angular
+  ray toward the sun escapes; no bounce ray can reach it, so it needs no weights. Camera rays also see the sun's disc (angular
   radius from ``sun_cos``) so that it shows in the image; light never bounces off it.
 
 A path has at most ``bounces + 1`` segments; ``bounces=0`` shows emission, the direct
-sun and the environment behind the scene. A path whose ray hits the traversal's step
+sun and the environment behind the scene (the environment's light on surfaces arrives
+with the first bounce, by either strategy). A path whose ray hits the traversal's step
 cap, or starts inside a voxel (a float32 tie at a voxel edge), ends there and is counted
 in `RenderResult.stopped`.
 
@@ -52,6 +58,7 @@ from jaxvox.octree import Octree
 from jaxvox.trace import HIT, STEP_CAP, trace
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
+_LIGHT_STREAM = 1 << 16  # random stream of the environment sample at vertex k: _LIGHT_STREAM + k
 _SUN_COS = math.cos(math.radians(0.53))  # default sun disc: 0.53 degrees in radius (2x the real sun)
 
 
@@ -77,6 +84,10 @@ class Environment:
       sun_irradiance: [3] float32 irradiance on a surface facing the sun.
       sun_cos: [] float32 cosine of the sun disc's angular radius (camera rays only).
       sun: static bool, whether the sun is traced (one shadow ray per hit).
+      cdf: [Hi * Wi] float32 cumulative probabilities of the image's pixels (row-major)
+        for importance sampling: luminance times solid angle, normalised.
+      sampled: static bool, whether the image is importance-sampled (one more shadow
+        ray per bounce); set for images of more than one pixel with any light.
     """
 
     image: jax.Array  # [Hi, Wi, 3] float32
@@ -86,7 +97,17 @@ class Environment:
     sun_direction: jax.Array  # [3] float32
     sun_irradiance: jax.Array  # [3] float32
     sun_cos: jax.Array  # [] float32
+    cdf: jax.Array  # [Hi * Wi] float32
     sun: bool = dataclasses.field(metadata=dict(static=True))
+    sampled: bool = dataclasses.field(metadata=dict(static=True))
+
+    def _pixel(self, d: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(row, col) int32 [...] of the image pixel holding unit directions [..., 3]."""
+        h, w = self.image.shape[:2]
+        row = jnp.clip(jnp.floor(jnp.arccos(jnp.clip(d[..., 1], -1.0, 1.0)) / jnp.pi * h), 0, h - 1)
+        phi = jnp.arctan2(d[..., 0], -d[..., 2])  # 0 along -z, pi / 2 along +x
+        col = jnp.clip(jnp.floor((phi + jnp.pi) / (2 * jnp.pi) * w), 0, w - 1)
+        return row.astype(jnp.int32), col.astype(jnp.int32)
 
     def radiance(self, directions: jax.Array) -> jax.Array:
         """Radiance [..., 3] float32 from directions [..., 3] (need not be unit; zero gives the horizon).
@@ -96,11 +117,8 @@ class Environment:
         d = jnp.asarray(directions, jnp.float32)
         length = jnp.linalg.norm(d, axis=-1, keepdims=True)
         d = d / jnp.where(length > 0, length, 1.0)
-        x, y, z = d[..., 0], d[..., 1], d[..., 2]
-        h, w = self.image.shape[:2]
-        row = jnp.clip(jnp.floor(jnp.arccos(jnp.clip(y, -1.0, 1.0)) / jnp.pi * h), 0, h - 1).astype(jnp.int32)
-        phi = jnp.arctan2(x, -z)  # 0 along -z, pi / 2 along +x
-        col = jnp.clip(jnp.floor((phi + jnp.pi) / (2 * jnp.pi) * w), 0, w - 1).astype(jnp.int32)
+        y = d[..., 1]
+        row, col = self._pixel(d)
         up = jnp.sqrt(jnp.clip(y, 0.0, 1.0))[..., None]
         below = jnp.clip(-y / math.sin(math.radians(5.0)), 0.0, 1.0)[..., None]
         sky = jnp.where(y[..., None] >= 0, self.horizon + (self.zenith - self.horizon) * up,
@@ -116,6 +134,36 @@ class Environment:
         sun = jnp.where(disc & self.sun, self.sun_irradiance / jnp.maximum(solid_angle, 1e-12), 0.0)
         return self.radiance(d) + sun
 
+    def sample(self, u: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Directions drawn from the image's importance distribution.
+
+        A pixel is picked from `cdf`, then a point uniform in solid angle inside it.
+
+        Args:
+          u: [N, 3] float32 uniforms in [0, 1).
+
+        Returns:
+          (directions [N, 3] float32 unit, pdf [N] float32 per steradian).
+        """
+        h, w = self.image.shape[:2]
+        pixel = jnp.minimum(jnp.searchsorted(self.cdf, u[:, 0] * self.cdf[-1], side="right"), h * w - 1)
+        row, col = pixel // w, pixel % w
+        cos_top, cos_bottom = jnp.cos(jnp.pi * row / h), jnp.cos(jnp.pi * (row + 1) / h)
+        y = cos_top + u[:, 1] * (cos_bottom - cos_top)
+        phi = 2 * jnp.pi * (col + u[:, 2]) / w - jnp.pi
+        sin = jnp.sqrt(jnp.maximum(1 - y * y, 0.0))
+        d = jnp.stack([sin * jnp.sin(phi), y, -sin * jnp.cos(phi)], -1)
+        return d, self.pdf(d)
+
+    def pdf(self, directions: jax.Array) -> jax.Array:
+        """[...] float32 probability density (per steradian) of `sample` drawing unit `directions` [..., 3]."""
+        h, w = self.image.shape[:2]
+        row, col = self._pixel(directions)
+        flat = row * w + col
+        prob = self.cdf[flat] - jnp.where(flat > 0, self.cdf[jnp.maximum(flat - 1, 0)], 0.0)
+        solid = 2 * jnp.pi / w * (jnp.cos(jnp.pi * row / h) - jnp.cos(jnp.pi * (row + 1) / h))
+        return prob / self.cdf[-1] / solid
+
 
 def _rgb(value, name: str) -> np.ndarray:
     v = np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
@@ -124,8 +172,16 @@ def _rgb(value, name: str) -> np.ndarray:
     return v
 
 
+def _image_cdf(image: np.ndarray) -> np.ndarray:
+    """[H * W] float32 cumulative sums (float64, then rounded) of luminance x pixel solid angle."""
+    h, w = image.shape[:2]
+    luminance = image.astype(np.float64) @ np.array([0.2126, 0.7152, 0.0722])
+    edges = np.cos(np.pi * np.arange(h + 1) / h)
+    return np.cumsum(luminance * (2 * np.pi / w * (edges[:-1] - edges[1:]))[:, None]).astype(np.float32)
+
+
 def _environment(image, *, zenith=0.0, horizon=0.0, ground=0.0, sun_direction=(0.0, 1.0, 0.0),
-                 sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False) -> Environment:
+                 sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False, importance=False) -> Environment:
     image = np.asarray(image, np.float32)
     if image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
         raise JaxvoxError(f"an environment image must be [H, W, 3], got shape {image.shape}")
@@ -138,9 +194,10 @@ def _environment(image, *, zenith=0.0, horizon=0.0, ground=0.0, sun_direction=(0
     fields = dict(image=jnp.asarray(image), zenith=_rgb(zenith, "zenith"), horizon=_rgb(horizon, "horizon"),
                   ground=_rgb(ground, "ground"), sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
                   sun_irradiance=_rgb(sun_irradiance, "sun_irradiance"), sun_cos=np.float32(sun_cos),
-                  sun=bool(sun))
+                  cdf=_image_cdf(image), sun=bool(sun))
+    fields["sampled"] = bool(importance and image.shape[0] * image.shape[1] > 1 and fields["cdf"][-1] > 0)
     for name, value in fields.items():
-        object.__setattr__(env, name, jnp.asarray(value) if name != "sun" else value)
+        object.__setattr__(env, name, value if name in ("sun", "sampled") else jnp.asarray(value))
     return env
 
 
@@ -166,12 +223,14 @@ def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1
                         sun_cos=math.cos(math.radians(sun_radius_degrees)), sun=bool(irradiance.any()))
 
 
-def load_environment(path: str | os.PathLike, *, scale: float = 1.0) -> Environment:
+def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance: bool = True) -> Environment:
     """An environment from a lat-long (equirectangular) HDR image file, times `scale`.
 
     Reads ``.exr`` files with OpenEXR (channels R, G, B; a single channel Y is grey),
     Radiance ``.hdr`` files (`read_hdr`) and ``.npy`` arrays [H, W, 3]; see `Environment`
-    for the layout. No sun.
+    for the layout. No sun. With `importance` (default) the image is also sampled
+    directly at every bounce (see the module docstring): less noise from small bright
+    regions for one more shadow ray per bounce; without it only bounce rays find it.
 
     Raises:
       JaxvoxError: missing file, unsupported format, or bad contents.
@@ -197,7 +256,7 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0) -> Environm
     else:
         raise JaxvoxError(f"{path}: environment maps are read from .exr, .hdr or .npy files, "
                           f"not {ext or 'no extension'}")
-    return _environment(np.asarray(image, np.float32) * np.float32(scale))
+    return _environment(np.asarray(image, np.float32) * np.float32(scale), importance=importance)
 
 
 @pytree_dataclass
@@ -229,6 +288,7 @@ class _Path(NamedTuple):
     throughput: jax.Array  # [N, 3] float32
     radiance: jax.Array  # [N, 3] float32 gathered so far
     stopped: jax.Array  # [N] bool the path ended early
+    pdf: jax.Array  # [N] float32 density of `direction` under cosine sampling; 0 for camera rays
 
 
 class _Surface(NamedTuple):
@@ -304,28 +364,52 @@ def _lookup(table, index):
     return table[jnp.minimum(index, table.shape[0] - 1)]
 
 
+def _mis(a, b):
+    """Power-heuristic weight [N] of a sample drawn with density `a` against a strategy of density `b`."""
+    return jnp.where(a > 0, a * a / jnp.maximum(a * a + b * b, 1e-30), 0.0)
+
+
+def _env_light(env: Environment, surf: _Surface, u, last):
+    """The environment sample at each hit that the path leaves by a bounce.
+
+    Returns (directions [N, 3] float32, zero where there is none, and their pdf [N]).
+    """
+    d, pdf = env.sample(u)
+    use = surf.hit & ~last & (jnp.sum(surf.normal * d, -1) > 0) & (pdf > 0)
+    return jnp.where(use[:, None], d, 0.0), jnp.where(use, pdf, 0.0)
+
+
 def _shade(path: _Path, surf: _Surface, sun_visible, u, *, rho, emitted, env: Environment, first: bool,
-           last) -> _Path:
-    """One path vertex: gathers emission, escape and the sun; samples the next direction.
+           last, light=None) -> _Path:
+    """One path vertex: gathers emission, escape, the sun and the environment sample;
+    samples the next direction.
 
     ``rho`` and ``emitted`` are the [N, 3] albedo and emission at the hits, ``u`` [N, 2]
-    uniforms, ``sun_visible`` [N] float32 whether the shadow ray escaped.
+    uniforms, ``sun_visible`` [N] float32 whether the shadow ray escaped; ``light`` is
+    (directions, pdf, visible) of the environment samples when ``env.sampled``.
     """
     live = jnp.any(path.direction != 0, axis=-1)
     sky = (env.camera_radiance if first else env.radiance)(path.direction)
+    if env.sampled and not first:
+        sky = sky * _mis(path.pdf, env.pdf(path.direction))[:, None]
     radiance = path.radiance + jnp.where(surf.escaped[:, None], path.throughput * sky, 0.0)
     gathered = emitted
     if env.sun:
         cos = jnp.maximum(jnp.sum(surf.normal * env.sun_direction, -1), 0.0)
         sun = rho / jnp.pi * env.sun_irradiance * (cos * sun_visible)[:, None]
         gathered = gathered + sun
+    if env.sampled:
+        d, pdf, visible = light
+        cos = jnp.sum(surf.normal * d, -1)  # > 0 where pdf > 0
+        weight = _mis(pdf, cos / jnp.pi) / jnp.where(pdf > 0, pdf, 1.0) * cos * visible
+        gathered = gathered + rho / jnp.pi * env.radiance(d) * weight[:, None]
     radiance = radiance + jnp.where(surf.hit[:, None], path.throughput * gathered, 0.0)
     go_on = surf.hit & ~last & live
-    direction = jnp.where(go_on[:, None], _cosine_direction(jnp.where(surf.hit[:, None], surf.normal,
-                                                                      jnp.array([0.0, 0.0, 1.0])), u), 0.0)
+    normal = jnp.where(surf.hit[:, None], surf.normal, jnp.array([0.0, 0.0, 1.0]))
+    direction = jnp.where(go_on[:, None], _cosine_direction(normal, u), 0.0)
     return _Path(origin=jnp.where(go_on[:, None], surf.point, path.origin), direction=direction,
                  throughput=path.throughput * jnp.where(go_on[:, None], rho, 1.0), radiance=radiance,
-                 stopped=path.stopped | surf.stopped)
+                 stopped=path.stopped | surf.stopped, pdf=jnp.sum(normal * direction, -1) / jnp.pi)
 
 
 def _uniforms(keys, stream: int, n: int):
@@ -343,7 +427,7 @@ def _camera_path(camera, key, ids, *, width: int, height: int) -> tuple[_Path, j
     d = _camera_rays(camera, px, py, width=width, height=height)
     zeros = jnp.zeros_like(d)
     path = _Path(origin=jnp.broadcast_to(camera[0], d.shape), direction=d, throughput=jnp.ones_like(d),
-                 radiance=zeros, stopped=jnp.zeros(d.shape[0], bool))
+                 radiance=zeros, stopped=jnp.zeros(d.shape[0], bool), pdf=jnp.zeros(d.shape[0], jnp.float32))
     return path, keys
 
 
@@ -364,8 +448,12 @@ def _render_batch(tree, albedo, emission, env, camera, key, start, total, bounce
             towards = jnp.where((surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None],
                                 env.sun_direction, 0.0)
             visible = (go(surf.point, towards).status != HIT).astype(jnp.float32)
+        light = None
+        if env.sampled:
+            d, pdf = _env_light(env, surf, _uniforms(keys, _LIGHT_STREAM + k, 3), k >= bounces)
+            light = (d, pdf, (go(surf.point, d).status != HIT).astype(jnp.float32))
         return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), rho=_lookup(albedo, surf.index),
-                      emitted=_lookup(emission, surf.index), env=env, first=first, last=k >= bounces)
+                      emitted=_lookup(emission, surf.index), env=env, first=first, last=k >= bounces, light=light)
 
     path = segment(0, path, True)
     path = jax.lax.fori_loop(1, bounces + 1, lambda k, p: segment(k, p, False), path)
@@ -520,9 +608,14 @@ def _mesh_camera(camera, key, ids, valid, *, width, height):
 
 
 @functools.partial(jax.jit, static_argnames=("first",))
-def _mesh_shade(path, surf, visible, keys, k, rho, emitted, env, last, *, first):
+def _mesh_shade(path, surf, visible, light, keys, k, rho, emitted, env, last, *, first):
     return _shade(path, surf, visible, _uniforms(keys, k + 1, 2), rho=rho, emitted=emitted, env=env, first=first,
-                  last=last)
+                  last=last, light=light)
+
+
+@jax.jit
+def _mesh_light(env, surf, keys, k, last):
+    return _env_light(env, surf, _uniforms(keys, _LIGHT_STREAM + k, 3), last)
 
 
 def _mesh_tables(mesh, albedo, emission):
@@ -630,9 +723,17 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
                     if lit.any():
                         _, prim, _, _, _ = intersect(surf.point[lit], np.broadcast_to(sun, (int(lit.sum()), 3)))
                         visible[lit] = prim < 0
-                path = _mesh_shade(path, jax.tree.map(jnp.asarray, surf), jnp.asarray(visible), keys, k,
-                                   jnp.asarray(rho), jnp.asarray(emitted), env, jnp.asarray(k >= bounces),
-                                   first=k == 0)
+                surf = jax.tree.map(jnp.asarray, surf)
+                light = None
+                if env.sampled:
+                    d, pdf = (np.asarray(a) for a in _mesh_light(env, surf, keys, k, jnp.asarray(k >= bounces)))
+                    seen = np.zeros(batch, np.float32)
+                    use = pdf > 0
+                    if use.any():
+                        seen[use] = intersect(np.asarray(surf.point)[use], d[use])[1] < 0
+                    light = (jnp.asarray(d), jnp.asarray(pdf), jnp.asarray(seen))
+                path = _mesh_shade(path, surf, jnp.asarray(visible), light, keys, k, jnp.asarray(rho),
+                                   jnp.asarray(emitted), env, jnp.asarray(k >= bounces), first=k == 0)
             np.add.at(image, ids[valid] % (width * height), np.asarray(path.radiance, np.float64)[valid])
             bar.update(1)
     j, i = np.meshgrid(np.arange(width), np.arange(height))
