@@ -47,6 +47,7 @@ from jaxvox.octree import (
 from jaxvox.render import (
     Environment,
     RenderResult,
+    box_emission,
     load_environment,
     render,
     render_mesh,
@@ -143,6 +144,7 @@ __all__ = [
     "load_environment",
     "read_exr",
     "read_hdr",
+    "box_emission",
     "render",
     "render_mesh",
     "save_render",

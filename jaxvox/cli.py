@@ -197,7 +197,7 @@ def _upright_default_scene():
 
 
 def _render_scene(args):
-    """(tree, albedo, bounds, name) for `render`: a .jvx tree file, a mesh, or the default scene."""
+    """(tree, albedo, emission, bounds, name) for `render`: a .jvx tree file, a mesh, or the default scene."""
     import jaxvox as jv
 
     if args.mesh is not None and args.mesh.endswith(".jvx"):
@@ -206,6 +206,7 @@ def _render_scene(args):
         lo = np.asarray(g.origin)
         bounds = (lo, lo + g.resolution * float(g.voxel_size))
         name = os.path.basename(args.mesh)
+        vox = jv.expand(tree) if args.emit else None
         print(f"{name}: {int(tree.voxel_count):,} voxels at {g.resolution}^3, {tree.num_nodes:,} nodes")
     else:
         mesh, name = (_upright_default_scene(), "default scene") if args.mesh is None else _load(args.mesh)
@@ -219,7 +220,25 @@ def _render_scene(args):
               f"DAG of {tree.num_nodes:,} nodes, in {time.perf_counter() - start:.1f} s")
     material = _numbers(args.albedo, "albedo", (1, 3))
     albedo = jv.voxel_albedo(attributes, default=np.broadcast_to(material, 3))
-    return tree, albedo, bounds, name
+    emission = None
+    for lo, hi, rgb in map(_emitter, args.emit or ()):
+        box = jv.box_emission(vox, lo, hi, rgb)
+        emission = box if emission is None else emission + box
+    return tree, albedo, emission, bounds, name
+
+
+def _emitter(text: str):
+    """``XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B`` -> (lo, hi, rgb)."""
+    from jaxvox._errors import JaxvoxError
+
+    box, _, rgb = text.partition(":")
+    if not rgb:
+        raise JaxvoxError(f"--emit takes XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B, got {text!r}")
+    corners = _numbers(box, "emit box", (6,))
+    colour = _numbers(rgb, "emit colour", (1, 3))
+    if min(colour) < 0:
+        raise JaxvoxError(f"--emit radiance must be non-negative, got {rgb!r}")
+    return corners[:3], corners[3:], np.broadcast_to(colour, 3)
 
 
 def cmd_render(args) -> int:
@@ -229,14 +248,16 @@ def cmd_render(args) -> int:
     width, height = _size(args.size)
     camera = _numbers(args.camera, "camera", (2, 3, 6)) if args.camera else [35.0, 25.0]
     _numbers(args.albedo, "albedo", (1, 3))
+    for text in args.emit or ():
+        _emitter(text)
     env = _environment(args.env)
-    tree, albedo, bounds, name = _render_scene(args)
+    tree, albedo, emission, bounds, name = _render_scene(args)
     if len(camera) == 6:
         eye, target = camera[:3], camera[3:]
     else:
         eye, target = jv.look_at_view(bounds, azimuth=camera[0], elevation=camera[1],
                                       **({"distance": camera[2]} if len(camera) == 3 else {}))
-    settings = dict(env=env, albedo=albedo, width=width, height=height, fov=args.fov, spp=args.spp,
+    settings = dict(env=env, albedo=albedo, emission=emission, width=width, height=height, fov=args.fov, spp=args.spp,
                     bounces=args.bounces, key=args.seed, batch_rays=args.batch_rays)
     start = time.perf_counter()
     result = jv.render(tree, eye, target, **settings)
@@ -330,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 35,25), or EYE_X,EYE_Y,EYE_Z,TARGET_X,TARGET_Y,TARGET_Z")
     render.add_argument("--fov", type=float, default=40.0, help="vertical field of view in degrees")
     render.add_argument("--albedo", default="0.7", help="material colour where the mesh has no vertex colours")
+    render.add_argument("--emit", action="append", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B",
+                        help="voxels whose centres lie in this world box emit this linear radiance "
+                        "(repeatable; write --emit=-1,... when the box starts with a minus sign)")
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     render.add_argument("--batch-rays", type=int, default=1 << 18, help="paths traced per batch (memory)")

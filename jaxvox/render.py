@@ -746,6 +746,25 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
                         depth=jnp.asarray(depth), normal=jnp.asarray(normal), stopped=jnp.int32(0))
 
 
+def box_emission(vox, lo, hi, rgb) -> jax.Array:
+    """Per-voxel emission: `rgb` for the voxels whose centres lie in a world-space box.
+
+    Args:
+      vox: `Voxels` in Morton order (from `jaxvox.voxelize`, or `jaxvox.expand` of a tree).
+      lo, hi: [3] box corners in world units (inclusive).
+      rgb: [3] (or a scalar) linear emitted radiance.
+
+    Returns:
+      [capacity, 3] float32 for `render`'s ``emission`` (zero outside the box and in
+      unused slots); add several for several boxes.
+    """
+    rgb = _rgb(rgb, "rgb")
+    centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
+    inside = jnp.all((centre >= jnp.asarray(lo, jnp.float32)) & (centre <= jnp.asarray(hi, jnp.float32)), axis=-1)
+    inside = inside & (jnp.arange(vox.coords.shape[0]) < vox.count)
+    return jnp.where(inside[:, None], jnp.asarray(rgb), 0.0)
+
+
 def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True) -> jax.Array:
     """Per-voxel linear albedo from `voxel_attributes` (or `load_attributes`) output.
 

@@ -279,16 +279,23 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "levels: 5" in out and "bits per voxel" in out and f"voxels: {int(tree.voxel_count):,}" in out
     out_exr = tmp_path / "from_tree.exr"
-    assert main(["render", str(path), "--size", f"{W}x{H}", "--spp", "2", "--bounces", "1", "--batch-rays",
-                 str(W * H * 2), "--camera", "30,35,1.6", "--albedo", "0.5,0.6,0.7", "--out", str(out_exr)]) == 0
+    assert main(["render", str(path), "--size", f"{W}x{H}", "--spp", "2", "--bounces", "0", "--batch-rays",
+                 str(W * H * 2), "--camera", "30,35,1.6", "--albedo", "0.5,0.6,0.7", "--env", "black",
+                 "--emit=-9,-9,-9,9,9,9:1,2,3", "--out", str(out_exr)]) == 0
     assert str(tmp_path / "from_tree.png") in capsys.readouterr().out
-    assert jv.read_exr(out_exr)["R"].shape == (H, W)
+    channels = jv.read_exr(out_exr)
+    rgb, hits = np.stack([channels[c] for c in "RGB"], -1), np.isfinite(channels["Z"])
+    assert rgb.shape == (H, W, 3) and _interior(hits).sum() > 20
+    np.testing.assert_array_equal(rgb[_interior(hits)], np.broadcast_to([1.0, 2.0, 3.0], rgb[_interior(hits)].shape))
+    np.testing.assert_array_equal(rgb[_interior(~hits)], 0.0)
     assert main(["info", str(tmp_path / "missing.jvx")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.jvx" in err[0]
     for argv, match in ((["render", "--size", "64by48"], "WIDTHxHEIGHT"), (["render", "--camera", "1,2,3,4"], "camera"),
                         (["render", "--env", str(tmp_path / "nope.exr")], "not found"),
                         (["render", "--resolution", "100"], "power of two"),
+                        (["render", "--emit", "0,0,0,1,1,1"], "--emit takes"),
+                        (["render", "--emit", "0,0,0,1,1:1"], "emit box"),
                         (["render", "nope.obj"], "not found")):
         assert main(argv + ["--out", str(tmp_path / "x.exr")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
