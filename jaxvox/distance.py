@@ -41,11 +41,13 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
 
 Sweeping in JAX: a Gauss-Seidel sweep in order (+x, +y, +z) updates voxel
 ``(i, j, k)`` from its upwind neighbours, all on the hyperplane ``i + j + k = s - 1``,
-so the hyperplanes are visited in order by a `jax.lax.scan` over the grid stored
-skewed (plane ``s`` as an ``[R, R]`` array over (i, j), ``k = s - i - j``); this is
-the same update order as the sequential sweep (Detrixhe, Gibou & Min 2013). The
-reverse order is a reverse scan of the same layout; flipping one axis gives the
-other six orders.
+so the hyperplanes are visited in order by a `jax.lax.fori_loop` over the grid stored
+skewed (plane ``s`` as an ``[R, R]`` array over (i, j), ``k = s - i - j``), each plane
+updated in place; this is the same update order as the sequential sweep (Detrixhe,
+Gibou & Min 2013). The reverse order is a reverse loop over the same layout; flipping
+one axis gives the other six orders. The skew is two shears, each a pad and a reshape
+(no index arrays), and fixed voxels carry their sign bit (no mask array), so a sweep
+needs about 3 R^3 floats beyond the field.
 
 Memory: a dense field costs 4 R^3 bytes; the build needs more for temporaries, see
 `distance_field_bytes`. `distance_field` refuses sizes above ``max_bytes``.
@@ -76,9 +78,9 @@ FORMATS = ("float16", "fixed16")
 
 # Peak working memory per voxel of each method (bytes), measured as the process's peak
 # resident memory at 64^3-256^3 with room to spare (jump flooding works on blocks of
-# voxels: ~30 measured; sweeping holds several skewed [3R-2, R, R] copies and their
-# gather indices: ~400-500 measured); add SIGN_BYTES_PER_VOXEL for a signed field.
-BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 448, "jfa+sweep": 448}
+# voxels: ~30 measured; sweeping holds a skewed [3R-2, R, R] copy and the shears'
+# temporaries: 41 measured at 256^3); add SIGN_BYTES_PER_VOXEL for a signed field.
+BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 64, "jfa+sweep": 64}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
 _VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds its temporaries)
@@ -240,53 +242,81 @@ def _godunov(a, b, c):
     return jnp.where(three, u3, jnp.where(two, u2, u1))
 
 
-def _skew_index(resolution: int):
-    """Indices of the skewed layout: plane s, row i, column j holds voxel (i, j, s - i - j)."""
-    r = resolution
-    s = jnp.arange(3 * r - 2)[:, None, None]
-    i = jnp.arange(r)[None, :, None]
-    j = jnp.arange(r)[None, None, :]
-    k = s - i - j
-    return i, j, jnp.clip(k, 0, r - 1), (k >= 0) & (k < r)
+def _shear(a, fill):
+    """Shifts row ``i`` of the last two axes right by ``i``: [..., n, m] -> [..., n, m + n - 1].
+
+    ``out[..., i, i + t] = a[..., i, t]``, `fill` elsewhere. Pad, flatten, re-read with a
+    row one shorter: copies only, no index arrays.
+    """
+    *lead, n, m = a.shape
+    flat = jnp.pad(a, [(0, 0)] * len(lead) + [(0, 0), (0, n)], constant_values=fill).reshape(*lead, n * (m + n))
+    return flat[..., : n * (m + n - 1)].reshape(*lead, n, m + n - 1)
 
 
-def _sweep_pair(u, free):
+def _unshear(b, m: int, fill):
+    """The inverse of `_shear`: [..., n, m + n - 1] -> [..., n, m]."""
+    *lead, n, _ = b.shape
+    flat = jnp.pad(b.reshape(*lead, n * (m + n - 1)), [(0, 0)] * len(lead) + [(0, n)], constant_values=fill)
+    return flat.reshape(*lead, n, m + n)[..., :m]
+
+
+def _skew(u, fill):
+    """[R, R, R] (i, j, k) -> [3R - 2, R, R] (s, i, j) holding ``u[i, j, s - i - j]``, `fill` elsewhere."""
+    v = _shear(u, fill)  # [i, j, j + k]
+    w = _shear(v.transpose(1, 0, 2), fill)  # [j, i, i + j + k]
+    return w.transpose(2, 1, 0)
+
+
+def _unskew(t, fill):
+    """The inverse of `_skew`."""
+    r = t.shape[1]
+    v = _unshear(t.transpose(2, 1, 0), 2 * r - 1, fill)  # [j, i, j + k]
+    return _unshear(v.transpose(1, 0, 2), r, fill)
+
+
+def _sweep_pair(u):
     """Gauss-Seidel sweeps in orders (+, +, +) then (-, -, -) of u [R, R, R] (inf: unknown).
 
-    Only voxels where `free` is set are updated, to ``min(u, Godunov update)``.
+    Voxels whose sign bit is set are fixed (their value is ``-u``); the others are
+    updated to ``min(u, Godunov update)``. Outside the grid the skewed layout holds
+    ``-inf``: fixed and, read as ``|u|``, no neighbour.
     """
     r = u.shape[0]
-    i, j, k, valid = _skew_index(r)
-    plane = jnp.where(valid, u[i, j, k], jnp.inf)  # [3R-2, R, R]
-    movable = valid & free[i, j, k]
+    plane = _skew(u, -jnp.inf)  # [3R-2, R, R]
     inf_row = jnp.full((1, r), jnp.inf)
     inf_col = jnp.full((r, 1), jnp.inf)
 
-    def update(own, lower, upper, mov):
+    def update(own, lower, upper):
         """New values of a plane from the planes s - 1 (lower) and s + 1 (upper)."""
+        lower, upper = jnp.abs(lower), jnp.abs(upper)
         ax = jnp.minimum(jnp.concatenate([inf_row, lower[:-1]]), jnp.concatenate([upper[1:], inf_row]))
         ay = jnp.minimum(jnp.concatenate([inf_col, lower[:, :-1]], 1), jnp.concatenate([upper[:, 1:], inf_col], 1))
         az = jnp.minimum(lower, upper)
-        return jnp.where(mov, jnp.minimum(own, _godunov(ax, ay, az)), own)
+        return jnp.where(jnp.signbit(own), own, jnp.minimum(own, _godunov(ax, ay, az)))
 
-    inf_plane = jnp.full((1, r, r), jnp.inf)
-    above = jnp.concatenate([plane[1:], inf_plane])
-    forward = lambda lower, x: (lambda new: (new, new))(update(x[0], lower, x[1], x[2]))
-    plane = jax.lax.scan(forward, inf_plane[0], (plane, above, movable))[1]
-    below = jnp.concatenate([inf_plane, plane[:-1]])
-    backward = lambda upper, x: (lambda new: (new, new))(update(x[0], x[1], upper, x[2]))
-    plane = jax.lax.scan(backward, inf_plane[0], (plane, below, movable), reverse=True)[1]
-    ii, jj, kk = jnp.indices((r, r, r))
-    return plane[ii + jj + kk, ii, jj]
+    planes = plane.shape[0]
+    # One -inf plane on each side: plane s of the grid is row s + 1 here; updated in place.
+    plane = jnp.pad(plane, ((1, 1), (0, 0), (0, 0)), constant_values=-jnp.inf)
+    at = lambda p, s: jax.lax.dynamic_index_in_dim(p, s, keepdims=False)
+
+    def step(s, p):
+        new = update(at(p, s), at(p, s - 1), at(p, s + 1))
+        return jax.lax.dynamic_update_index_in_dim(p, new, s, 0)
+
+    plane = jax.lax.fori_loop(1, planes + 1, step, plane)  # (+, +, +)
+    plane = jax.lax.fori_loop(1, planes + 1, lambda n, p: step(planes + 1 - n, p), plane)  # (-, -, -)
+    plane = plane[1:-1]
+    return _unskew(plane, -jnp.inf)
 
 
 def _sweep(u, free, iterations: int):
-    """`iterations` rounds of fast sweeping in all 8 diagonal orders."""
+    """`iterations` rounds of fast sweeping in all 8 diagonal orders; only `free` voxels change."""
+    u = jnp.where(free, u, -u)  # the sign bit marks fixed voxels (u >= 0; -0.0 has it too)
     for _ in range(iterations):
         for axes in ((), (0,), (1,), (2,)):
             flip = lambda a: jnp.flip(a, axes) if axes else a
-            u = flip(_sweep_pair(flip(u), flip(free)))
-    return u
+            u = flip(_sweep_pair(flip(u)))
+    return jnp.abs(u)
 
 
 # -------------------------------------------------------------------------- sign
