@@ -36,8 +36,8 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
    Seidel: every triangle flips the inside bit of the voxels of a +x column beyond
    the column's crossing, then a prefix XOR along x; exact and O(surface), right for
    watertight meshes only, which it checks) or ``"winding"`` (the generalized
-   winding number, inside where it exceeds 1/2; O(R^3 F), right for open meshes
-   with holes, like the bunny, and for closed ones).
+   winding number, inside where it exceeds 1/2, by `jaxvox.winding_numbers`' tree of
+   dipoles: right for open meshes with holes, like the bunny, and for closed ones).
 
 Sweeping in JAX: a Gauss-Seidel sweep in order (+x, +y, +z) updates voxel
 ``(i, j, k)`` from its upwind neighbours, all on the hyperplane ``i + j + k = s - 1``,
@@ -70,6 +70,7 @@ from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.trace import HIT, MISS, STEP_CAP
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
+from jaxvox.winding import solid_angle, winding_numbers
 
 METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep")
 SIGN_METHODS = ("auto", "parity", "winding")
@@ -120,23 +121,9 @@ def _pair_distance(p, t):
     return jnp.sqrt(_point_triangle_dist2(p, t[..., 0, :], t[..., 1, :], t[..., 2, :]))
 
 
-def _solid_angle(p, t):
-    """Signed solid angle / (4 pi) of triangles t [..., 3, 3] seen from points p [..., 3].
-
-    Van Oosterom & Strackee, on separate x, y, z components (fused by XLA).
-    """
-    a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-    la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
-    det = (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
-           + a[2] * (b[0] * c[1] - b[1] * c[0]))
-    den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
-    return jnp.arctan2(det, den) / (2 * jnp.pi)
-
-
 def _winding_numbers(points, tris):
-    """Generalized winding number [n] of the mesh at points [n, 3] (grid units), chunked."""
-    return _per_point(points, tris, lambda p, t: _solid_angle(p, t).sum(1))
+    """Generalized winding number [n] at points [n, 3] by brute force over all triangles, chunked."""
+    return _per_point(points, tris, lambda p, t: solid_angle(p, t).sum(1))
 
 
 # ------------------------------------------------------------------------- seeds
@@ -404,11 +391,6 @@ def _parity(tris, *, resolution: int, capacity: int):
     return (jnp.cumsum(flips, axis=0) & 1).astype(bool)
 
 
-@functools.partial(jax.jit, static_argnames=("resolution",))
-def _winding_solid(tris, *, resolution: int):
-    return (_winding_numbers(_centres(resolution), tris) > 0.5).reshape((resolution,) * 3)
-
-
 @jax.jit
 def _grid_triangles(mesh: Mesh, grid: Grid):
     return grid.to_grid_units(mesh.triangles())
@@ -421,7 +403,7 @@ def _padded(mesh: Mesh) -> Mesh:
     return pad_mesh(mesh, mesh.num_vertices, bucket_pow2(mesh.num_faces, 256))
 
 
-def _solid(mesh: Mesh, grid: Grid, tris, method: str):
+def _solid(mesh: Mesh, grid: Grid, tris, method: str, beta: float):
     r = grid.resolution
     if mesh.num_faces == 0:
         return jnp.zeros((r, r, r), bool)
@@ -435,10 +417,10 @@ def _solid(mesh: Mesh, grid: Grid, tris, method: str):
                 "number of faces (holes or non-manifold edges); use sign='winding' (or method='winding') "
                 "for open meshes")
         return _parity(tris, resolution=r, capacity=bucket(int(_parity_count(tris, resolution=r))))
-    return _winding_solid(tris, resolution=r)
+    return winding_numbers(mesh, grid, beta=beta) > 0.5
 
 
-def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array:
+def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> jax.Array:
     """Voxels whose centre lies inside the mesh: [R, R, R] bool (True inside).
 
     Args:
@@ -447,9 +429,11 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
         numbers see the whole mesh).
       method: "parity" (Schwarz & Seidel: parity of the crossings of the +x ray,
         O(R^3 + surface); exact for watertight meshes, raises for open ones),
-        "winding" (generalized winding number > 1/2 at each centre, O(R^3 F): right for
-        open meshes with holes such as the Stanford bunny, and for closed ones), or
-        "auto" (parity when `open_edges(mesh) == 0`, else winding).
+        "winding" (generalized winding number > 1/2 at each centre, by
+        `jaxvox.winding_numbers`' tree: right for open meshes with holes such as the
+        Stanford bunny, and for closed ones), or "auto" (parity when
+        `open_edges(mesh) == 0`, else winding).
+      beta: the far-field ratio of `jaxvox.winding_numbers` ("winding" only).
 
     Raises:
       JaxvoxError: bad method or mesh, "parity" on a mesh that is not watertight, or a
@@ -458,7 +442,7 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
     validate_mesh(mesh)
     _check_sign_method(method)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
-    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method)
+    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method, beta)
 
 
 # ------------------------------------------------------------------- the field
@@ -567,7 +551,7 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
         triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
     dist = _unsigned(tris, coords, triangle, grid, method=method, band=int(band), sweeps=int(sweeps))
     if signed:
-        dist = jnp.where(_solid(mesh, grid, tris, sign), -dist, dist)
+        dist = jnp.where(_solid(mesh, grid, tris, sign, 2.0), -dist, dist)
     return dist * grid.voxel_size
 
 
@@ -718,10 +702,7 @@ def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
         w = rel[np.arange(3), slots]  # [n, 3] window-relative voxel of each exposed slot
         d = jnp.minimum(distance_field(mesh, window, method=clip.method, signed=False)[w[:, 0], w[:, 1], w[:, 2]],
                         limit)
-        if open_edges(mesh) == 0:
-            inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "parity")[w[:, 0], w[:, 1], w[:, 2]]
-        else:
-            inside = (_winding_numbers(jnp.asarray(centres), tris) > 0.5)[:n]
+        inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "auto", 2.0)[w[:, 0], w[:, 1], w[:, 2]]
         values = jnp.where(inside, -d, d)
     return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(values)
 
