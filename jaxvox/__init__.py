@@ -74,6 +74,7 @@ from jaxvox.voxelize import (
     voxelize,
     voxelize_fixed,
 )
+from jaxvox.winding import winding_numbers
 
 __version__ = "0.1.0"
 
@@ -109,6 +110,7 @@ __all__ = [
     "open_edges",
     "quantize_field",
     "solid_voxelize",
+    "winding_numbers",
     "expand",
     "load",
     "load_attributes",

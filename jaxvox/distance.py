@@ -36,16 +36,18 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
    Seidel: every triangle flips the inside bit of the voxels of a +x column beyond
    the column's crossing, then a prefix XOR along x; exact and O(surface), right for
    watertight meshes only, which it checks) or ``"winding"`` (the generalized
-   winding number, inside where it exceeds 1/2; O(R^3 F), right for open meshes
-   with holes, like the bunny, and for closed ones).
+   winding number, inside where it exceeds 1/2, by `jaxvox.winding_numbers`' tree of
+   dipoles: right for open meshes with holes, like the bunny, and for closed ones).
 
 Sweeping in JAX: a Gauss-Seidel sweep in order (+x, +y, +z) updates voxel
 ``(i, j, k)`` from its upwind neighbours, all on the hyperplane ``i + j + k = s - 1``,
-so the hyperplanes are visited in order by a `jax.lax.scan` over the grid stored
-skewed (plane ``s`` as an ``[R, R]`` array over (i, j), ``k = s - i - j``); this is
-the same update order as the sequential sweep (Detrixhe, Gibou & Min 2013). The
-reverse order is a reverse scan of the same layout; flipping one axis gives the
-other six orders.
+so the hyperplanes are visited in order by a `jax.lax.fori_loop` over the grid stored
+skewed (plane ``s`` as an ``[R, R]`` array over (i, j), ``k = s - i - j``), each plane
+updated in place; this is the same update order as the sequential sweep (Detrixhe,
+Gibou & Min 2013). The reverse order is a reverse loop over the same layout; flipping
+one axis gives the other six orders. The skew is two shears, each a pad and a reshape
+(no index arrays), and fixed voxels carry their sign bit (no mask array), so a sweep
+needs about 3 R^3 floats beyond the field.
 
 Memory: a dense field costs 4 R^3 bytes; the build needs more for temporaries, see
 `distance_field_bytes`. `distance_field` refuses sizes above ``max_bytes``.
@@ -68,6 +70,7 @@ from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.trace import HIT, MISS, STEP_CAP
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
+from jaxvox.winding import solid_angle, winding_numbers
 
 METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep")
 SIGN_METHODS = ("auto", "parity", "winding")
@@ -76,9 +79,9 @@ FORMATS = ("float16", "fixed16")
 
 # Peak working memory per voxel of each method (bytes), measured as the process's peak
 # resident memory at 64^3-256^3 with room to spare (jump flooding works on blocks of
-# voxels: ~30 measured; sweeping holds several skewed [3R-2, R, R] copies and their
-# gather indices: ~400-500 measured); add SIGN_BYTES_PER_VOXEL for a signed field.
-BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 448, "jfa+sweep": 448}
+# voxels: ~30 measured; sweeping holds a skewed [3R-2, R, R] copy and the shears'
+# temporaries: 41 measured at 256^3); add SIGN_BYTES_PER_VOXEL for a signed field.
+BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 64, "jfa+sweep": 64}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
 _VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds its temporaries)
@@ -118,23 +121,9 @@ def _pair_distance(p, t):
     return jnp.sqrt(_point_triangle_dist2(p, t[..., 0, :], t[..., 1, :], t[..., 2, :]))
 
 
-def _solid_angle(p, t):
-    """Signed solid angle / (4 pi) of triangles t [..., 3, 3] seen from points p [..., 3].
-
-    Van Oosterom & Strackee, on separate x, y, z components (fused by XLA).
-    """
-    a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-    la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
-    det = (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
-           + a[2] * (b[0] * c[1] - b[1] * c[0]))
-    den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
-    return jnp.arctan2(det, den) / (2 * jnp.pi)
-
-
 def _winding_numbers(points, tris):
-    """Generalized winding number [n] of the mesh at points [n, 3] (grid units), chunked."""
-    return _per_point(points, tris, lambda p, t: _solid_angle(p, t).sum(1))
+    """Generalized winding number [n] at points [n, 3] by brute force over all triangles, chunked."""
+    return _per_point(points, tris, lambda p, t: solid_angle(p, t).sum(1))
 
 
 # ------------------------------------------------------------------------- seeds
@@ -240,53 +229,81 @@ def _godunov(a, b, c):
     return jnp.where(three, u3, jnp.where(two, u2, u1))
 
 
-def _skew_index(resolution: int):
-    """Indices of the skewed layout: plane s, row i, column j holds voxel (i, j, s - i - j)."""
-    r = resolution
-    s = jnp.arange(3 * r - 2)[:, None, None]
-    i = jnp.arange(r)[None, :, None]
-    j = jnp.arange(r)[None, None, :]
-    k = s - i - j
-    return i, j, jnp.clip(k, 0, r - 1), (k >= 0) & (k < r)
+def _shear(a, fill):
+    """Shifts row ``i`` of the last two axes right by ``i``: [..., n, m] -> [..., n, m + n - 1].
+
+    ``out[..., i, i + t] = a[..., i, t]``, `fill` elsewhere. Pad, flatten, re-read with a
+    row one shorter: copies only, no index arrays.
+    """
+    *lead, n, m = a.shape
+    flat = jnp.pad(a, [(0, 0)] * len(lead) + [(0, 0), (0, n)], constant_values=fill).reshape(*lead, n * (m + n))
+    return flat[..., : n * (m + n - 1)].reshape(*lead, n, m + n - 1)
 
 
-def _sweep_pair(u, free):
+def _unshear(b, m: int, fill):
+    """The inverse of `_shear`: [..., n, m + n - 1] -> [..., n, m]."""
+    *lead, n, _ = b.shape
+    flat = jnp.pad(b.reshape(*lead, n * (m + n - 1)), [(0, 0)] * len(lead) + [(0, n)], constant_values=fill)
+    return flat.reshape(*lead, n, m + n)[..., :m]
+
+
+def _skew(u, fill):
+    """[R, R, R] (i, j, k) -> [3R - 2, R, R] (s, i, j) holding ``u[i, j, s - i - j]``, `fill` elsewhere."""
+    v = _shear(u, fill)  # [i, j, j + k]
+    w = _shear(v.transpose(1, 0, 2), fill)  # [j, i, i + j + k]
+    return w.transpose(2, 1, 0)
+
+
+def _unskew(t, fill):
+    """The inverse of `_skew`."""
+    r = t.shape[1]
+    v = _unshear(t.transpose(2, 1, 0), 2 * r - 1, fill)  # [j, i, j + k]
+    return _unshear(v.transpose(1, 0, 2), r, fill)
+
+
+def _sweep_pair(u):
     """Gauss-Seidel sweeps in orders (+, +, +) then (-, -, -) of u [R, R, R] (inf: unknown).
 
-    Only voxels where `free` is set are updated, to ``min(u, Godunov update)``.
+    Voxels whose sign bit is set are fixed (their value is ``-u``); the others are
+    updated to ``min(u, Godunov update)``. Outside the grid the skewed layout holds
+    ``-inf``: fixed and, read as ``|u|``, no neighbour.
     """
     r = u.shape[0]
-    i, j, k, valid = _skew_index(r)
-    plane = jnp.where(valid, u[i, j, k], jnp.inf)  # [3R-2, R, R]
-    movable = valid & free[i, j, k]
+    plane = _skew(u, -jnp.inf)  # [3R-2, R, R]
     inf_row = jnp.full((1, r), jnp.inf)
     inf_col = jnp.full((r, 1), jnp.inf)
 
-    def update(own, lower, upper, mov):
+    def update(own, lower, upper):
         """New values of a plane from the planes s - 1 (lower) and s + 1 (upper)."""
+        lower, upper = jnp.abs(lower), jnp.abs(upper)
         ax = jnp.minimum(jnp.concatenate([inf_row, lower[:-1]]), jnp.concatenate([upper[1:], inf_row]))
         ay = jnp.minimum(jnp.concatenate([inf_col, lower[:, :-1]], 1), jnp.concatenate([upper[:, 1:], inf_col], 1))
         az = jnp.minimum(lower, upper)
-        return jnp.where(mov, jnp.minimum(own, _godunov(ax, ay, az)), own)
+        return jnp.where(jnp.signbit(own), own, jnp.minimum(own, _godunov(ax, ay, az)))
 
-    inf_plane = jnp.full((1, r, r), jnp.inf)
-    above = jnp.concatenate([plane[1:], inf_plane])
-    forward = lambda lower, x: (lambda new: (new, new))(update(x[0], lower, x[1], x[2]))
-    plane = jax.lax.scan(forward, inf_plane[0], (plane, above, movable))[1]
-    below = jnp.concatenate([inf_plane, plane[:-1]])
-    backward = lambda upper, x: (lambda new: (new, new))(update(x[0], x[1], upper, x[2]))
-    plane = jax.lax.scan(backward, inf_plane[0], (plane, below, movable), reverse=True)[1]
-    ii, jj, kk = jnp.indices((r, r, r))
-    return plane[ii + jj + kk, ii, jj]
+    planes = plane.shape[0]
+    # One -inf plane on each side: plane s of the grid is row s + 1 here; updated in place.
+    plane = jnp.pad(plane, ((1, 1), (0, 0), (0, 0)), constant_values=-jnp.inf)
+    at = lambda p, s: jax.lax.dynamic_index_in_dim(p, s, keepdims=False)
+
+    def step(s, p):
+        new = update(at(p, s), at(p, s - 1), at(p, s + 1))
+        return jax.lax.dynamic_update_index_in_dim(p, new, s, 0)
+
+    plane = jax.lax.fori_loop(1, planes + 1, step, plane)  # (+, +, +)
+    plane = jax.lax.fori_loop(1, planes + 1, lambda n, p: step(planes + 1 - n, p), plane)  # (-, -, -)
+    plane = plane[1:-1]
+    return _unskew(plane, -jnp.inf)
 
 
 def _sweep(u, free, iterations: int):
-    """`iterations` rounds of fast sweeping in all 8 diagonal orders."""
+    """`iterations` rounds of fast sweeping in all 8 diagonal orders; only `free` voxels change."""
+    u = jnp.where(free, u, -u)  # the sign bit marks fixed voxels (u >= 0; -0.0 has it too)
     for _ in range(iterations):
         for axes in ((), (0,), (1,), (2,)):
             flip = lambda a: jnp.flip(a, axes) if axes else a
-            u = flip(_sweep_pair(flip(u), flip(free)))
-    return u
+            u = flip(_sweep_pair(flip(u)))
+    return jnp.abs(u)
 
 
 # -------------------------------------------------------------------------- sign
@@ -374,11 +391,6 @@ def _parity(tris, *, resolution: int, capacity: int):
     return (jnp.cumsum(flips, axis=0) & 1).astype(bool)
 
 
-@functools.partial(jax.jit, static_argnames=("resolution",))
-def _winding_solid(tris, *, resolution: int):
-    return (_winding_numbers(_centres(resolution), tris) > 0.5).reshape((resolution,) * 3)
-
-
 @jax.jit
 def _grid_triangles(mesh: Mesh, grid: Grid):
     return grid.to_grid_units(mesh.triangles())
@@ -391,7 +403,7 @@ def _padded(mesh: Mesh) -> Mesh:
     return pad_mesh(mesh, mesh.num_vertices, bucket_pow2(mesh.num_faces, 256))
 
 
-def _solid(mesh: Mesh, grid: Grid, tris, method: str):
+def _solid(mesh: Mesh, grid: Grid, tris, method: str, beta: float):
     r = grid.resolution
     if mesh.num_faces == 0:
         return jnp.zeros((r, r, r), bool)
@@ -405,10 +417,10 @@ def _solid(mesh: Mesh, grid: Grid, tris, method: str):
                 "number of faces (holes or non-manifold edges); use sign='winding' (or method='winding') "
                 "for open meshes")
         return _parity(tris, resolution=r, capacity=bucket(int(_parity_count(tris, resolution=r))))
-    return _winding_solid(tris, resolution=r)
+    return winding_numbers(mesh, grid, beta=beta) > 0.5
 
 
-def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array:
+def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> jax.Array:
     """Voxels whose centre lies inside the mesh: [R, R, R] bool (True inside).
 
     Args:
@@ -417,9 +429,11 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
         numbers see the whole mesh).
       method: "parity" (Schwarz & Seidel: parity of the crossings of the +x ray,
         O(R^3 + surface); exact for watertight meshes, raises for open ones),
-        "winding" (generalized winding number > 1/2 at each centre, O(R^3 F): right for
-        open meshes with holes such as the Stanford bunny, and for closed ones), or
-        "auto" (parity when `open_edges(mesh) == 0`, else winding).
+        "winding" (generalized winding number > 1/2 at each centre, by
+        `jaxvox.winding_numbers`' tree: right for open meshes with holes such as the
+        Stanford bunny, and for closed ones), or "auto" (parity when
+        `open_edges(mesh) == 0`, else winding).
+      beta: the far-field ratio of `jaxvox.winding_numbers` ("winding" only).
 
     Raises:
       JaxvoxError: bad method or mesh, "parity" on a mesh that is not watertight, or a
@@ -428,7 +442,7 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto") -> jax.Array
     validate_mesh(mesh)
     _check_sign_method(method)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
-    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method)
+    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method, beta)
 
 
 # ------------------------------------------------------------------- the field
@@ -537,7 +551,7 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
         triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
     dist = _unsigned(tris, coords, triangle, grid, method=method, band=int(band), sweeps=int(sweeps))
     if signed:
-        dist = jnp.where(_solid(mesh, grid, tris, sign), -dist, dist)
+        dist = jnp.where(_solid(mesh, grid, tris, sign, 2.0), -dist, dist)
     return dist * grid.voxel_size
 
 
@@ -688,10 +702,7 @@ def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
         w = rel[np.arange(3), slots]  # [n, 3] window-relative voxel of each exposed slot
         d = jnp.minimum(distance_field(mesh, window, method=clip.method, signed=False)[w[:, 0], w[:, 1], w[:, 2]],
                         limit)
-        if open_edges(mesh) == 0:
-            inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "parity")[w[:, 0], w[:, 1], w[:, 2]]
-        else:
-            inside = (_winding_numbers(jnp.asarray(centres), tris) > 0.5)[:n]
+        inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "auto", 2.0)[w[:, 0], w[:, 1], w[:, 2]]
         values = jnp.where(inside, -d, d)
     return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(values)
 
