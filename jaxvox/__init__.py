@@ -2,12 +2,13 @@
 
 Exact conservative and 6-separating triangle voxelization, sparse voxel octrees and
 DAGs with per-node prefix sums for voxel attributes, ray traversal of octrees, DAGs and
-dense grids, dense distance fields (jump flooding, fast sweeping, solid voxelization for
-the sign) and cascaded clipmaps, all with fixed-capacity jittable cores and host-side
+dense grids, dense distance fields (jump flooding, fast sweeping, solid voxelization and fast
+winding numbers for the sign) and cascaded clipmaps, all with fixed-capacity jittable cores and host-side
 APIs that size capacities by counting passes. Analytic signed distance function scenes
 (primitives, transforms, CSG) are jittable pytrees (`jaxvox.sdf`), rendered by sphere
 tracing and meshed by marching cubes. A diffuse path tracer (`jaxvox.render`) renders
-voxel DAGs under an environment light to EXR and PNG files.
+voxel DAGs (textured or vertex-coloured, emissive) under an importance-sampled
+environment light to EXR and PNG files.
 """
 
 from jaxvox import morton, sdf
