@@ -144,7 +144,7 @@ def table(cases: list[dict]) -> str:
         if "errors" in sign:
             sign_text = f"{sign['errors']} / {sign['checked']:,} in {sign['time_s']:.3g} s"
         else:
-            sign_text = "not run (above --winding-max)"
+            sign_text = "not run"
         for row in case["rows"]:
             if "refused" in row:
                 out.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
