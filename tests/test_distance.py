@@ -40,7 +40,7 @@ BOUNDS = {  # method: (max above exact, max below exact), voxels
     "jfa+sweep": (1.5, 0.6),
 }
 # Sweeping from a few isolated seeds (a lone triangle, geometry outside the grid, which
-# enters through the boundary voxels nearest its triangles' centroids) is first-order
+# enters through the voxels of its triangles' clamped centroids and corners) is first-order
 # from point sources: measured up to 2.8 voxels above at 16^3, 3.0 in a clipmap window.
 ISOLATED_SWEEP_BOUND = 3.25
 OUTSIDE_JFA_BOUND = 2.5  # jump flooding from geometry outside the grid (see its test)
