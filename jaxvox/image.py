@@ -13,6 +13,7 @@ import os
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
+from jaxvox._files import read_bytes
 
 TONEMAP_CURVES = ("aces", "clip")  # `tonemap` curves
 
@@ -69,11 +70,7 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
       JaxvoxError: missing file, not an RGBE file, another orientation, or truncated data.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise JaxvoxError(f"cannot read {path}: {exc.strerror or exc}") from None
+    data = read_bytes(path)
     if not data.startswith(b"#?"):
         raise JaxvoxError(f"{path} is not a Radiance HDR file")
     end = data.find(b"\n\n")

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
+from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.octree import EMPTY, Octree, compact, _stored_sizes
 from jaxvox.voxelize import MODES
@@ -120,11 +121,7 @@ def _entry_bytes(entry: dict) -> int:
 def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
     """Reads and verifies a file; returns (header, arrays by name)."""
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except OSError as exc:
-        raise JaxvoxError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    data = read_bytes(path)
     if len(data) < _PREFIX.size or data[:8] != MAGIC:
         raise JaxvoxError(f"{path} is not a jaxvox tree file (bad magic bytes)")
     _, version, head_len = _PREFIX.unpack_from(data)
