@@ -27,7 +27,13 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
    * ``"jfa+sweep"``: the thread's pipeline, the narrow band (default one separable
      3x3x3 pass) followed by sweeps;
    * ``"exact"``: the brute-force minimum over all triangles at every voxel, chunked
-     (O(R^3 F): a reference for small grids).
+     (O(R^3 F): a reference for small grids);
+   * ``"band"``: none; the narrow band alone (default 4 passes), +inf beyond it. Its
+     value at a voxel depends only on the seeds within ``band`` voxels (Chebyshev),
+     which is what truncated fields such as the clipmap's need. Values are distances
+     to real triangles (never below exact); voxels within about ``band - 1`` voxels of
+     the surface have jump flooding's accuracy, farther ones in the band may have
+     been reached only from a farther part of the surface.
 
    Methods on ids give distances to real triangles, so they never underestimate;
    sweeping can (by about 0.3 voxel along ridges of the field, where the upwind
@@ -57,6 +63,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 
 import jax
@@ -70,9 +77,9 @@ from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.trace import HIT, MISS, STEP_CAP
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
-from jaxvox.winding import solid_angle, winding_numbers
+from jaxvox.winding import _box_winding_numbers, solid_angle
 
-METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep")
+METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep", "band")
 SIGN_METHODS = ("auto", "parity", "winding")
 NO_TRIANGLE = -1  # triangle id of a voxel no seed has reached yet
 FORMATS = ("float16", "fixed16")
@@ -81,7 +88,7 @@ FORMATS = ("float16", "fixed16")
 # resident memory at 64^3-256^3 with room to spare (jump flooding works on blocks of
 # voxels: ~30 measured; sweeping holds a skewed [3R-2, R, R] copy and the shears'
 # temporaries: 41 measured at 256^3); add SIGN_BYTES_PER_VOXEL for a signed field.
-BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 64, "jfa+sweep": 64}
+BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 64, "jfa+sweep": 64, "band": 48}
 SIGN_BYTES_PER_VOXEL = 16
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
 _VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds its temporaries)
@@ -90,9 +97,9 @@ _VOXELS_PER_BLOCK = 1 << 20  # voxels per block of a jump-flooding step (bounds 
 # ------------------------------------------------------------------------ helpers
 
 
-def _centres(resolution: int) -> jax.Array:
-    """Voxel centres in grid units: [R^3, 3] float32, voxel (i, j, k) at row (i R + j) R + k."""
-    ijk = jnp.stack(jnp.unravel_index(jnp.arange(resolution**3), (resolution,) * 3), -1)
+def _centres(shape: tuple[int, int, int]) -> jax.Array:
+    """Voxel centres in grid units of a box of `shape` voxels: [n, 3] float32, C order."""
+    ijk = jnp.stack(jnp.unravel_index(jnp.arange(math.prod(shape)), shape), -1)
     return ijk.astype(jnp.float32) + 0.5
 
 
@@ -129,26 +136,33 @@ def _winding_numbers(points, tris):
 # ------------------------------------------------------------------------- seeds
 
 
-def _seed(tris, coords, triangle, resolution: int):
-    """Closest-triangle seeds: ([R^3] int32 ids, [R^3] float32 distances, inf where none).
+def _flat(ijk, shape: tuple[int, int, int]):
+    """C-order flat index of voxels [..., 3] int32 in a box of `shape` voxels."""
+    return (ijk[..., 0] * shape[1] + ijk[..., 1]) * shape[2] + ijk[..., 2]
 
-    Candidates are the voxelizer's (voxel, closest triangle) pairs and, per triangle,
-    the voxels of its centroid and corners clamped into the grid; each voxel keeps the nearest
+
+def _seed(tris, coords, triangle, shape: tuple[int, int, int], clamped: bool = True):
+    """Closest-triangle seeds: ([n] int32 ids, [n] float32 distances, inf where none), n
+    the voxels of a box of `shape`.
+
+    Candidates are the voxelizer's (voxel, closest triangle) pairs (voxels with a
+    negative first coordinate are unused) and, if `clamped`, per triangle the voxels of
+    its centroid and corners clamped into the box; each voxel keeps the nearest
     candidate, ties to the lower id (a scatter-min on distance bits, then on ids).
     """
-    r = resolution
-    inside = coords[:, 0] >= 0
-    points = jnp.concatenate([tris.mean(1), tris[:, 0], tris[:, 1], tris[:, 2]])  # [4F, 3]
-    clamped = jnp.clip(jnp.floor(points), 0, r - 1).astype(jnp.int32)
-    ijk = jnp.concatenate([coords, clamped])
-    tri = jnp.concatenate([triangle, jnp.tile(jnp.arange(tris.shape[0], dtype=jnp.int32), 4)])
-    valid = jnp.concatenate([inside, jnp.tile(jnp.all(jnp.isfinite(tris), (1, 2)), 4)])
-    flat = jnp.where(valid, (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], r**3)  # r^3: dropped
+    n = math.prod(shape)
+    ijk, tri, valid = coords, triangle, coords[:, 0] >= 0
+    if clamped:
+        points = jnp.concatenate([tris.mean(1), tris[:, 0], tris[:, 1], tris[:, 2]])  # [4F, 3]
+        ijk = jnp.concatenate([ijk, jnp.clip(jnp.floor(points), 0, jnp.asarray(shape) - 1).astype(jnp.int32)])
+        tri = jnp.concatenate([tri, jnp.tile(jnp.arange(tris.shape[0], dtype=jnp.int32), 4)])
+        valid = jnp.concatenate([valid, jnp.tile(jnp.all(jnp.isfinite(tris), (1, 2)), 4)])
+    flat = jnp.where(valid, _flat(ijk, shape), n)  # n: dropped
     dist = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, jnp.where(valid, tri, NO_TRIANGLE))
     bits = jax.lax.bitcast_convert_type(dist, jnp.int32)  # non-negative floats order as ints
-    best = jnp.full(r**3, jnp.iinfo(jnp.int32).max, jnp.int32).at[flat].min(bits, mode="drop")
+    best = jnp.full(n, jnp.iinfo(jnp.int32).max, jnp.int32).at[flat].min(bits, mode="drop")
     winner = valid & (bits == best.at[flat].get(mode="fill", fill_value=0))
-    ids = jnp.full(r**3, jnp.iinfo(jnp.int32).max, jnp.int32).at[jnp.where(winner, flat, r**3)].min(
+    ids = jnp.full(n, jnp.iinfo(jnp.int32).max, jnp.int32).at[jnp.where(winner, flat, n)].min(
         tri, mode="drop")
     ids = jnp.where(ids == jnp.iinfo(jnp.int32).max, NO_TRIANGLE, ids)
     return ids, jax.lax.bitcast_convert_type(jnp.where(ids >= 0, best, 0x7F800000), jnp.float32)
@@ -169,19 +183,24 @@ def _offsets(steps, separable: bool) -> np.ndarray:
     return np.array(passes, np.int32).reshape(-1, 2 if separable else 26, 3)
 
 
-def _jfa(ids, dist, tris, offsets: np.ndarray, resolution: int):
-    """Jump-flooding passes on triangle ids: each voxel keeps the nearest of its own and
-    its neighbours' triangles (ties to the lower id); neighbours are read from the ids
-    at the start of the pass, outside the grid there are none (no wrap-around).
+def _jfa(ids, dist, tris, offsets: np.ndarray, shape: tuple[int, int, int]):
+    """Jump-flooding passes on triangle ids [n] (n voxels of a box of `shape`): each voxel
+    keeps the nearest of its own and its neighbours' triangles (ties to the lower id);
+    neighbours are read from the ids at the start of the pass, outside the box there are
+    none (no wrap-around).
 
     Each neighbour offset is applied to blocks of `_VOXELS_PER_BLOCK` voxels in turn
-    (`jax.lax.map`), so the temporaries of the point-triangle distances stay bounded.
+    (`jax.lax.map`), so the temporaries of the point-triangle distances stay bounded
+    (the last block is padded; its extra voxels are dropped).
     """
     if offsets.shape[0] == 0:
         return ids, dist
-    r = resolution
-    n = r**3
-    block = min(n, _VOXELS_PER_BLOCK)  # both powers of two
+    size = math.prod(shape)
+    block = min(size, _VOXELS_PER_BLOCK)
+    pad = -size % block
+    ids = jnp.concatenate([ids, jnp.full(pad, NO_TRIANGLE, ids.dtype)])
+    dist = jnp.concatenate([dist, jnp.full(pad, jnp.inf, dist.dtype)])
+    n = size + pad
 
     def one_pass(state, pass_offsets):
         prev = state[0]
@@ -189,10 +208,10 @@ def _jfa(ids, dist, tris, offsets: np.ndarray, resolution: int):
         def candidate(state, offset):
             def one_block(args):
                 start, ids, dist = args
-                ijk = jnp.stack(jnp.unravel_index(start + jnp.arange(block, dtype=jnp.int32), (r, r, r)), -1)
+                ijk = jnp.stack(jnp.unravel_index(start + jnp.arange(block, dtype=jnp.int32), shape), -1)
                 q = ijk + offset
-                ok = jnp.all((q >= 0) & (q < r), axis=1)
-                cand = jnp.where(ok, prev[(q[:, 0] * r + q[:, 1]) * r + q[:, 2]], NO_TRIANGLE)
+                ok = jnp.all((q >= 0) & (q < jnp.asarray(shape)), axis=1)
+                cand = jnp.where(ok, prev[_flat(q, shape)], NO_TRIANGLE)
                 d = _distance_to(ijk.astype(jnp.float32) + 0.5, tris, cand)
                 better = (d < dist) | ((d == dist) & (cand >= 0) & ((cand < ids) | (ids < 0)))
                 return jnp.where(better, cand, ids), jnp.where(better, d, dist)
@@ -203,11 +222,14 @@ def _jfa(ids, dist, tris, offsets: np.ndarray, resolution: int):
 
         return jax.lax.scan(candidate, state, pass_offsets)[0], None
 
-    return jax.lax.scan(one_pass, (ids, dist), jnp.asarray(offsets))[0]
+    ids, dist = jax.lax.scan(one_pass, (ids, dist), jnp.asarray(offsets))[0]
+    return ids[:size], dist[:size]
 
 
-def _jfa_steps(resolution: int):
-    return [resolution >> s for s in range(1, resolution.bit_length())]  # R/2, ..., 1
+def _jfa_steps(shape: tuple[int, int, int]):
+    """Steps P/2, ..., 1 for the power of two P >= the box's longest side."""
+    p = 1 << (max(shape) - 1).bit_length()
+    return [p >> s for s in range(1, p.bit_length())]
 
 
 # --------------------------------------------------------------------- sweeping
@@ -248,30 +270,30 @@ def _unshear(b, m: int, fill):
 
 
 def _skew(u, fill):
-    """[R, R, R] (i, j, k) -> [3R - 2, R, R] (s, i, j) holding ``u[i, j, s - i - j]``, `fill` elsewhere."""
+    """[a, b, c] (i, j, k) -> [a + b + c - 2, a, b] (s, i, j) holding ``u[i, j, s - i - j]``, `fill` elsewhere."""
     v = _shear(u, fill)  # [i, j, j + k]
     w = _shear(v.transpose(1, 0, 2), fill)  # [j, i, i + j + k]
     return w.transpose(2, 1, 0)
 
 
-def _unskew(t, fill):
-    """The inverse of `_skew`."""
-    r = t.shape[1]
-    v = _unshear(t.transpose(2, 1, 0), 2 * r - 1, fill)  # [j, i, j + k]
-    return _unshear(v.transpose(1, 0, 2), r, fill)
+def _unskew(t, c: int, fill):
+    """The inverse of `_skew` of an [a, b, c] array."""
+    b = t.shape[2]
+    v = _unshear(t.transpose(2, 1, 0), b + c - 1, fill)  # [j, i, j + k]
+    return _unshear(v.transpose(1, 0, 2), c, fill)
 
 
 def _sweep_pair(u):
-    """Gauss-Seidel sweeps in orders (+, +, +) then (-, -, -) of u [R, R, R] (inf: unknown).
+    """Gauss-Seidel sweeps in orders (+, +, +) then (-, -, -) of u [a, b, c] (inf: unknown).
 
     Voxels whose sign bit is set are fixed (their value is ``-u``); the others are
-    updated to ``min(u, Godunov update)``. Outside the grid the skewed layout holds
+    updated to ``min(u, Godunov update)``. Outside the box the skewed layout holds
     ``-inf``: fixed and, read as ``|u|``, no neighbour.
     """
-    r = u.shape[0]
-    plane = _skew(u, -jnp.inf)  # [3R-2, R, R]
-    inf_row = jnp.full((1, r), jnp.inf)
-    inf_col = jnp.full((r, 1), jnp.inf)
+    a, b, c = u.shape
+    plane = _skew(u, -jnp.inf)  # [a + b + c - 2, a, b]
+    inf_row = jnp.full((1, b), jnp.inf)
+    inf_col = jnp.full((a, 1), jnp.inf)
 
     def update(own, lower, upper):
         """New values of a plane from the planes s - 1 (lower) and s + 1 (upper)."""
@@ -293,7 +315,7 @@ def _sweep_pair(u):
     plane = jax.lax.fori_loop(1, planes + 1, step, plane)  # (+, +, +)
     plane = jax.lax.fori_loop(1, planes + 1, lambda n, p: step(planes + 1 - n, p), plane)  # (-, -, -)
     plane = plane[1:-1]
-    return _unskew(plane, -jnp.inf)
+    return _unskew(plane, c, -jnp.inf)
 
 
 def _sweep(u, free, iterations: int):
@@ -339,23 +361,25 @@ def open_edges(mesh: Mesh) -> int:
     return int(np.sum(counts % 2))
 
 
-def _parity_columns(tris, resolution: int):
+def _parity_columns(tris, shape: tuple[int, int, int]):
     """Per triangle: first (j, k) column and the number of columns (j, k) its yz box covers."""
-    lo = jnp.clip(jnp.ceil(tris.min(1)[:, 1:] - 0.5), 0, resolution)
-    hi = jnp.clip(jnp.floor(tris.max(1)[:, 1:] - 0.5), -1, resolution - 1)
+    yz = jnp.asarray(shape[1:])
+    lo = jnp.clip(jnp.ceil(tris.min(1)[:, 1:] - 0.5), 0, yz)
+    hi = jnp.clip(jnp.floor(tris.max(1)[:, 1:] - 0.5), -1, yz - 1)
     n = jnp.maximum(hi - lo + 1, 0).astype(jnp.int32)
-    live = jnp.all(jnp.isfinite(tris), (1, 2)) & (tris.min(1)[:, 0] < resolution)
+    live = jnp.all(jnp.isfinite(tris), (1, 2)) & (tris.min(1)[:, 0] < shape[0])
     return lo.astype(jnp.int32), jnp.where(live, n[:, 0] * n[:, 1], 0), n[:, 1]
 
 
-@functools.partial(jax.jit, static_argnames=("resolution",))
-def _parity_count(tris, *, resolution):
-    return jnp.sum(_parity_columns(tris, resolution)[1])
+@functools.partial(jax.jit, static_argnames=("shape",))
+def _parity_count(tris, *, shape):
+    return jnp.sum(_parity_columns(tris, shape)[1])
 
 
-@functools.partial(jax.jit, static_argnames=("resolution", "capacity"))
-def _parity(tris, *, resolution: int, capacity: int):
-    """Schwarz & Seidel's solid voxelization: [R, R, R] bool, voxel centres inside.
+@functools.partial(jax.jit, static_argnames=("shape", "capacity"))
+def _parity(tris, *, shape: tuple[int, int, int], capacity: int):
+    """Schwarz & Seidel's solid voxelization of a box of `shape` voxels (triangles in its
+    units): [nx, ny, nz] bool, voxel centres inside.
 
     For every (triangle, column (j, k) whose centre the triangle's yz projection covers)
     the voxels of the column beyond the crossing flip; a prefix XOR along x gives the
@@ -363,8 +387,7 @@ def _parity(tris, *, resolution: int, capacity: int):
     with each edge's endpoints in a canonical order, and the top-left rule on the
     edges, so that a column through a shared edge or vertex is counted exactly once.
     """
-    r = resolution
-    lo, n_cols, nk = _parity_columns(tris, r)
+    lo, n_cols, nk = _parity_columns(tris, shape)
     tri, rank, valid, _ = expand_counts(n_cols, capacity)
     j = lo[tri, 0] + rank // jnp.maximum(nk[tri], 1)
     k = lo[tri, 1] + rank % jnp.maximum(nk[tri], 1)
@@ -385,9 +408,10 @@ def _parity(tris, *, resolution: int, capacity: int):
     covered = jnp.all((e > 0) | ((e == 0) & top_left), axis=1) & valid & (orient != 0)
     nx = jnp.where(orient != 0, normal[:, 0], 1.0)
     x = t[:, 0, 0] - (normal[:, 1] * (c[:, 0] - t[:, 0, 1]) + normal[:, 2] * (c[:, 1] - t[:, 0, 2])) / nx
-    i = jnp.clip(jnp.ceil(x - 0.5), 0, r).astype(jnp.int32)  # first voxel whose centre is beyond
-    flat = jnp.where(covered & (i < r), (i * r + j) * r + k, r**3)
-    flips = jnp.zeros(r**3, jnp.int32).at[flat].add(1, mode="drop").reshape(r, r, r)
+    i = jnp.clip(jnp.ceil(x - 0.5), 0, shape[0]).astype(jnp.int32)  # first voxel whose centre is beyond
+    n = math.prod(shape)
+    flat = jnp.where(covered & (i < shape[0]), _flat(jnp.stack([i, j, k], -1), shape), n)
+    flips = jnp.zeros(n, jnp.int32).at[flat].add(1, mode="drop").reshape(shape)
     return (jnp.cumsum(flips, axis=0) & 1).astype(bool)
 
 
@@ -403,10 +427,18 @@ def _padded(mesh: Mesh) -> Mesh:
     return pad_mesh(mesh, mesh.num_vertices, bucket_pow2(mesh.num_faces, 256))
 
 
-def _solid(mesh: Mesh, grid: Grid, tris, method: str, beta: float):
-    r = grid.resolution
+def _box_grid(origin, voxel_size, shape: tuple[int, int, int]) -> Grid:
+    """The cubic grid whose first `shape` voxels form a box: same origin and voxels,
+    resolution the power of two >= the box's longest side."""
+    return Grid(origin, voxel_size, max(2, 1 << (max(shape) - 1).bit_length()))
+
+
+def _solid(mesh: Mesh, tris, grid: Grid, shape: tuple[int, int, int], method: str, beta: float):
+    """Inside bits [nx, ny, nz] of the voxel centres of the box made of the first `shape`
+    voxels of `grid` (`tris`: `mesh`'s padded triangles in grid units, for parity; the
+    winding number reads `mesh`)."""
     if mesh.num_faces == 0:
-        return jnp.zeros((r, r, r), bool)
+        return jnp.zeros(shape, bool)
     holes = 0 if method == "winding" else open_edges(mesh)
     if method == "auto":
         method = "winding" if holes else "parity"
@@ -416,8 +448,9 @@ def _solid(mesh: Mesh, grid: Grid, tris, method: str, beta: float):
                 f"the parity sign needs a watertight mesh, but {holes} edges are not shared by an even "
                 "number of faces (holes or non-manifold edges); use sign='winding' (or method='winding') "
                 "for open meshes")
-        return _parity(tris, resolution=r, capacity=bucket(int(_parity_count(tris, resolution=r))))
-    return winding_numbers(mesh, grid, beta=beta) > 0.5
+        return _parity(tris, shape=shape, capacity=bucket(int(_parity_count(tris, shape=shape))))
+    return _box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), shape,
+                                beta=beta) > 0.5
 
 
 def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> jax.Array:
@@ -442,7 +475,8 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float 
     validate_mesh(mesh)
     _check_sign_method(method)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
-    return _solid(mesh, grid, _grid_triangles(_padded(mesh), grid), method, beta)
+    r = grid.resolution
+    return _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, (r, r, r), method, beta)
 
 
 # ------------------------------------------------------------------- the field
@@ -478,17 +512,18 @@ def _check_bytes(resolution: int, per_voxel: int, max_bytes: int | None, what: s
             "use a lower resolution or raise max_bytes")
 
 
-@functools.partial(jax.jit, static_argnames=("method", "band", "sweeps"))
-def _unsigned(tris, coords, triangle, grid: Grid, *, method: str, band: int, sweeps: int):
-    """Unsigned field in grid units, [R, R, R] float32 (inf when there is no triangle)."""
-    r = grid.resolution
+@functools.partial(jax.jit, static_argnames=("shape", "method", "band", "sweeps", "clamped"))
+def _unsigned(tris, coords, triangle, *, shape: tuple[int, int, int], method: str, band: int, sweeps: int,
+              clamped: bool = True):
+    """Unsigned field of a box of `shape` voxels (triangles and seed voxels in its units):
+    [nx, ny, nz] float32 in voxels (inf where no seed reached; `clamped`: see `_seed`)."""
     if method == "exact":
-        return _mesh_distance(_centres(r), tris).reshape(r, r, r)
-    ids, dist = _seed(tris, coords, triangle, r)
-    ids, dist = _jfa(ids, dist, tris, _offsets([1] * band, True), r)
+        return _mesh_distance(_centres(shape), tris).reshape(shape)
+    ids, dist = _seed(tris, coords, triangle, shape, clamped)
+    ids, dist = _jfa(ids, dist, tris, _offsets([1] * band, True), shape)
     if method in ("jfa", "jfa-separable"):
-        ids, dist = _jfa(ids, dist, tris, _offsets(_jfa_steps(r), method == "jfa-separable"), r)
-    dist = dist.reshape(r, r, r)
+        ids, dist = _jfa(ids, dist, tris, _offsets(_jfa_steps(shape), method == "jfa-separable"), shape)
+    dist = dist.reshape(shape)
     if method in ("sweep", "jfa+sweep"):
         dist = _sweep(dist, jnp.isinf(dist), sweeps)
     return dist
@@ -507,11 +542,12 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
       mesh: `Mesh` with F faces (validated: NaN/inf vertices or bad indices raise).
       grid: `Grid` of R^3 voxels. Geometry outside the grid is taken into account.
       method: "jfa+sweep" (narrow band by jump flooding, then fast sweeping), "jfa",
-        "jfa-separable", "sweep" or "exact" (brute force, O(R^3 F): small grids).
+        "jfa-separable", "sweep", "exact" (brute force, O(R^3 F): small grids) or
+        "band" (the narrow band only: +inf beyond it, -inf inside when signed).
       signed: negative inside the mesh (see `solid_voxelize` for the sign).
       band: separable 3x3x3 jump-flooding passes around the surface voxels before the
         propagation (exact distances within that many voxels of the surface voxels);
-        default 1 for "jfa+sweep", 0 otherwise; ignored by "exact".
+        default 1 for "jfa+sweep", 4 for "band", 0 otherwise; ignored by "exact".
       sweeps: fast-sweeping iterations (each visits the 8 diagonal orders), for
         "sweep" and "jfa+sweep".
       sign: "auto", "parity" or "winding" (see `solid_voxelize`).
@@ -528,7 +564,7 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     validate_mesh(mesh)
     _check_method(method)
     _check_sign_method(sign)
-    band = (1 if method == "jfa+sweep" else 0) if band is None else band
+    band = {"jfa+sweep": 1, "band": 4}.get(method, 0) if band is None else band
     if method == "exact":
         band = 0
     if not isinstance(band, (int, np.integer)) or band < 0:
@@ -539,6 +575,17 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     _check_bytes(r, distance_field_bytes(1, method=method, signed=signed), max_bytes, f"distance_field({method!r})")
     if mesh.num_faces == 0:
         return jnp.full((r, r, r), jnp.inf, jnp.float32)
+    dist = _box_distance(mesh, grid, (r, r, r), method=method, band=int(band), sweeps=int(sweeps))
+    if signed:
+        dist = jnp.where(_solid(mesh, _grid_triangles(_padded(mesh), grid), grid, (r, r, r), sign, 2.0), -dist, dist)
+    return dist * grid.voxel_size
+
+
+def _box_distance(mesh: Mesh, grid: Grid, shape: tuple[int, int, int], *, method: str, band: int,
+                  sweeps: int, clamped: bool = True) -> jax.Array:
+    """Unsigned distance in voxels [nx, ny, nz] float32 at the centres of the box made of
+    the first `shape` voxels of `grid`, by `method` (`mesh` has faces; `clamped`: seed
+    the box with the clamped centroids and corners of triangles, see `_seed`)."""
     padded = _padded(mesh)
     tris = _grid_triangles(padded, grid)
     if method == "exact":
@@ -547,12 +594,10 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
         vox = voxelize(padded, grid, mode=CONSERVATIVE, triangle_ids=True, progress=False)
         n = int(vox.count)
         cap = bucket_pow2(n, 4096)  # few shapes: similar meshes share the compiled field
-        coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(vox.coords[:n])
+        inside = jnp.all(vox.coords[:n] < jnp.asarray(shape), axis=1, keepdims=True)  # the box only
+        coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(jnp.where(inside, vox.coords[:n], UNUSED))
         triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
-    dist = _unsigned(tris, coords, triangle, grid, method=method, band=int(band), sweeps=int(sweeps))
-    if signed:
-        dist = jnp.where(_solid(mesh, grid, tris, sign, 2.0), -dist, dist)
-    return dist * grid.voxel_size
+    return _unsigned(tris, coords, triangle, shape=shape, method=method, band=band, sweeps=sweeps, clamped=clamped)
 
 
 # ----------------------------------------------------------------- 16-bit output
@@ -620,15 +665,23 @@ class Clipmap:
     the newly exposed slabs. A voxel holds the signed distance from its centre to the
     whole mesh, clamped to ``truncation * h_c`` (negative inside).
 
+    A move exposes at most three slabs per cascade (disjoint boxes, one per axis that
+    moved; the whole window when nothing is shared); only they are computed and written.
     With ``method="exact"`` a voxel's value is a function of its position only (the
     brute-force distance, the generalized winding number for the sign), so any sequence
     of moves gives the same cascade as a build from scratch. With a `distance_field`
-    method (e.g. "jfa+sweep", the seed's pipeline) an updated cascade runs the method
-    on its whole new window (jump flooding and sweeps need the neighbourhood) and
-    writes only the exposed slabs; kept voxels hold values from an older window, so an
-    incremental clipmap differs from a scratch build by at most the method's error
-    (both are within it of the exact field). The sign comes from the parity solid of the
-    window for watertight meshes, otherwise from winding numbers at the exposed voxels.
+    method (e.g. "jfa+sweep", the seed's pipeline) each slab is a *scissor volume*: the
+    pipeline runs on the slab grown by ``truncation + 1`` voxels on every side, from the
+    faces near it (every face within the clamp of a slab voxel is in the grown box), and
+    the sign is the solid voxelization of the slab (parity for watertight meshes, else
+    winding numbers) from the whole mesh. A build from scratch is the same computation
+    on the whole window. With ``"band"`` (the default) the pipeline is the narrow band
+    alone, ``truncation + 1`` passes from the surface voxels of the grown box only: a
+    voxel's value then depends on the seeds within that many voxels, all inside the
+    grown box whatever the box, so an incremental clipmap equals a scratch build up to
+    float32 rounding of the box-relative coordinates. With the other methods (jump
+    flooding over the whole box, sweeps) the two differ by where the method's error falls
+    (both are within it of the exact field).
     `truncation` and `method` are static.
 
     Attributes:
@@ -675,49 +728,99 @@ def _cascade_values(points, tris, limit):
     return jnp.where(inside, -d, d)
 
 
+def _exposed_boxes(old, new, resolution: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Disjoint lattice boxes ``[lo, hi)`` covering window `new` minus window `old`
+    (windows of `resolution`^3 voxels given by their corners [3]): a slab per axis that
+    moved, each slab cut off from the earlier ones; one box when nothing is shared."""
+    old, new = np.asarray(old, np.int64), np.asarray(new, np.int64)
+    lo, hi = new.copy(), new + resolution
+    if np.any(np.abs(new - old) >= resolution):
+        return [(lo, hi)]
+    boxes = []
+    for axis in range(3):
+        box_lo, box_hi = lo.copy(), hi.copy()
+        if new[axis] > old[axis]:  # exposed above the old window
+            box_lo[axis] = hi[axis] = old[axis] + resolution
+        elif new[axis] < old[axis]:  # exposed below it
+            box_hi[axis] = lo[axis] = old[axis]
+        else:
+            continue
+        boxes.append((box_lo, box_hi))
+    return boxes
+
+
+def _near_faces(mesh: Mesh, lo, hi) -> Mesh | None:
+    """The faces of `mesh` whose bounding boxes touch the world box [lo, hi] [3], with
+    only their vertices (so that padding faces sit on them); None if there are none."""
+    tris = np.asarray(mesh.triangles(), np.float64)
+    near = np.all((tris.min(1) <= hi) & (tris.max(1) >= lo), axis=1)
+    if not near.any():
+        return None
+    used, faces = np.unique(np.asarray(mesh.faces)[near], return_inverse=True)
+    return Mesh(np.asarray(mesh.vertices)[used], faces.reshape(-1, 3).astype(np.int32))
+
+
+def _scissor_values(mesh: Mesh, lo, hi, h: float, clip: Clipmap):
+    """Clamped signed distances [hi - lo] of the lattice box [lo, hi) of voxels of edge h.
+
+    The scissor volume: `clip.method`'s pipeline runs on the box grown by the truncation
+    plus one voxel on every side, from the faces near that grown box only (a farther face
+    is beyond the clamp from every voxel of the box); the sign is the solid voxelization
+    of the box itself from the whole mesh. Box sides are rounded up (`bucket`) so that
+    moves of similar sizes share compiled code.
+    """
+    origin = np.asarray(clip.origin, np.float64)
+    size = tuple(int(n) for n in hi - lo)
+    margin = math.ceil(clip.truncation) + 1
+    shape = tuple(bucket(n + 2 * margin, 4) for n in size)
+    corner = origin + (lo - margin) * h
+    limit = np.float32(clip.truncation * h)
+    near = _near_faces(mesh, corner - h, corner + (np.asarray(shape) + 1) * h)
+    if near is None:
+        d = jnp.full(size, limit)
+    else:
+        band = margin if clip.method == "band" else int(clip.method == "jfa+sweep")
+        d = _box_distance(near, _box_grid(corner, h, shape), shape, method=clip.method, band=band, sweeps=3,
+                          clamped=clip.method != "band")
+        d = jnp.minimum(d[margin: margin + size[0], margin: margin + size[1], margin: margin + size[2]] * h, limit)
+    sign_shape = tuple(bucket(n, 4) for n in size)
+    grid = _box_grid(origin + lo * h, h, sign_shape)
+    inside = _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, sign_shape, "auto", 2.0)
+    return jnp.where(inside[: size[0], : size[1], : size[2]], -d, d)
+
+
 def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
     """Writes the voxels of cascade `cascade` in window `new` that window `old` lacks."""
     r = fields.shape[-1]
-    slot = np.arange(r)
-    rel = np.mod(slot[None] - new[:, None], r)  # [3, R] window-relative index held by each slot
-    g = new[:, None] + rel  # [3, R] lattice index held by each slot
-    fresh = (g < old[:, None]) | (g >= old[:, None] + r)
-    mask = fresh[0][:, None, None] | fresh[1][None, :, None] | fresh[2][None, None, :]
-    slots = np.argwhere(mask)
-    if len(slots) == 0:
-        return fields
     h = float(clip.voxel_size) * 2.0**cascade
-    limit = clip.truncation * h
-    if tris is None:  # no triangles: everything is far outside
-        return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(np.float32(limit))
-    lattice = g[np.arange(3), slots]  # [n, 3]
-    n = len(slots)
-    cap = bucket_pow2(n, 256)
-    centres = np.zeros((cap, 3), np.float32)
-    centres[:n] = np.asarray(clip.origin, np.float64) + (lattice + 0.5) * h
-    if clip.method == "exact":
-        values = _cascade_values(jnp.asarray(centres), tris, jnp.float32(limit))[:n]
-    else:
-        window = Grid(np.asarray(clip.origin, np.float64) + new * h, h, r)
-        w = rel[np.arange(3), slots]  # [n, 3] window-relative voxel of each exposed slot
-        d = jnp.minimum(distance_field(mesh, window, method=clip.method, signed=False)[w[:, 0], w[:, 1], w[:, 2]],
-                        limit)
-        inside = _solid(mesh, window, _grid_triangles(_padded(mesh), window), "auto", 2.0)[w[:, 0], w[:, 1], w[:, 2]]
-        values = jnp.where(inside, -d, d)
-    return fields.at[cascade, slots[:, 0], slots[:, 1], slots[:, 2]].set(values)
+    limit = np.float32(clip.truncation * h)
+    for lo, hi in _exposed_boxes(old, new, r):
+        slots = np.ix_(*(np.mod(np.arange(a, b), r) for a, b in zip(lo, hi)))
+        if tris is None:  # no triangles: everything is far outside
+            values = jnp.full(tuple(hi - lo), limit)
+        elif clip.method == "exact":
+            g = np.stack(np.meshgrid(*(np.arange(a, b) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 3)
+            n = len(g)
+            centres = np.zeros((bucket_pow2(n, 256), 3), np.float32)
+            centres[:n] = np.asarray(clip.origin, np.float64) + (g + 0.5) * h
+            values = _cascade_values(jnp.asarray(centres), tris, jnp.float32(limit))[:n].reshape(hi - lo)
+        else:
+            values = _scissor_values(mesh, lo, hi, h, clip)
+        fields = fields.at[(cascade,) + slots].set(values)
+    return fields
 
 
 def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, voxel_size: float,
-                  origin=(0.0, 0.0, 0.0), truncation: float = 8.0, method: str = "jfa") -> Clipmap:
+                  origin=(0.0, 0.0, 0.0), truncation: float = 8.0, method: str = "band") -> Clipmap:
     """A clipmap around `camera` built from scratch (every voxel of every cascade).
 
     Host-side. With ``method="exact"`` exposed voxels get brute-force point-triangle
     distances and winding numbers over all triangles (O(voxels * F): a build costs
     N R^3 F pairs, a move only the exposed slabs'). With a `distance_field` method each
-    updated cascade costs one distance field of R^3 (see `Clipmap`). The default "jfa"
-    stays within half a voxel of the exact value even where the mesh leaves the window;
-    sweeping is first-order from the seeds that geometry outside the window leaves on its
-    boundary (up to about 3 voxels above).
+    exposed slab costs a distance field of the slab grown by ``truncation + 1`` voxels
+    per side, from the faces near it (see `Clipmap`); a build is one such field of
+    ``(R + 2 truncation + 2)^3`` per cascade. The default "band" and "jfa" stay within a voxel
+    of the exact value; sweeping is first-order (up to about 3 voxels above).
 
     Args:
       mesh: `Mesh` (validated).

@@ -131,19 +131,19 @@ def _block_offsets(block: int) -> np.ndarray:
     return (np.stack(np.unravel_index(np.arange(block**3), (block,) * 3), -1) + 0.5).astype(np.float32)
 
 
-def _block_corners(blocks, per_axis: int, block: int):
-    """Corner [n, 3] float32 (grid units) of blocks given by flat index [n]."""
-    return jnp.stack(jnp.unravel_index(blocks, (per_axis,) * 3), -1).astype(jnp.float32) * block
+def _block_corners(blocks, per_axis: tuple[int, int, int], block: int):
+    """Corner [n, 3] float32 (grid units) of blocks given by flat index [n] over `per_axis` blocks."""
+    return jnp.stack(jnp.unravel_index(blocks, per_axis), -1).astype(jnp.float32) * block
 
 
-def _far(tree: _Tree, blocks, nodes, per_axis: int, block: int, beta: float):
+def _far(tree: _Tree, blocks, nodes, per_axis: tuple[int, int, int], block: int, beta: float):
     centre = _block_corners(blocks, per_axis, block) + block / 2
     gap = jnp.linalg.norm(centre - tree.centre[nodes], axis=-1)
     return gap > beta * (tree.radius[nodes] + block * math.sqrt(3) / 2)
 
 
 @functools.partial(jax.jit, static_argnames=("per_axis", "block", "beta"))
-def _near_children(tree: _Tree, blocks, nodes, n, *, per_axis: int, block: int, beta: float):
+def _near_children(tree: _Tree, blocks, nodes, n, *, per_axis: tuple[int, int, int], block: int, beta: float):
     """Number of child pairs the near pairs of a frontier open into: [] int32."""
     valid = jnp.arange(blocks.shape[0]) < n
     near = valid & ~_far(tree, blocks, nodes, per_axis, block, beta)
@@ -151,7 +151,7 @@ def _near_children(tree: _Tree, blocks, nodes, n, *, per_axis: int, block: int, 
 
 
 @functools.partial(jax.jit, static_argnames=("per_axis", "block", "beta", "leaves", "capacity"))
-def _level(tree: _Tree, w, blocks, nodes, n, *, per_axis: int, block: int, beta: float, leaves: bool,
+def _level(tree: _Tree, w, blocks, nodes, n, *, per_axis: tuple[int, int, int], block: int, beta: float, leaves: bool,
            capacity: int):
     """Adds one frontier's terms to ``w`` [B, b^3] and opens its near pairs.
 
@@ -200,19 +200,40 @@ def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4
       [R, R, R] float32, indexed (i, j, k); zeros for a mesh without faces.
     """
     validate_mesh(mesh)
+    r = grid.resolution
+    return _box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r),
+                               beta=beta, block=block)
+
+
+def _box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int, int, int], *,
+                        beta: float = 2.0, block: int = 4) -> jax.Array:
+    """`winding_numbers` at the centres of a box of voxels of any shape.
+
+    Voxel (i, j, k) has its centre at ``origin + (i + 1/2, j + 1/2, k + 1/2) * voxel_size``.
+    The box is covered by whole blocks (a ragged edge is computed and dropped).
+
+    Args:
+      mesh: `Mesh` (not validated here).
+      origin: [3] world position of the box's minimum corner.
+      voxel_size: voxel edge, world units.
+      shape: (nx, ny, nz) voxels, each >= 1.
+      beta, block: as for `winding_numbers`.
+
+    Returns:
+      [nx, ny, nz] float32.
+    """
     if not beta > 1:
         raise JaxvoxError(f"beta must be greater than 1, got {beta!r}")
-    r = grid.resolution
-    block = min(int(block), r)
-    if block < 1 or block & (block - 1):
+    if int(block) != block or block < 1 or int(block) & (int(block) - 1):
         raise JaxvoxError(f"block must be a power of two, got {block!r}")
-    per_axis = r // block
-    w = jnp.zeros((per_axis**3, block**3), jnp.float32)
+    block = min(int(block), 1 << (max(shape) - 1).bit_length())  # no larger than the box
+    per_axis = tuple(-(-int(n) // block) for n in shape)
+    w = jnp.zeros((math.prod(per_axis), block**3), jnp.float32)
     if mesh.num_faces:
-        tris = (np.asarray(mesh.triangles(), np.float64) - np.asarray(grid.origin, np.float64)) / float(grid.voxel_size)
+        tris = (np.asarray(mesh.triangles(), np.float64) - np.asarray(origin, np.float64)) / float(voxel_size)
         tree = _build_tree(tris)
         settings = dict(per_axis=per_axis, block=block, beta=float(beta))
-        n = per_axis**3
+        n = math.prod(per_axis)
         capacity = bucket_pow2(n)
         blocks = jnp.arange(capacity, dtype=jnp.int32)
         nodes = jnp.zeros(capacity, jnp.int32)  # the root
@@ -222,5 +243,6 @@ def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4
             w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket_pow2(opened),
                                       **settings)
             n = opened
-    w = w.reshape((per_axis,) * 3 + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)
-    return w.reshape(r, r, r)
+    w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)
+    w = w.reshape(tuple(a * block for a in per_axis))
+    return w[: shape[0], : shape[1], : shape[2]]
