@@ -133,6 +133,17 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[tuple[str, str]]) -> 
     return "\n".join([header, rule, *body]) + "\n"
 
 
+def case_rows(cases: Sequence[dict], rows_of: Callable[[dict], list[dict]]) -> list[dict]:
+    """Table rows of every case: `rows_of(case)`, or one row naming a failed case's error."""
+    out = []
+    for case in cases:
+        if "error" in case:
+            out.append(dict(mesh=case["mesh"], R=case["resolution"], method=case["error"]))
+        else:
+            out += rows_of(case)
+    return out
+
+
 def new_figure(ncols: int, *, rows: int = 1, width: float = 6.0, height: float = 4.5):
     """A matplotlib figure with `rows` x `ncols` axes (each `width` x `height` inches),
     drawn off-screen (Agg backend)."""

@@ -135,27 +135,27 @@ def worker(spec: dict) -> dict:
 
 
 def table(cases: list[dict]) -> str:
-    out = []
-    for case in cases:
-        if "error" in case:
-            out.append(dict(mesh=case["mesh"], R=case["resolution"], method=case["error"]))
-            continue
+    def rows_of(case):
         sign = case["sign"]
         if "errors" in sign:
             sign_text = f"{sign['errors']} / {sign['checked']:,} in {sign['time_s']:.3g} s"
         else:
             sign_text = "not run"
+        rows = []
         for row in case["rows"]:
             if "refused" in row:
-                out.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
-                                time=f"refused ({row['refused']})"))
+                rows.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
+                                 time=f"refused ({row['refused']})"))
                 continue
             a, b = row["vs_exact"], row["vs_edt"]
-            out.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
-                            time=f"{row['median_s']:.3g}", compile=f"{row['compile_s']:.2g}",
-                            exact=f"{a['max']:.3f} / {a['mean']:.4f} / {a['p99']:.3f}",
-                            edt=f"{b['max']:.3f} / {b['mean']:.3f} / {b['p99']:.3f}",
-                            sign=f"{sign['method']}: {sign_text}"))
+            rows.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
+                             time=f"{row['median_s']:.3g}", compile=f"{row['compile_s']:.2g}",
+                             exact=f"{a['max']:.3f} / {a['mean']:.4f} / {a['p99']:.3f}",
+                             edt=f"{b['max']:.3f} / {b['mean']:.3f} / {b['p99']:.3f}",
+                             sign=f"{sign['method']}: {sign_text}"))
+        return rows
+
+    out = _common.case_rows(cases, rows_of)
     columns = [("mesh", "mesh"), ("R", "R"), ("method", "method"), ("time", "time (s)"),
                ("compile", "compile (s)"), ("exact", "vs exact: max / mean / p99 (voxels)"),
                ("edt", "vs EDT of surface voxels: max / mean / p99"), ("sign", "sign errors")]

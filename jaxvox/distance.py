@@ -353,11 +353,14 @@ def open_edges(mesh: Mesh) -> int:
     f = np.asarray(mesh.faces)
     if len(f) == 0:
         return 0
-    _, weld = np.unique(v, axis=0, return_inverse=True)
-    f = weld.reshape(-1)[f]
+    order = np.lexsort(v.T[::-1])  # weld: equal positions get one id (numeric sorts, no row unique)
+    new_group = np.concatenate([[True], np.any(v[order[1:]] != v[order[:-1]], axis=1)])
+    weld = np.empty(len(v), np.int64)
+    weld[order] = np.cumsum(new_group) - 1
+    f = weld[f]
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     e = e[e[:, 0] != e[:, 1]]
-    _, counts = np.unique(e, axis=0, return_counts=True)
+    _, counts = np.unique(e[:, 0] * len(v) + e[:, 1], return_counts=True)
     return int(np.sum(counts % 2))
 
 
@@ -760,19 +763,22 @@ def _near_faces(mesh: Mesh, lo, hi) -> Mesh | None:
     return Mesh(np.asarray(mesh.vertices)[used], faces.reshape(-1, 3).astype(np.int32))
 
 
-def _scissor_values(mesh: Mesh, lo, hi, h: float, clip: Clipmap):
+def _scissor_values(mesh: Mesh, lo, hi, h: float, clip: Clipmap, sign: str):
     """Clamped signed distances [hi - lo] of the lattice box [lo, hi) of voxels of edge h.
 
     The scissor volume: `clip.method`'s pipeline runs on the box grown by the truncation
     plus one voxel on every side, from the faces near that grown box only (a farther face
     is beyond the clamp from every voxel of the box); the sign is the solid voxelization
-    of the box itself from the whole mesh. Box sides are rounded up (`bucket`) so that
-    moves of similar sizes share compiled code.
+    of the box itself from the whole mesh. Box sides are rounded up so that moves share
+    compiled code: a side longer than R/2 to R (plus the margins), a shorter one to
+    4-7 times a power of two (`bucket`).
     """
     origin = np.asarray(clip.origin, np.float64)
     size = tuple(int(n) for n in hi - lo)
     margin = math.ceil(clip.truncation) + 1
-    shape = tuple(bucket(n + 2 * margin, 4) for n in size)
+    r = clip.resolution
+    side = lambda n, pad: r + pad if 2 * n > r else bucket(n + pad, 4)
+    shape = tuple(side(n, 2 * margin) for n in size)
     corner = origin + (lo - margin) * h
     limit = np.float32(clip.truncation * h)
     near = _near_faces(mesh, corner - h, corner + (np.asarray(shape) + 1) * h)
@@ -783,14 +789,15 @@ def _scissor_values(mesh: Mesh, lo, hi, h: float, clip: Clipmap):
         d = _box_distance(near, _box_grid(corner, h, shape), shape, method=clip.method, band=band, sweeps=3,
                           clamped=clip.method != "band")
         d = jnp.minimum(d[margin: margin + size[0], margin: margin + size[1], margin: margin + size[2]] * h, limit)
-    sign_shape = tuple(bucket(n, 4) for n in size)
+    sign_shape = tuple(side(n, 0) for n in size)
     grid = _box_grid(origin + lo * h, h, sign_shape)
-    inside = _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, sign_shape, "auto", 2.0)
+    inside = _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, sign_shape, sign, 2.0)
     return jnp.where(inside[: size[0], : size[1], : size[2]], -d, d)
 
 
-def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
-    """Writes the voxels of cascade `cascade` in window `new` that window `old` lacks."""
+def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap, sign: str):
+    """Writes the voxels of cascade `cascade` in window `new` that window `old` lacks
+    (`sign`: the solid voxelization method for pipeline methods)."""
     r = fields.shape[-1]
     h = float(clip.voxel_size) * 2.0**cascade
     limit = np.float32(clip.truncation * h)
@@ -805,7 +812,7 @@ def _refresh(fields, mesh: Mesh, tris, cascade: int, old, new, clip: Clipmap):
             centres[:n] = np.asarray(clip.origin, np.float64) + (g + 0.5) * h
             values = _cascade_values(jnp.asarray(centres), tris, jnp.float32(limit))[:n].reshape(hi - lo)
         else:
-            values = _scissor_values(mesh, lo, hi, h, clip)
+            values = _scissor_values(mesh, lo, hi, h, clip, sign)
         fields = fields.at[(cascade,) + slots].set(values)
     return fields
 
@@ -868,8 +875,9 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
     corner = np.asarray(clip.corner).copy()
     fields = clip.fields
     tris = _padded(mesh).triangles() if mesh.num_faces else None
+    sign = "winding" if clip.method == "exact" or open_edges(mesh) else "parity"
     for c in cascades:
-        fields = _refresh(fields, mesh, tris, c, corner[c], new[c], clip)
+        fields = _refresh(fields, mesh, tris, c, corner[c], new[c], clip, sign)
         corner[c] = new[c]
     return dataclasses.replace(clip, fields=fields, corner=jnp.asarray(corner))
 
