@@ -70,7 +70,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._buffers import bucket, bucket_pow2, expand_counts
+from jaxvox._shapes import bucket, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -427,7 +427,7 @@ def _padded(mesh: Mesh) -> Mesh:
     """`mesh` padded to a power-of-two number of faces with ``(0, 0, 0)`` faces (points at
     vertex 0, on the surface: they change no distance, cross no ray and subtend no solid
     angle), so that meshes of similar size share compiled code."""
-    return pad_mesh(mesh, mesh.num_vertices, bucket_pow2(mesh.num_faces, 256))
+    return pad_mesh(mesh, mesh.num_vertices, bucket(mesh.num_faces, 256))
 
 
 def _box_grid(origin, voxel_size, shape: tuple[int, int, int]) -> Grid:
@@ -596,7 +596,7 @@ def _box_distance(mesh: Mesh, grid: Grid, shape: tuple[int, int, int], *, method
     else:
         vox = voxelize(padded, grid, mode=CONSERVATIVE, triangle_ids=True, progress=False)
         n = int(vox.count)
-        cap = bucket_pow2(n, 4096)  # few shapes: similar meshes share the compiled field
+        cap = bucket(n, 4096)  # few shapes: similar meshes share the compiled field
         inside = jnp.all(vox.coords[:n] < jnp.asarray(shape), axis=1, keepdims=True)  # the box only
         coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(jnp.where(inside, vox.coords[:n], UNUSED))
         triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
@@ -771,7 +771,7 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
     is beyond the clamp from every voxel of the box); the sign is the solid voxelization
     of the box itself from the whole mesh. Box sides are rounded up so that moves share
     compiled code: a side longer than R/2 to R (plus the margins), a shorter one to
-    4-7 times a power of two (`bucket`).
+    the power of two above it (`bucket`).
     """
     origin = np.asarray(clip.origin, np.float64)
     size = tuple(int(n) for n in hi - lo)
@@ -813,7 +813,7 @@ def _refresh(fields, mesh: Mesh, padded: Mesh | None, cascade: int, old, new, cl
         elif clip.method == "exact":
             g = np.stack(np.meshgrid(*(np.arange(a, b) for a, b in zip(lo, hi)), indexing="ij"), -1).reshape(-1, 3)
             n = len(g)
-            centres = np.zeros((bucket_pow2(n, 256), 3), np.float32)
+            centres = np.zeros((bucket(n, 256), 3), np.float32)
             centres[:n] = np.asarray(clip.origin, np.float64) + (g + 0.5) * h
             values = _cascade_values(jnp.asarray(centres), padded.triangles(), jnp.float32(limit))[:n].reshape(hi - lo)
         else:

@@ -37,7 +37,7 @@ import numpy as np
 from jaxvox._errors import JaxvoxError
 from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
-from jaxvox.octree import EMPTY, Octree, compact, _stored_sizes
+from jaxvox.octree import EMPTY, Octree, compact, padded, stored_sizes
 from jaxvox.voxelize import MODES
 
 MAGIC = b"\x89JVX\r\n\x1a\n"
@@ -176,7 +176,7 @@ def _check_tree(path, header, arrays) -> None:
     if (len(sizes) != depth or min(sizes) < 0 or sizes[0] > 1 or kind not in ("octree", "dag")
             or mode not in MODES or len(origin) != 3):
         bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}")
-    stored = _stored_sizes(sizes)
+    stored = stored_sizes(sizes)
     n_nodes, n_inner = sum(stored), sum(stored[:-1])
     expect = {"mask": ((n_nodes,), np.uint8), "child": ((n_inner, 8), np.uint32), "prefix": ((n_inner, 8), np.uint32)}
     for name, (shape, dtype) in expect.items():
@@ -204,7 +204,7 @@ def _check_tree(path, header, arrays) -> None:
 
 
 def load(path: str | os.PathLike) -> Octree:
-    """Reads a tree written by `save`.
+    """Reads a tree written by `save`, laid out on the shape ladder (see `Octree`).
 
     Raises:
       JaxvoxError: missing file, not a jaxvox file, unsupported version, truncated or
@@ -215,11 +215,11 @@ def load(path: str | os.PathLike) -> Octree:
     g = header["grid"]
     grid = Grid(origin=np.float32(g["origin"]), voxel_size=np.float32(g["voxel_size"]), resolution=g["resolution"])
     sizes = tuple(int(s) for s in header["level_sizes"])
-    return Octree(
+    return padded(Octree(
         mask=jnp.asarray(arrays["mask"]), child=jnp.asarray(arrays["child"]), prefix=jnp.asarray(arrays["prefix"]),
         level_count=jnp.asarray(sizes, jnp.int32), voxel_count=jnp.int32(header["voxel_count"]),
-        overflow=jnp.int32(0), grid=grid, level_capacity=_stored_sizes(sizes),
-        dag=header["kind"] == "dag", mode=header["mode"])
+        overflow=jnp.int32(0), grid=grid, level_capacity=jnp.asarray(stored_sizes(sizes), jnp.int32),
+        dag=header["kind"] == "dag", mode=header["mode"]))
 
 
 def load_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:

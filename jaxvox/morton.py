@@ -45,6 +45,12 @@ def encode_word(ijk: jax.Array) -> jax.Array:
     return _spread10(u[..., 0]) | (_spread10(u[..., 1]) << 1) | (_spread10(u[..., 2]) << 2)
 
 
+def encode_word_host(ijk: np.ndarray) -> np.ndarray:
+    """`encode_word` in numpy, for host-side ordering (compiles nothing): [..., 3] -> uint32 [...]."""
+    u = np.asarray(ijk).astype(np.uint32)
+    return _spread10(u[..., 0]) | (_spread10(u[..., 1]) << 1) | (_spread10(u[..., 2]) << 2)
+
+
 def decode_word(word: jax.Array) -> jax.Array:
     """Inverse of `encode_word`: uint32 [...] -> int32 [..., 3] with values < 1024."""
     w = jnp.asarray(word, jnp.uint32)

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._buffers import bucket_pow2, expand_counts
+from jaxvox._shapes import bucket, expand_counts, key_bits
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -70,9 +70,14 @@ class Octree:
 
     Rows past ``level_count[l]`` within level ``l`` are padding (mask 0, children
     `EMPTY`, prefix 0). Trees returned by `build_octree` / `build_dag` without explicit
-    capacities are compact: ``level_capacity == level_sizes``, except that the root row
-    always exists (an empty tree has capacities ``(1, 0, ...)``). `level_capacity`, `dag`
-    and `mode` are static (changing them recompiles).
+    capacities (and by `load`) are padded to the shape ladder: every level holds
+    exactly its nodes (the root row always exists) except the last two, which take the
+    padding rows that bring `child`/`prefix` and `mask` to power-of-two lengths (at most
+    twice their rows, four times for the one-byte masks). Trees of similar size so share
+    compiled consumers (`trace`, `render`, `voxel_index`, `expand`); `compact` drops the
+    padding. Only the table lengths, the resolution, `dag` and `mode` are part of a
+    compiled program's key: `level_capacity` is an array, and `dag` and `mode` are
+    static (changing them recompiles).
 
     Attributes:
       mask: [N] uint8 child masks of all nodes, level by level, root first.
@@ -84,7 +89,7 @@ class Octree:
       overflow: [] int32 bitmask: the source voxels' ``OVERFLOW_*`` flags and
         `OVERFLOW_NODES`; nonzero means the tree is truncated.
       grid: the `Grid` the tree covers.
-      level_capacity: static tuple of D ints, rows reserved per level.
+      level_capacity: [D] int32 rows reserved per level (host tuple: `level_capacities`).
       dag: static bool, whether identical subtrees are shared.
       mode: static str, the voxelization mode of the source voxels.
     """
@@ -96,19 +101,24 @@ class Octree:
     voxel_count: jax.Array  # [] int32
     overflow: jax.Array  # [] int32
     grid: Grid
-    level_capacity: tuple = dataclasses.field(metadata=dict(static=True))
+    level_capacity: jax.Array  # [D] int32
     dag: bool = dataclasses.field(metadata=dict(static=True))
     mode: str = dataclasses.field(metadata=dict(static=True))
 
     @property
     def depth(self) -> int:
         """Number of node levels D = log2(resolution)."""
-        return len(self.level_capacity)
+        return self.level_capacity.shape[-1]
+
+    @property
+    def level_capacities(self) -> tuple[int, ...]:
+        """Rows reserved per level as host ints (host-side)."""
+        return tuple(int(x) for x in np.asarray(self.level_capacity))
 
     @property
     def level_offsets(self) -> tuple[int, ...]:
         """First row of each level in `mask` (and, above level D - 1, `child`, `prefix`)."""
-        return tuple(int(x) for x in np.cumsum((0,) + tuple(self.level_capacity[:-1])))
+        return tuple(int(x) for x in np.cumsum((0,) + self.level_capacities[:-1]))
 
     @property
     def level_sizes(self) -> tuple[int, ...]:
@@ -131,11 +141,27 @@ class Octree:
         return int(self.mask.nbytes + self.child.nbytes + self.prefix.nbytes)
 
 
-def _stored_sizes(level_sizes) -> tuple[int, ...]:
+def stored_sizes(level_sizes) -> tuple[int, ...]:
     """Rows a compact tree stores per level: `level_sizes`, but the root row always exists
     (an empty tree keeps one root with mask 0)."""
     sizes = tuple(int(n) for n in level_sizes)
     return (max(sizes[0], 1),) + sizes[1:]
+
+
+def padded_sizes(level_sizes) -> tuple[int, ...]:
+    """Rows per level of a tree padded to the shape ladder (see `Octree`).
+
+    The stored sizes, with the padding that brings the rows above level D - 1 (those of
+    `child` and `prefix`) to a power of two added to level D - 2, and the padding that
+    brings all rows (`mask`) to a power of two added to level D - 1.
+    """
+    sizes = list(stored_sizes(level_sizes))
+    if len(sizes) > 1:
+        inner = sum(sizes[:-1])
+        sizes[-2] += bucket(inner) - inner
+    above = sum(sizes[:-1])
+    sizes[-1] = bucket(above + sizes[-1]) - above
+    return tuple(sizes)
 
 
 # ----------------------------------------------------------------------------- build
@@ -297,25 +323,16 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
     return _Level(mask, child, prefix, n_rows, cells, n_parent, cell_counts, row, overflow)
 
 
-def _levels(vox: Voxels, capacity: tuple[int, ...] | None, dag: bool) -> list[_Level]:
-    """All levels, root first; level ``l`` has `capacity[l]` rows.
-
-    With ``capacity=None`` (host-side) each level's capacity is the power of two above its
-    counted node count, so a counting pass only ever reads the level below. The DAG's sort
-    keys are as narrow as the ids of the level below allow: bounded by that level's
-    capacity, or on the host by its actual row count.
-    """
+def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> list[_Level]:
+    """All levels, root first; level ``l`` has `capacity[l]` rows. The DAG's sort keys
+    are as narrow as the capacity of the level below allows (`key_bits`)."""
     depth = vox.grid.resolution.bit_length() - 1
     ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
     levels, below = [], 0
     for level_index in range(depth - 1, -1, -1):
-        if capacity is None:
-            cap = min(8**level_index, bucket_pow2(int(_count_parents(ijk, n))))
-        else:
-            cap = capacity[level_index]
-        id_bits = max(1, min(32, below.bit_length())) if dag else 32
-        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=id_bits)
-        below = cap if capacity is not None else int(level.count)
+        cap = capacity[level_index]
+        level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=key_bits(below) if dag else 32)
+        below = cap
         levels.append(level)
         ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
     return levels[::-1]
@@ -325,7 +342,7 @@ def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag
     return Octree(mask=mask, child=child, prefix=prefix, level_count=level_count,
                   voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.int32),
                   overflow=(vox.overflow | jnp.where(overflow, OVERFLOW_NODES, 0)).astype(jnp.int32),
-                  grid=vox.grid, level_capacity=tuple(int(c) for c in capacity), dag=dag, mode=vox.mode)
+                  grid=vox.grid, level_capacity=jnp.asarray(capacity, jnp.int32), dag=dag, mode=vox.mode)
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "dag"))
@@ -341,31 +358,68 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
                  capacity, dag)
 
 
-def _build_compact(vox: Voxels, dag: bool) -> Octree:
-    """Host-side build: per-level compiled steps (shared by similar inputs) sized by
-    counting passes, assembled on the host into compact tables without padding rows."""
-    levels = _levels(vox, None, dag)
-    sizes = [int(lv.count) for lv in levels]
-    if any(bool(lv.overflow) for lv in levels):
-        raise JaxvoxError(f"internal error: octree levels {sizes} overflowed their capacities")
-    stored = _stored_sizes(sizes)
-    offsets = np.cumsum((0,) + stored)
-    child = np.empty((offsets[-2], 8), np.uint32)
-    prefix = np.empty((offsets[-2], 8), np.uint32)
-    for i, lv in enumerate(levels[:-1]):
-        rows = np.asarray(lv.child[:stored[i]])
-        child[offsets[i]:offsets[i + 1]] = np.where(rows == EMPTY, EMPTY, rows + np.uint32(offsets[i + 1]))
-        prefix[offsets[i]:offsets[i + 1]] = np.asarray(lv.prefix[:stored[i]])
-    mask = np.concatenate([np.asarray(lv.mask[:n]) for lv, n in zip(levels, stored)])
+@functools.partial(jax.jit, static_argnames=("depth",))
+def _octree_level_sizes(ijk: jax.Array, n: jax.Array, *, depth: int) -> jax.Array:
+    """[D] int32 octree nodes per level of the first `n` Morton-sorted voxels, root first:
+    level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order."""
+    valid = jnp.arange(1, ijk.shape[0]) < n
+    sizes = []
+    for level in range(depth):
+        cell = ijk >> (depth - level)
+        sizes.append(jnp.minimum(n, 1) + jnp.sum(valid & jnp.any(cell[1:] != cell[:-1], axis=1), dtype=jnp.int32))
+    return jnp.stack(sizes)
+
+
+def _schedule(slots: int, depth: int) -> tuple[int, ...]:
+    """Per-level build capacities from the voxel buffer's length alone (so that trees of
+    similar size share one compiled build): ``min(8^l, slots / 2^(2 (D - l) - 1))``,
+    twice the nodes of a surface (about a quarter as many per level as the level
+    below; measured 0.06-0.5 of ``slots / 4^(D - 1 - l)`` on the shared meshes)."""
+    return tuple(min(8**level, max(slots >> (2 * (depth - level) - 1), 64)) for level in range(depth))
+
+
+def _relayout(tree: Octree, sizes: tuple[int, ...]) -> Octree:
+    """Host copy of `tree` with `sizes` rows per level (each at least the level's stored
+    rows): every level's nodes move to the new offsets, child pointers follow them and
+    the new rows are padding. Host memory copies (numpy), so it compiles nothing."""
+    stored = stored_sizes(tree.level_sizes)
+    old, new = tree.level_offsets, np.cumsum((0,) + tuple(sizes))
+    mask, child, prefix = (np.asarray(a) for a in (tree.mask, tree.child, tree.prefix))
+    out_mask = np.zeros(new[-1], np.uint8)
+    out_child = np.full((new[-2], 8), EMPTY, np.uint32)
+    out_prefix = np.zeros((new[-2], 8), np.uint32)
+    for level in range(tree.depth):
+        src, dst = slice(old[level], old[level] + stored[level]), slice(new[level], new[level] + stored[level])
+        out_mask[dst] = mask[src]
+        if level < tree.depth - 1:
+            shift = np.int64(new[level + 1]) - np.int64(old[level + 1])
+            part = child[src]
+            out_child[dst] = np.where(part == EMPTY, EMPTY, (part + shift).astype(np.uint32))
+            out_prefix[dst] = prefix[src]
     put = functools.partial(jax.device_put, may_alias=True)
-    return _tree(vox, put(mask), put(child), put(prefix), jnp.asarray(sizes, jnp.int32), jnp.bool_(False),
-                 stored, dag)
+    return dataclasses.replace(tree, mask=put(out_mask), child=put(out_child), prefix=put(out_prefix),
+                               level_capacity=jnp.asarray(sizes, jnp.int32))
 
 
-@jax.jit
-def _count_parents(ijk: jax.Array, n: jax.Array) -> jax.Array:
-    """Distinct parents ``ijk >> 1`` of the first `n` Morton-sorted cells: [] int32."""
-    return _segments(ijk, n)[2]
+def _build_padded(vox: Voxels, dag: bool) -> Octree:
+    """Host-side build: one compiled build whose capacities come from the voxel buffer's
+    length (`_schedule`; a level that would not fit, which a surface does not produce,
+    gets the power of two above its counted size instead), then the tables laid out on
+    the shape ladder (`padded_sizes`)."""
+    depth = vox.grid.resolution.bit_length() - 1
+    counted = np.asarray(_octree_level_sizes(vox.coords, vox.count, depth=depth))
+    capacity = _schedule(vox.coords.shape[0], depth)
+    if any(int(n) > c for n, c in zip(counted, capacity)):
+        capacity = tuple(min(8**level, bucket(int(n), 64)) for level, n in enumerate(counted))
+    tree = _build(vox, capacity=capacity, dag=dag)
+    if int(tree.overflow):
+        raise JaxvoxError(f"internal error: octree levels {list(counted)} overflowed capacities {capacity}")
+    return padded(tree)
+
+
+def padded(tree: Octree) -> Octree:
+    """`tree` laid out on the shape ladder (`padded_sizes`), host-side."""
+    return _relayout(tree, padded_sizes(tree.level_sizes))
 
 
 @functools.partial(jax.jit, static_argnames=("resolution",))
@@ -402,15 +456,16 @@ def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
                               f"got {capacities}")
         return _build(vox, capacity=capacities, dag=dag)
     _check_voxels(vox)
-    return _build_compact(vox, dag)
+    return _build_padded(vox, dag)
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
     """Builds the sparse voxel octree of a voxel set, bottom-up from Morton order.
 
     Without `capacities` (host-side use) the input is checked (no overflow, indices in
-    range, unique and Morton-sorted), a counting pass sizes every level and the result is
-    compact. With `capacities` the build is a pure function of static shape, usable inside
+    range, unique and Morton-sorted), one compiled build sized from the voxel buffer's
+    length runs (a counting pass checks that every level fits) and the result is laid out
+    on the shape ladder (see `Octree`; `compact` drops the padding). With `capacities` the build is a pure function of static shape, usable inside
     `jax.jit` and `jax.vmap`: a level with more nodes than its capacity sets
     `OVERFLOW_NODES` in ``tree.overflow`` and the tree is truncated.
 
@@ -430,8 +485,8 @@ def build_dag(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octr
 
     Deduplication runs bottom-up during the build (see the module docstring), so the
     octree is never stored. `capacities` bound the *octree's* node counts per level (the
-    rows deduplicated at each level); the host-side path sizes them by the counting pass
-    and compacts the result to the DAG's own sizes. Same contract as `build_octree`.
+    rows deduplicated at each level); the host-side path sizes them as `build_octree`
+    does and lays the result out on the ladder from the DAG's own sizes. Same contract as `build_octree`.
 
     Returns:
       An `Octree` with ``dag=True``; canonical (the same voxel set gives the same arrays).
@@ -445,22 +500,8 @@ def compact(tree: Octree) -> Octree:
     Child rows are absolute, so each level's pointers shift by the change of its target
     level's offset. The work is host memory copies (numpy), so it compiles nothing.
     """
-    sizes = _stored_sizes(tree.level_sizes)
-    if sizes == tuple(tree.level_capacity):
-        return tree
-    old, new = tree.level_offsets, tuple(int(x) for x in np.cumsum((0,) + sizes[:-1]))
-    mask, child, prefix = (np.asarray(a) for a in (tree.mask, tree.child, tree.prefix))
-    rows = [slice(o, o + s) for o, s in zip(old, sizes)]
-    out_child = np.empty((sum(sizes[:-1]), 8), np.uint32)
-    for level in range(tree.depth - 1):
-        part = child[rows[level]]
-        shift = np.uint32(old[level + 1] - new[level + 1])
-        out_child[new[level]:new[level] + sizes[level]] = np.where(part == EMPTY, EMPTY, part - shift)
-    put = functools.partial(jax.device_put, may_alias=True)
-    return dataclasses.replace(
-        tree, mask=put(np.concatenate([mask[r] for r in rows])), child=put(out_child),
-        prefix=put(np.concatenate([prefix[r] for r in rows[:-1]]) if tree.depth > 1 else prefix[:0]),
-        level_capacity=sizes)
+    sizes = stored_sizes(tree.level_sizes)
+    return tree if sizes == tree.level_capacities else _relayout(tree, sizes)
 
 
 # ----------------------------------------------------------------------------- queries
@@ -542,7 +583,7 @@ def _expand_nodes(mask, child, voxel_count, *, depth: int, capacity: int):
 def _padded_pow2(a: jax.Array, fill) -> jax.Array:
     """Host copy of `a` padded with `fill` rows to a power-of-two length."""
     a = np.asarray(a)
-    pad = bucket_pow2(len(a), 1) - len(a)
+    pad = bucket(len(a), 1) - len(a)
     return jax.device_put(np.concatenate([a, np.full((pad,) + a.shape[1:], fill, a.dtype)]), may_alias=True)
 
 
@@ -563,7 +604,7 @@ def expand(tree: Octree, *, capacity: int | None = None) -> Voxels:
     if capacity is None:
         if int(tree.overflow):
             raise JaxvoxError(f"the tree is truncated (overflow flags {int(tree.overflow)})")
-        capacity = bucket_pow2(int(tree.voxel_count))
+        capacity = bucket(int(tree.voxel_count))
         mask, child = _padded_pow2(mask, 0), _padded_pow2(child, EMPTY)
     coords, n = _expand_nodes(mask, child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
     overflow = tree.overflow | jnp.where(tree.voxel_count > capacity, OVERFLOW_NODES, 0)

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._buffers import bucket_pow2
+from jaxvox._shapes import bucket
 from jaxvox._errors import JaxvoxError
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
@@ -89,14 +89,14 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
         n = len(cells)
         if n == 0:
             break
-        padded = np.zeros((bucket_pow2(n, 64), 3), np.int32)
+        padded = np.zeros((bucket(n, 64), 3), np.int32)
         padded[:n] = cells
         keep, nan = _crossed(scene, jnp.asarray(padded), grid, np.float32(lip), slack, np.int32(shift))
         if bool(nan):
             raise JaxvoxError(f"the scene is NaN at some cell centres (level with cells of {2**shift} voxels)")
         cells = cells[np.asarray(keep)[:n]]
     n = len(cells)
-    coords = np.full((bucket_pow2(n), 3), UNUSED, np.int32)
+    coords = np.full((bucket(n), 3), UNUSED, np.int32)
     coords[:n] = cells
     return Voxels(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, CONSERVATIVE)
 

@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._buffers import bucket, bucket_pow2, expand_counts
+from jaxvox._shapes import bucket, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -58,6 +58,7 @@ OVERFLOW_VOXELS = 8
 UNUSED = -1  # value of coordinate and triangle slots past `count`
 REGION_SIZE = 1 << morton.WORD_BITS  # largest region sorted with one 32-bit key
 
+ROW_CHUNK = 4  # rows per gather on the host path (`Capacities.row_chunk` of `voxel_capacities`)
 _TOL = 2.0**-19  # relative half-plane widening, see the module docstring
 _BIG = float(1 << 30)  # clamp for interval bounds before integer conversion
 
@@ -77,14 +78,14 @@ class Capacities(NamedTuple):
       candidates: voxels emitted before duplicates are removed.
       voxels: unique voxels in the result.
       row_chunk: rows handled together per column (a power of two; about the mean
-        number of rows per column is fastest).
+        number of rows per column is fastest; `voxel_capacities` gives `ROW_CHUNK`).
     """
 
     columns: int
     rows: int
     candidates: int
     voxels: int
-    row_chunk: int = 4
+    row_chunk: int = ROW_CHUNK
 
 
 @pytree_dataclass
@@ -147,7 +148,7 @@ class Voxels:
         hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(a))
         codes, first = np.unique((hi << 30) | lo, return_index=True)
         n = len(codes)
-        coords = np.full((bucket_pow2(n), 3), UNUSED, np.int32)
+        coords = np.full((bucket(n), 3), UNUSED, np.int32)
         coords[:n] = a[first]
         return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, _check_mode(mode))
 
@@ -388,9 +389,10 @@ def _eval_bounds(bounds, s, lo, hi):
     return jnp.maximum(lo, lower), jnp.minimum(hi, upper)
 
 
-def _columns(tris: _Triangles, col_cap: int) -> _Columns:
-    """Expands triangles into columns; per column, its rows and depth coefficients."""
-    tri, rank, valid, total = expand_counts(tris.n_cols, col_cap)
+def _columns(tris: _Triangles, col_cap: int, start=0) -> _Columns:
+    """Expands triangles into columns (the window of `col_cap` columns from `start` on);
+    per column, its rows and depth coefficients."""
+    tri, rank, valid, total = expand_counts(tris.n_cols, col_cap, start)
     cu = (tris.col_lo[tri] + rank).astype(jnp.float32)
     c = tris.col_data[tri]
     h4 = (c.shape[1] - 7) // 2
@@ -414,14 +416,15 @@ class _Rows(NamedTuple):
     total: jax.Array  # [] int32 number of row slots needed
 
 
-def _rows(columns: _Columns, row_cap: int, chunk: int) -> _Rows:
+def _rows(columns: _Columns, row_cap: int, chunk: int, start=0) -> _Rows:
     """Expands columns into rows; per row, the interval of depths that are set.
 
     Rows are handled `chunk` at a time (one gather of the column's coefficients per
-    chunk), so `row_cap` counts slots of whole chunks.
+    chunk), so `row_cap` counts slots of whole chunks; the window starts at chunk slot
+    `start`.
     """
     n_chunks = (columns.n_rows + chunk - 1) // chunk
-    col, rank, valid, total = expand_counts(n_chunks, row_cap // chunk)
+    col, rank, valid, total = expand_counts(n_chunks, row_cap // chunk, start)
     offset = rank[:, None] * chunk + jnp.arange(chunk, dtype=jnp.int32)  # [Rc, K]
     ok = valid[:, None] & (offset < columns.n_rows[col][:, None])
     v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
@@ -475,15 +478,19 @@ def _point_triangle_dist2(p, a, b, c):
     return jnp.where(inside & (den > 0), jnp.minimum(face, edges), edges)
 
 
-def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: bool):
-    """Expands rows into candidate voxels and their sort operands.
+def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: bool, start=0, ids=None):
+    """Expands rows into candidate voxels (the window of `cand_cap` from `start` on) and
+    their sort operands.
+
+    Args:
+      ids: [F] int32 triangle id to record for each row of `tris_grid` (default: the row).
 
     Returns:
       (keys: tuple of `words` uint32 [cand_cap] Morton words (invalid = EMPTY),
-      payload: (squared-distance bits, triangle) uint32 [cand_cap] or (),
+      payload: (squared-distance bits, triangle id) uint32 [cand_cap] or (),
       total [] int32 candidates needed).
     """
-    row, rank, valid, total = expand_counts(rows.n_depth, cand_cap)
+    row, rank, valid, total = expand_counts(rows.n_depth, cand_cap, start)
     p = rows.place[row]
     ijk = p[:, :3] + rank[:, None] * (jnp.arange(3, dtype=jnp.int32) == p[:, 3:4])
     if words == 1:
@@ -495,7 +502,8 @@ def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: boo
         tri = p[:, 4]
         corners = tris_grid[tri]
         dist2 = _point_triangle_dist2(ijk.astype(jnp.float32) + 0.5, corners[:, 0], corners[:, 1], corners[:, 2])
-        payload = (jax.lax.bitcast_convert_type(dist2, jnp.uint32), tri.astype(jnp.uint32))
+        payload = (jax.lax.bitcast_convert_type(dist2, jnp.uint32),
+                   (tri if ids is None else ids[tri]).astype(jnp.uint32))
     return keys, payload, total
 
 
@@ -592,70 +600,146 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
 
 # ------------------------------------------------------------------ host-side API
 
-
-@functools.partial(jax.jit, static_argnames=("six_sep",))
-def _count_columns(tris_grid, region_lo, region_hi, *, six_sep):
-    tris = _setup(tris_grid, region_lo, region_hi, six_sep)
-    return tris, jnp.sum(tris.n_cols)
-
-
-@functools.partial(jax.jit, static_argnames=("col_cap",))
-def _count_rows(tris, *, col_cap):
-    columns = _columns(tris, col_cap)
-    return columns, jnp.sum(columns.n_rows)
+# The host path walks fixed work windows, so that every mesh at every resolution runs the
+# same few compiled programs whatever its counts: triangles in chunks of `_CHUNK`,
+# expanded into windows of columns, row slots and candidates. Only the candidate buffer
+# of a region (on the shape ladder) changes shape.
+_CHUNK = 4096
+_WINDOW_COLUMNS = 1 << 15
+_WINDOW_ROWS = 1 << 16
+_WINDOW_CANDIDATES = 1 << 17
 
 
-@functools.partial(jax.jit, static_argnames=("chunk",))
-def _count_row_slots(n_rows, *, chunk):
-    return jnp.sum((n_rows + chunk - 1) // chunk) * chunk
-
-
-@functools.partial(jax.jit, static_argnames=("row_cap", "chunk"))
-def _count_candidates(columns, *, row_cap, chunk):
-    rows = _rows(columns, row_cap, chunk)
-    return rows, jnp.sum(rows.n_depth)
-
-
-@functools.partial(jax.jit, static_argnames=("words", "cand_cap", "with_ids"))
-def _emit_sorted(tris_grid, region_lo, columns, rows, *, words, cand_cap, with_ids):
-    keys, payload, n_cand = _candidates(tris_grid, rows, cand_cap, words, with_ids)
-    coords, triangle, count, _ = _sort_unique(keys, payload, words, region_lo, cand_cap)
-    return coords, triangle, count, n_cand
-
-
-def _voxelize_region(tris_grid, region_lo, region_size: int, six_sep: bool, with_ids: bool,
-                     floor: Capacities | None = None):
-    """Host-side passes for one region: each stage is sized by the previous one's count.
-
-    Args:
-      floor: capacities never go below these; streaming passes the previous region's,
-        so that regions share a few compiled shapes (each new maximum recompiles).
+def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
+    """Calls ``carry = visit(rows, carry)`` on every row window of a chunk of triangles.
 
     Returns:
-      (coords [n, 3] int32, triangle [n] int32 or None (indices into `tris_grid`),
-      capacities used).
+      (columns [] int32, row slots [] int32, final carry).
     """
-    floor = floor or Capacities(0, 0, 0, 0, 1)
-    size = lambda n, low: max(bucket(int(n)), low)
-    region_hi = region_lo + jnp.int32(region_size - 1)
-    tris, n_cols = _count_columns(tris_grid, region_lo, region_hi, six_sep=six_sep)
-    col_cap = size(n_cols, floor.columns)
-    columns, n_rows = _count_rows(tris, col_cap=col_cap)
-    # Rows per chunk: 1, 4 or 16, whichever is nearest the mean rows per column.
-    chunk = 1 << 2 * min(2, max(0, round(math.log(max(int(n_rows), 1) / max(int(n_cols), 1), 4))))
-    chunk = max(chunk, floor.row_chunk)
-    row_cap = size(int(_count_row_slots(columns.n_rows, chunk=chunk)) // chunk, floor.rows // chunk) * chunk
-    rows, n_cand = _count_candidates(columns, row_cap=row_cap, chunk=chunk)
-    cand_cap = size(n_cand, floor.candidates)
-    coords, triangle, count, n_cand = _emit_sorted(tris_grid, region_lo, columns, rows, words=_words(region_size),
-                                                   cand_cap=cand_cap, with_ids=with_ids)
+    tris = _setup(tris_grid, region_lo, region_hi, six_sep)
+
+    def columns_step(state):
+        start, slots, carry = state
+        columns = _columns(tris, _WINDOW_COLUMNS, start)
+        n_slots = jnp.sum((columns.n_rows + ROW_CHUNK - 1) // ROW_CHUNK)
+
+        def rows_step(state):
+            row_start, carry = state
+            rows = _rows(columns, _WINDOW_ROWS, ROW_CHUNK, row_start)
+            return row_start + _WINDOW_ROWS // ROW_CHUNK, visit(rows, carry)
+
+        _, carry = jax.lax.while_loop(lambda s: s[0] < n_slots, rows_step, (jnp.int32(0), carry))
+        return start + _WINDOW_COLUMNS, slots + n_slots * ROW_CHUNK, carry
+
+    n_cols = jnp.sum(tris.n_cols)
+    _, n_slots, carry = jax.lax.while_loop(lambda s: s[0] < n_cols, columns_step,
+                                           (jnp.int32(0), jnp.int32(0), carry))
+    return n_cols, n_slots, carry
+
+
+@functools.partial(jax.jit, static_argnames=("six_sep",))
+def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
+    """[3] int32 (columns, row slots, candidates) of a chunk [_CHUNK, 3, 3] in a region."""
+    visit = lambda rows, n: n + jnp.sum(rows.n_depth)
+    n_cols, n_slots, n_cand = _walk(tris_grid, region_lo, region_hi, six_sep, visit, jnp.int32(0))
+    return jnp.stack([n_cols, n_slots, n_cand])
+
+
+@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("buffers",))
+def _emit_chunk(tris_grid, ids, region_lo, region_hi, buffers, offset, *, six_sep, with_ids):
+    """Writes a chunk's candidates into the region's sort buffers from slot `offset` on.
+
+    Args:
+      tris_grid: [_CHUNK, 3, 3] float32 triangles in grid units (NaN rows are skipped).
+      ids: [_CHUNK] int32 triangle ids to record.
+      buffers: (keys,) or (keys, distance bits, triangle ids), uint32 [K] (donated);
+        entries past the end are dropped.
+      offset: [] int32 first free slot.
+
+    Returns:
+      (buffers, offset + the chunk's candidates).
+    """
+    cap = buffers[0].shape[0]
+
+    def visit(rows, carry):
+        buffers, offset = carry
+        n = jnp.sum(rows.n_depth)
+
+        def step(state):
+            start, buffers = state
+            keys, payload, _ = _candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
+            slot = start + jnp.arange(_WINDOW_CANDIDATES, dtype=jnp.int32)
+            pos = jnp.where(slot < n, offset + slot, cap)
+            return start + _WINDOW_CANDIDATES, tuple(
+                b.at[pos].set(v, mode="drop") for b, v in zip(buffers, keys + payload))
+
+        _, buffers = jax.lax.while_loop(lambda s: s[0] < n, step, (jnp.int32(0), buffers))
+        return buffers, offset + n
+
+    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (buffers, offset))[2]
+
+
+@jax.jit
+def _sort_region(buffers, region_lo):
+    """Sorts and deduplicates a region's candidates; (coords [K, 3], triangle [K] or None, count)."""
+    coords, triangle, count, _ = _sort_unique(buffers[:1], buffers[1:], 1, region_lo, buffers[0].shape[0])
+    return coords, triangle, count
+
+
+def _grid_triangles(mesh: Mesh, grid: Grid) -> np.ndarray:
+    """Host float32 [F, 3, 3] triangle corners in grid units (the same float32 operations
+    as `Grid.to_grid_units`; numpy, so a new mesh size compiles nothing)."""
+    v = np.asarray(mesh.vertices, np.float32)[np.asarray(mesh.faces)]
+    return (v - np.asarray(grid.origin, np.float32)) / np.asarray(grid.voxel_size, np.float32)
+
+
+def _chunks(tris: np.ndarray, idx: np.ndarray):
+    """Device arrays (triangles [_CHUNK, 3, 3] NaN-padded, ids [_CHUNK] int32) per chunk of `idx`."""
+    out = []
+    for start in range(0, len(idx), _CHUNK):
+        part = idx[start:start + _CHUNK]
+        t = np.full((_CHUNK, 3, 3), np.nan, np.float32)
+        t[:len(part)] = tris[part]
+        ids = np.zeros(_CHUNK, np.int32)
+        ids[:len(part)] = part
+        out.append((jax.device_put(t), jax.device_put(ids)))
+    return out
+
+
+def _region_bounds(region_lo, region_size: int):
+    lo = np.asarray(region_lo, np.int32)
+    return jax.device_put(lo), jax.device_put(lo + np.int32(region_size - 1))
+
+
+def _count_region(chunks, lo, hi, six_sep: bool) -> np.ndarray:
+    """Host int64 [3] (columns, row slots, candidates) of a region's chunks."""
+    counts = [_count_chunk(t, lo, hi, six_sep=six_sep) for t, _ in chunks]
+    return np.sum(np.asarray(jax.device_get(counts), np.int64).reshape(-1, 3), axis=0)
+
+
+def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool,
+                     with_ids: bool):
+    """Host-side passes for one region: a counting pass sizes the candidate buffer,
+    then every chunk writes its candidates and one sort makes them unique.
+
+    Returns:
+      (coords [n, 3] int32, triangle [n] int32 ids or None) host arrays.
+    """
+    lo, hi = _region_bounds(region_lo, region_size)
+    chunks = _chunks(tris, idx)
+    n_cand = int(_count_region(chunks, lo, hi, six_sep)[2])
+    cap = bucket(n_cand)
+    buffers = [np.full(cap, morton.EMPTY, np.uint32)] + [np.zeros(cap, np.uint32) for _ in range(2 * with_ids)]
+    buffers, offset = tuple(jax.device_put(b, may_alias=False) for b in buffers), jnp.int32(0)
+    for t, ids in chunks:
+        buffers, offset = _emit_chunk(t, ids, lo, hi, buffers, offset, six_sep=six_sep, with_ids=with_ids)
+    coords, triangle, count = _sort_region(buffers, lo)
+    # The buffer was sized by the exact count of the same walk, so nothing can be
+    # dropped; check anyway rather than trust it silently.
+    if int(offset) != n_cand:
+        raise JaxvoxError(f"internal error: {int(offset)} candidates written, {n_cand} counted")
     count = int(count)
-    # Each pass was sized by the previous pass's exact count, so nothing can be dropped;
-    # check the last one anyway rather than trust it silently.
-    if int(n_cand) > cand_cap or count > int(n_cand):
-        raise JaxvoxError(f"internal error: {int(n_cand)} candidates for a capacity of {cand_cap}")
-    caps = Capacities(col_cap, row_cap, cand_cap, bucket(count), chunk)
-    return coords[:count], (triangle[:count] if with_ids else None), caps
+    return np.asarray(coords)[:count], (np.asarray(triangle)[:count] if with_ids else None)
 
 
 def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
@@ -674,7 +758,7 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
         a = np.array(a)
         cells.update(tuple(a + c) for c in np.ndindex(*(np.array(b) - a + 1)))
     cells = np.array(sorted(cells), np.int64).reshape(-1, 3)
-    order = np.argsort(np.asarray(jax.device_get(morton.encode_word(jnp.asarray(cells, jnp.int32)))), kind="stable")
+    order = np.argsort(morton.encode_word_host(cells), kind="stable")
     out = []
     for c in cells[order]:
         hit = inside & (lo <= c).all(1) & (hi >= c).all(1)
@@ -699,18 +783,15 @@ def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     return out
 
 
-@jax.jit
-def _grid_triangles(mesh: Mesh, grid: Grid):
-    return grid.to_grid_units(mesh.triangles())
-
-
 def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: bool = False,
              region_size: int = REGION_SIZE, progress: bool | None = None) -> Voxels:
     """Voxelizes a triangle mesh exactly; capacities are sized by counting passes.
 
-    Each work stage (columns, rows, candidate voxels) is sized by the exact count of the
-    pass before it, so nothing is ever dropped and no retry is needed; the last count
-    is still checked, and a mismatch raises instead of returning a truncated set.
+    Triangles go through fixed-size chunks and fixed work windows, so every mesh runs
+    the same compiled programs; a counting pass over the same windows sizes each
+    region's candidate buffer (on the shape ladder), so nothing is ever dropped and no
+    retry is needed. The count is checked against what was written, and a mismatch
+    raises instead of returning a truncated set.
 
     Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
     regions, visited in Morton order, each voxelized from the triangles whose bounding
@@ -739,24 +820,18 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
         raise JaxvoxError(f"region_size must be a power of two <= {REGION_SIZE}, got {region_size}")
     region_size = min(region_size, grid.resolution)
     tris = _grid_triangles(mesh, grid)
-    regions = _regions(np.asarray(tris), grid.resolution, region_size) if mesh.num_faces else []
+    regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
     from tqdm.auto import tqdm
 
     parts, tri_parts = [], []
-    streaming = len(regions) > 1
-    floor, n_tris = Capacities(0, 0, 0, 0, 1), 0
-    disable = not streaming if progress is None else not progress
+    disable = len(regions) < 2 if progress is None else not progress
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        n_tris = max(n_tris if streaming else 0, bucket(len(idx), 256))
-        padded = jnp.asarray(np.concatenate([idx, np.full(n_tris - len(idx), idx[0])]))
-        coords, triangle, caps = _voxelize_region(tris[padded], jnp.asarray(region_lo), region_size,
-                                                  six_sep, triangle_ids, floor if streaming else None)
-        floor = caps
-        parts.append(np.asarray(coords))  # to host as we go: device memory holds one region
+        coords, triangle = _voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+        parts.append(coords)  # on the host as we go: device memory holds one region
         if triangle_ids:
-            tri_parts.append(np.asarray(padded[triangle]))
+            tri_parts.append(triangle)
     total = sum(len(p) for p in parts)
-    cap = bucket(total, 1)
+    cap = bucket(total)
     coords = _pad_rows(parts, (cap, 3))
     triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
     to_device = functools.partial(jax.device_put, may_alias=True)  # one copy, not jnp.asarray's two
@@ -767,12 +842,16 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
 def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Capacities:
     """Capacities with which `voxelize_fixed` does not overflow for this mesh and grid.
 
-    Found by the host-side counting passes over the whole grid as one region, rounded
-    up to a few buckets so that similar inputs share a compiled function.
+    Found by the host-side counting pass over the whole grid as one region (and the
+    voxel count of `voxelize`), each rounded up on the shape ladder so that similar
+    inputs share a compiled function.
     """
     six_sep = _check_mode(mode) == SIX_SEPARATING
     validate_mesh(mesh)
     if mesh.num_faces == 0:
-        return Capacities(*(bucket(0),) * 4, 1)
-    tris = _grid_triangles(mesh, grid)
-    return _voxelize_region(tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, False)[2]
+        return Capacities(*(bucket(0),) * 4, ROW_CHUNK)
+    lo, hi = _region_bounds(np.zeros(3, np.int32), grid.resolution)
+    chunks = _chunks(_grid_triangles(mesh, grid), np.arange(mesh.num_faces))
+    columns, rows, candidates = (bucket(n) for n in _count_region(chunks, lo, hi, six_sep))
+    voxels = bucket(int(voxelize(mesh, grid, mode=mode).count))
+    return Capacities(columns, rows, candidates, voxels, ROW_CHUNK)

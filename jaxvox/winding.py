@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._buffers import bucket_pow2, expand_counts
+from jaxvox._shapes import bucket, expand_counts
 from jaxvox._errors import JaxvoxError
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
@@ -234,13 +234,13 @@ def _box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int
         tree = _build_tree(tris)
         settings = dict(per_axis=per_axis, block=block, beta=float(beta))
         n = math.prod(per_axis)
-        capacity = bucket_pow2(n)
+        capacity = bucket(n)
         blocks = jnp.arange(capacity, dtype=jnp.int32)
         nodes = jnp.zeros(capacity, jnp.int32)  # the root
         for depth in range(len(tree.levels)):
             leaves = depth == len(tree.levels) - 1
             opened = 0 if leaves else int(_near_children(tree, blocks, nodes, n, **settings))
-            w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket_pow2(opened),
+            w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket(opened),
                                       **settings)
             n = opened
     w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)

@@ -82,7 +82,13 @@ def _check_tree(tree: jv.Octree, ijk: np.ndarray) -> None:
     np.testing.assert_array_equal(reference_expand(tree), ijk)
     np.testing.assert_array_equal(np.asarray(jv.voxel_index(tree, ijk)), np.arange(len(ijk)))
     stored = [max(expected[0], 1)] + expected[1:]  # an empty tree keeps its root row
-    assert tree.nbytes == sum(stored) + 64 * sum(stored[:-1])
+    assert jv.compact(tree).nbytes == sum(stored) + 64 * sum(stored[:-1])
+    # Host-built trees are padded to the shape ladder: power-of-two tables, at most twice
+    # the rows (four times for the one-byte masks).
+    n, m = tree.mask.shape[0], tree.child.shape[0]
+    inner = sum(stored[:-1])
+    assert m & (m - 1) == 0 and m <= max(2 * inner - 1, 256) if inner else m == 0
+    assert n & (n - 1) == 0 and n <= max(2 * (m + stored[-1]) - 1, 256)
 
 
 def _sorted_voxels(ijk: np.ndarray) -> np.ndarray:
@@ -306,7 +312,7 @@ def test_jit_vmap_and_eager_agree(dag):
     build = jv.build_dag if dag else jv.build_octree
     caps = (1, 8, 64, 512)
     eager = [jv.compact(build(v, capacities=caps)) for v in sets]
-    host = [build(v) for v in sets]
+    host = [jv.compact(build(v)) for v in sets]
     jitted = jax.jit(lambda v: build(v, capacities=caps))
     batched = jax.vmap(lambda v: build(v, capacities=caps))(jax.tree.map(lambda *x: jnp.stack(x), *sets))
     for i, v in enumerate(sets):
@@ -412,7 +418,7 @@ def test_jittable_build_with_wide_ids_matches_host():
     vox = jv.Voxels.from_coords(rng.integers(0, 64, size=(3000, 3)), grid)
     caps = (1, 8, 64, 512, 1 << 17, 1 << 17)
     jitted = jv.compact(jv.build_dag(vox, capacities=caps))
-    host = jv.build_dag(vox)
+    host = jv.compact(jv.build_dag(vox))
     for field in ("mask", "child", "prefix", "level_count"):
         np.testing.assert_array_equal(np.asarray(getattr(jitted, field)), np.asarray(getattr(host, field)))
 
@@ -434,7 +440,7 @@ def test_save_load_is_bit_exact(saved, tmp_path):
     path, dag, attrs, vox = saved
     loaded = jv.load(path)
     assert loaded.dag and loaded.mode == dag.mode and loaded.level_sizes == dag.level_sizes
-    assert loaded.level_capacity == dag.level_capacity
+    assert loaded.level_capacities == dag.level_capacities
     for field in ("mask", "child", "prefix", "level_count", "voxel_count"):
         a, b = np.asarray(getattr(loaded, field)), np.asarray(getattr(dag, field))
         assert a.dtype == b.dtype and a.tobytes() == b.tobytes()

@@ -1,0 +1,64 @@
+"""The shape policy: every variable size in jaxvox comes from one ladder of buckets.
+
+Compiled programs are keyed by the shapes of their arrays. Any size that depends on the
+input (triangle, column, row, candidate and voxel counts, octree tables, ray batches,
+attribute arrays) is rounded up with `bucket` (a power of two, at least `FLOOR`), so two
+inputs whose counts fall in the same buckets run the same compiled programs. A padded
+buffer is at most twice its contents (or `FLOOR` entries).
+
+Widths of packed sort keys go through `key_bits`, which keeps only the widths that
+change how many keys are sorted.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+FLOOR = 256  # smallest bucket
+
+
+def bucket(n: int, minimum: int = FLOOR) -> int:
+    """The ladder: the smallest power of two >= max(n, minimum)."""
+    return 1 << (max(int(n), int(minimum), 1) - 1).bit_length()
+
+
+def key_bits(n: int) -> int:
+    """Bits for ids below `n` (plus one `EMPTY` value), rounded to 8, 10, 16 or 32.
+
+    Eight child ids pack into 2, 3, 4 or 8 uint32 sort keys at those widths; a width in
+    between would sort as many keys as the next one up, so it only adds programs.
+    """
+    need = max(1, int(n)).bit_length()
+    return next(b for b in (8, 10, 16, 32) if need <= b)
+
+
+def expand_counts(counts: jax.Array, capacity: int, start=0):
+    """Expands per-item counts into `capacity` work slots, from slot `start` on.
+
+    Item ``i`` owns slots ``[sum(counts[:i]), sum(counts[:i+1]))``; this returns the
+    window ``[start, start + capacity)`` of that sequence, so a long expansion can be
+    walked window by window with fixed shapes.
+
+    Args:
+      counts: [n] int32 non-negative counts.
+      capacity: static int, number of slots.
+      start: [] int32 first slot of the window (default 0).
+
+    Returns:
+      (owner [capacity] int32 item of each slot, rank [capacity] int32 position within
+      its item, valid [capacity] bool, total [] int32 = sum(counts)). Slots at or past
+      `total` are invalid (their owner is a real item, their rank meaningless).
+    """
+    if counts.shape[0] == 0:
+        zeros = jnp.zeros(capacity, jnp.int32)
+        return zeros, zeros, zeros > 0, jnp.int32(0)
+    ends = jnp.cumsum(counts)
+    starts = ends - counts
+    # The owner of slot s is the last item starting at or before s: mark starts, cummax.
+    # Items starting before the window mark its first slot (the last of them owns it).
+    ids = jnp.where(counts > 0, jnp.arange(counts.shape[0], dtype=jnp.int32), 0)
+    first = jnp.clip(starts - start, 0, capacity)
+    owner = jax.lax.cummax(jnp.zeros(capacity, jnp.int32).at[first].max(ids, mode="drop"))
+    slot = start + jnp.arange(capacity, dtype=jnp.int32)
+    return owner, slot - starts[owner], slot < ends[-1], ends[-1]
