@@ -602,12 +602,14 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
 
 # The host path walks fixed work windows, so that every mesh at every resolution runs the
 # same few compiled programs whatever its counts: triangles in chunks of `_CHUNK`,
-# expanded into windows of columns, row slots and candidates. Only the candidate buffer
-# of a region (on the shape ladder) changes shape.
+# expanded into windows of columns, row slots and candidates, written into fixed pages.
+# Only the sort of a region's candidates (a whole number of pages, on the shape ladder)
+# changes shape.
 _CHUNK = 4096
 _WINDOW_COLUMNS = 1 << 15
 _WINDOW_ROWS = 1 << 16
 _WINDOW_CANDIDATES = 1 << 17
+_PAGE = 1 << 18  # slots per page of a region's sort buffer (the emit program writes one page)
 
 
 def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
@@ -645,43 +647,48 @@ def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
     return jnp.stack([n_cols, n_slots, n_cand])
 
 
-@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("buffers",))
-def _emit_chunk(tris_grid, ids, region_lo, region_hi, buffers, offset, *, six_sep, with_ids):
-    """Writes a chunk's candidates into the region's sort buffers from slot `offset` on.
+@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("page",))
+def _emit_chunk(tris_grid, ids, region_lo, region_hi, page, offset, *, six_sep, with_ids):
+    """Writes the candidates of a chunk that fall in one page of the region's sort buffer.
 
     Args:
       tris_grid: [_CHUNK, 3, 3] float32 triangles in grid units (NaN rows are skipped).
       ids: [_CHUNK] int32 triangle ids to record.
-      buffers: (keys,) or (keys, distance bits, triangle ids), uint32 [K] (donated);
-        entries past the end are dropped.
-      offset: [] int32 first free slot.
+      page: (keys,) or (keys, distance bits, triangle ids), uint32 [_PAGE] (donated).
+      offset: [] int32 slot of the chunk's first candidate relative to the page's first
+        slot (negative when the chunk started in an earlier page); candidates outside
+        the page are skipped.
 
     Returns:
-      (buffers, offset + the chunk's candidates).
+      The page.
     """
-    cap = buffers[0].shape[0]
-
     def visit(rows, carry):
-        buffers, offset = carry
+        page, offset = carry
         n = jnp.sum(rows.n_depth)
 
         def step(state):
-            start, buffers = state
+            start, page = state
             keys, payload, _ = _candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
             slot = start + jnp.arange(_WINDOW_CANDIDATES, dtype=jnp.int32)
-            pos = jnp.where(slot < n, offset + slot, cap)
+            pos = offset + slot
+            pos = jnp.where((slot < n) & (pos >= 0), pos, _PAGE)  # outside the page: dropped
             return start + _WINDOW_CANDIDATES, tuple(
-                b.at[pos].set(v, mode="drop") for b, v in zip(buffers, keys + payload))
+                b.at[pos].set(v, mode="drop") for b, v in zip(page, keys + payload))
 
-        _, buffers = jax.lax.while_loop(lambda s: s[0] < n, step, (jnp.int32(0), buffers))
-        return buffers, offset + n
+        _, page = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < _PAGE), step, (jnp.int32(0), page))
+        return page, offset + n
 
-    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (buffers, offset))[2]
+    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (page, offset))[2][0]
 
 
 @jax.jit
-def _sort_region(buffers, region_lo):
-    """Sorts and deduplicates a region's candidates; (coords [K, 3], triangle [K] or None, count)."""
+def _sort_region(pages, region_lo):
+    """Sorts and deduplicates a region's candidates, given as pages of sort operands.
+
+    Returns:
+      (coords [K, 3] int32, triangle [K] int32 or None, count [] int32), K the pages' total.
+    """
+    buffers = tuple(jnp.concatenate(parts) for parts in zip(*pages))
     coords, triangle, count, _ = _sort_unique(buffers[:1], buffers[1:], 1, region_lo, buffers[0].shape[0])
     return coords, triangle, count
 
@@ -711,34 +718,41 @@ def _region_bounds(region_lo, region_size: int):
     return jax.device_put(lo), jax.device_put(lo + np.int32(region_size - 1))
 
 
-def _count_region(chunks, lo, hi, six_sep: bool) -> np.ndarray:
-    """Host int64 [3] (columns, row slots, candidates) of a region's chunks."""
+def _count_chunks(chunks, lo, hi, six_sep: bool) -> np.ndarray:
+    """Host int64 [chunks, 3] (columns, row slots, candidates) of a region's chunks."""
     counts = [_count_chunk(t, lo, hi, six_sep=six_sep) for t, _ in chunks]
-    return np.sum(np.asarray(jax.device_get(counts), np.int64).reshape(-1, 3), axis=0)
+    return np.asarray(jax.device_get(counts), np.int64).reshape(-1, 3)
 
 
 def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool,
                      with_ids: bool):
-    """Host-side passes for one region: a counting pass sizes the candidate buffer,
-    then every chunk writes its candidates and one sort makes them unique.
+    """Host-side passes for one region: a counting pass places every chunk's candidates
+    in the sort buffer, the chunks write them page by page and one sort makes them
+    unique.
 
     Returns:
       (coords [n, 3] int32, triangle [n] int32 ids or None) host arrays.
     """
     lo, hi = _region_bounds(region_lo, region_size)
     chunks = _chunks(tris, idx)
-    n_cand = int(_count_region(chunks, lo, hi, six_sep)[2])
-    cap = bucket(n_cand)
-    buffers = [np.full(cap, morton.EMPTY, np.uint32)] + [np.zeros(cap, np.uint32) for _ in range(2 * with_ids)]
-    buffers, offset = tuple(jax.device_put(b, may_alias=False) for b in buffers), jnp.int32(0)
-    for t, ids in chunks:
-        buffers, offset = _emit_chunk(t, ids, lo, hi, buffers, offset, six_sep=six_sep, with_ids=with_ids)
-    coords, triangle, count = _sort_region(buffers, lo)
-    # The buffer was sized by the exact count of the same walk, so nothing can be
-    # dropped; check anyway rather than trust it silently.
-    if int(offset) != n_cand:
-        raise JaxvoxError(f"internal error: {int(offset)} candidates written, {n_cand} counted")
+    ends = np.cumsum(_count_chunks(chunks, lo, hi, six_sep)[:, 2])
+    starts = ends - np.diff(ends, prepend=0)
+    total = int(ends[-1])
+    pages = []
+    for first in range(0, bucket(total, _PAGE), _PAGE):
+        page = [np.full(_PAGE, morton.EMPTY, np.uint32)] + [np.zeros(_PAGE, np.uint32) for _ in range(2 * with_ids)]
+        page = tuple(jax.device_put(b, may_alias=False) for b in page)
+        for (t, ids), start, end in zip(chunks, starts, ends):
+            if start < first + _PAGE and end > first:
+                page = _emit_chunk(t, ids, lo, hi, page, np.int32(start - first), six_sep=six_sep,
+                                   with_ids=with_ids)
+        pages.append(page)
+    coords, triangle, count = _sort_region(pages, lo)
     count = int(count)
+    # The pages were sized by the exact count of the same walk, so nothing is dropped
+    # (a count past the buffer would show as a missing sentinel, never silently).
+    if count > total:
+        raise JaxvoxError(f"internal error: {count} voxels from {total} candidates")
     return np.asarray(coords)[:count], (np.asarray(triangle)[:count] if with_ids else None)
 
 
@@ -852,6 +866,6 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Cap
         return Capacities(*(bucket(0),) * 4, ROW_CHUNK)
     lo, hi = _region_bounds(np.zeros(3, np.int32), grid.resolution)
     chunks = _chunks(_grid_triangles(mesh, grid), np.arange(mesh.num_faces))
-    columns, rows, candidates = (bucket(n) for n in _count_region(chunks, lo, hi, six_sep))
+    columns, rows, candidates = (bucket(n) for n in _count_chunks(chunks, lo, hi, six_sep).sum(0))
     voxels = bucket(int(voxelize(mesh, grid, mode=mode).count))
     return Capacities(columns, rows, candidates, voxels, ROW_CHUNK)
