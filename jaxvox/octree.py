@@ -358,18 +358,6 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
                  capacity, dag)
 
 
-@functools.partial(jax.jit, static_argnames=("depth",))
-def _octree_level_sizes(ijk: jax.Array, n: jax.Array, *, depth: int) -> jax.Array:
-    """[D] int32 octree nodes per level of the first `n` Morton-sorted voxels, root first:
-    level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order."""
-    valid = jnp.arange(1, ijk.shape[0]) < n
-    sizes = []
-    for level in range(depth):
-        cell = ijk >> (depth - level)
-        sizes.append(jnp.minimum(n, 1) + jnp.sum(valid & jnp.any(cell[1:] != cell[:-1], axis=1), dtype=jnp.int32))
-    return jnp.stack(sizes)
-
-
 def _schedule(slots: int, depth: int) -> tuple[int, ...]:
     """Per-level build capacities from the voxel buffer's length alone (so that trees of
     similar size share one compiled build): ``min(8^l, slots / 2^(2 (D - l) - 1))``,
@@ -401,14 +389,12 @@ def _relayout(tree: Octree, sizes: tuple[int, ...]) -> Octree:
                                level_capacity=jnp.asarray(sizes, jnp.int32))
 
 
-def _build_padded(vox: Voxels, dag: bool) -> Octree:
+def _build_padded(vox: Voxels, counted: np.ndarray, dag: bool) -> Octree:
     """Host-side build: one compiled build whose capacities come from the voxel buffer's
     length (`_schedule`; a level that would not fit, which a surface does not produce,
     gets the power of two above its counted size instead), then the tables laid out on
     the shape ladder (`padded_sizes`)."""
-    depth = vox.grid.resolution.bit_length() - 1
-    counted = np.asarray(_octree_level_sizes(vox.coords, vox.count, depth=depth))
-    capacity = _schedule(vox.coords.shape[0], depth)
+    capacity = _schedule(vox.coords.shape[0], len(counted))
     if any(int(n) > c for n, c in zip(counted, capacity)):
         capacity = tuple(min(8**level, bucket(int(n), 64)) for level, n in enumerate(counted))
     tree = _build(vox, capacity=capacity, dag=dag)
@@ -423,28 +409,40 @@ def padded(tree: Octree) -> Octree:
 
 
 @functools.partial(jax.jit, static_argnames=("resolution",))
-def _well_formed(coords: jax.Array, count: jax.Array, *, resolution: int):
-    """(in_range, ordered): valid voxels lie in the grid and strictly increase in Morton order."""
+def _survey(coords: jax.Array, count: jax.Array, *, resolution: int):
+    """Checks and counts a voxel buffer in one program.
+
+    Returns:
+      (in_range [] bool: valid voxels lie in the grid, ordered [] bool: they strictly
+      increase in Morton order, sizes [D] int32 octree nodes per level, root first:
+      level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order).
+    """
     valid = jnp.arange(coords.shape[0]) < count
     inside = jnp.all((coords >= 0) & (coords < resolution) | ~valid[:, None])
     hi, lo = morton.encode(jnp.clip(coords, 0, resolution - 1))
     increasing = (hi[1:] > hi[:-1]) | ((hi[1:] == hi[:-1]) & (lo[1:] > lo[:-1]))
-    return inside, jnp.all(increasing | ~valid[1:])
+    depth = resolution.bit_length() - 1
+    sizes = [jnp.minimum(count, 1) + jnp.sum(valid[1:] & jnp.any((coords[1:] ^ coords[:-1]) >> (depth - level) != 0,
+                                                                  axis=1), dtype=jnp.int32)
+             for level in range(depth)]
+    return inside, jnp.all(increasing | ~valid[1:]), jnp.stack(sizes)
 
 
-def _check_voxels(vox: Voxels) -> None:
-    """Host-side validation of build input (raises `JaxvoxError`)."""
+def _check_voxels(vox: Voxels) -> np.ndarray:
+    """Host-side validation of build input (raises `JaxvoxError`); returns the octree's
+    nodes per level (host int [D])."""
     if not isinstance(vox, Voxels):
         raise JaxvoxError(f"expected jaxvox.Voxels, got {type(vox).__name__}")
     if int(vox.overflow):
         raise JaxvoxError(f"the voxel buffer overflowed (flags {int(vox.overflow)}); "
                           "the tree would be truncated")
-    inside, ordered = _well_formed(vox.coords, vox.count, resolution=vox.grid.resolution)
+    inside, ordered, sizes = jax.device_get(_survey(vox.coords, vox.count, resolution=vox.grid.resolution))
     if not bool(inside):
         raise JaxvoxError(f"voxel indices outside [0, {vox.grid.resolution})")
     if not bool(ordered):
         raise JaxvoxError("voxels are not unique and in Morton order (build them with "
                           "jaxvox.voxelize or Voxels.from_coords)")
+    return sizes
 
 
 def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
@@ -455,8 +453,7 @@ def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
             raise JaxvoxError(f"capacities must be {depth} non-negative ints with capacities[0] == 1, "
                               f"got {capacities}")
         return _build(vox, capacity=capacities, dag=dag)
-    _check_voxels(vox)
-    return _build_padded(vox, dag)
+    return _build_padded(vox, _check_voxels(vox), dag)
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
