@@ -22,6 +22,7 @@ from jaxvox.batch import (
     voxelize_build_trace,
 )
 from jaxvox.camera import look_at_view, pinhole_rays
+from jaxvox.compilation_cache import enable_compilation_cache
 from jaxvox.distance import (
     Clipmap,
     build_clipmap,
@@ -126,6 +127,7 @@ __all__ = [
     "default_scene",
     "distance_field",
     "distance_field_bytes",
+    "enable_compilation_cache",
     "expand",
     "load",
     "load_attributes",

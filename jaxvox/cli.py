@@ -296,20 +296,6 @@ def cmd_info(args) -> int:
     return 0
 
 
-def _enable_compilation_cache() -> None:
-    """Keeps compiled XLA programs on disk so repeated commands skip recompiling.
-
-    The folder is ``$JAXVOX_CACHE_DIR`` or ``~/.cache/jaxvox/xla``; set
-    ``JAXVOX_CACHE_DIR=`` (empty) to turn the cache off.
-    """
-    import jax
-
-    folder = os.environ.get("JAXVOX_CACHE_DIR", os.path.expanduser("~/.cache/jaxvox/xla"))
-    if folder:
-        jax.config.update("jax_compilation_cache_dir", folder)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-
-
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line (no usage block), exit status 2."""
 
@@ -370,7 +356,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    _enable_compilation_cache()
+    from jaxvox.compilation_cache import enable_compilation_cache
+
+    enable_compilation_cache()  # $JAXVOX_CACHE_DIR, ~/.cache/jaxvox/xla by default
     from jaxvox._errors import JaxvoxError
     from jaxvox.grid import check_resolution
 

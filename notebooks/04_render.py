@@ -28,6 +28,8 @@ import numpy as np
 
 import jaxvox as jv
 
+jv.enable_compilation_cache()  # compiled programs persist across sessions (~/.cache/jaxvox/xla)
+
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 MESHES = pathlib.Path(os.environ.get("JAXVOX_MESHES", "../../shared/meshes"))  # from notebooks/
 RESOLUTION = 32 if SMOKE else 512

@@ -29,6 +29,8 @@ import jaxvox as jv
 from jaxvox import sdf
 from jaxvox.plot import hit_image
 
+jv.enable_compilation_cache()  # compiled programs persist across sessions (~/.cache/jaxvox/xla)
+
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 WIDTH, HEIGHT = (96, 64) if SMOKE else (480, 320)
 OCTREE_RES = 32 if SMOKE else 128

@@ -8,11 +8,15 @@ import pathlib
 import numpy as np
 import pytest
 
-# The command line keeps compiled programs in a persistent cache; calling it from a test
-# would switch that cache on for the whole test process (and notebooks): keep it off.
-os.environ["JAXVOX_CACHE_DIR"] = ""
+import jaxvox
 
 REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# Compiled programs persist in the repository's .cache/xla (ignored by git), so a second
+# run of the suite is warm; the command line and the notebooks (subprocesses) inherit
+# the folder through $JAXVOX_CACHE_DIR. CI starts cold.
+os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
+jaxvox.enable_compilation_cache()
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 
 

@@ -1,0 +1,388 @@
+"""Batched pipelines: many meshes through one compiled program.
+
+The jittable cores (`voxelize_fixed`, `build_dag` / `build_octree` with static capacities,
+`trace`) are pure functions of static shapes, so a batch of meshes padded to common sizes
+runs through all three under one `jax.vmap` and one `jax.jit`. This module holds the
+pieces around that:
+
+* `stack_meshes` / `stack_grids`: pad (`pad_mesh`) and stack meshes and grids along a
+  leading batch axis, sizes rounded on the shape ladder (`jaxvox._shapes.bucket`);
+* `batch_capacities`: host-side *allocate*: voxelizer and per-level octree capacities that
+  fit every item, on the ladder, so similar batches share one compiled program;
+* `voxelize_build_trace`: the jittable, vmapped voxelize -> build -> trace, with overflow
+  flags per item (``vox.overflow``, ``tree.overflow``);
+* `run_batch`: the host helper: runs the pipeline, re-runs only the items that overflowed
+  with doubled capacities, and returns per-item results equal to the one-by-one host path
+  (`voxelize`, `build_dag` / `build_octree`, `compact`, `trace`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple, Sequence
+
+import jax
+import numpy as np
+
+from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket
+from jaxvox.grid import Grid
+from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
+from jaxvox.octree import OVERFLOW_NODES, Octree, build_dag, build_octree, compact
+from jaxvox.trace import Hit, trace
+from jaxvox.voxelize import (
+    CONSERVATIVE,
+    OVERFLOW_CANDIDATES,
+    OVERFLOW_COLUMNS,
+    OVERFLOW_ROWS,
+    OVERFLOW_VOXELS,
+    Capacities,
+    Voxels,
+    voxel_capacities,
+    voxelize,
+    voxelize_fixed,
+)
+
+_OPTIONAL = ("colors", "uvs", "texture")  # optional `Mesh` fields, stacked when all items have them
+
+
+# ----------------------------------------------------------------------------- stacking
+
+
+def _stack(items):
+    """Stacks the leaves of equal pytrees on the host and moves them to the device once
+    (numpy, so stacking compiles nothing)."""
+    return jax.device_put(jax.tree.map(lambda *leaves: np.stack([np.asarray(x) for x in leaves]), *items))
+
+
+def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
+                 num_faces: int | None = None) -> Mesh:
+    """Pads meshes to common sizes and stacks them along a new leading batch axis.
+
+    Every mesh is validated and padded with `pad_mesh`; the padding faces are then
+    pointed at the mesh's first face's first vertex (pad_mesh uses vertex 0, which a mesh
+    need not reference), so in conservative mode they add only voxels that the real faces
+    already set, and nothing in 6-separating mode: a padded mesh voxelizes exactly as
+    the original.
+
+    Args:
+      meshes: B `Mesh` objects with V_b vertices and F_b >= 1 faces each.
+      num_vertices: V, vertices per item (default ``bucket(max V_b)``, the shape ladder).
+      num_faces: F, faces per item (default ``bucket(max F_b)``).
+
+    Returns:
+      A `Mesh` with vertices [B, V, 3] float32, faces [B, F, 3] int32, and colors
+      [B, V, C], uvs [B, V, 2], texture [B, H, W, C] float32 where every item has them.
+
+    Raises:
+      JaxvoxError: no meshes, a malformed or faceless mesh, target sizes below a mesh's,
+        or optional fields (colours, texture coordinates, textures) that only some items
+        have or whose shapes differ.
+    """
+    meshes = list(meshes)
+    if not meshes:
+        raise JaxvoxError("stack_meshes needs at least one mesh")
+    for b, mesh in enumerate(meshes):
+        validate_mesh(mesh)
+        if mesh.num_faces == 0:
+            raise JaxvoxError(f"mesh {b} has no faces (its padding faces would add voxels)")
+    v_max = max(m.num_vertices for m in meshes)
+    f_max = max(m.num_faces for m in meshes)
+    num_vertices = bucket(v_max) if num_vertices is None else int(num_vertices)
+    num_faces = bucket(f_max) if num_faces is None else int(num_faces)
+    if num_vertices < v_max or num_faces < f_max:
+        raise JaxvoxError(f"stack_meshes: target size {num_vertices} vertices, {num_faces} faces is "
+                          f"below the largest mesh ({v_max} vertices, {f_max} faces)")
+    for name in _OPTIONAL:
+        present = [getattr(m, name) is not None for m in meshes]
+        if any(present) and not all(present):
+            missing = [b for b, p in enumerate(present) if not p]
+            raise JaxvoxError(f"stack_meshes: some meshes have {name} and some do not "
+                              f"(missing in items {missing}); strip them or add them to all")
+    # Padding fixes the vertex axis of colours and uvs; channels and texture sizes must match.
+    for name, shape_of in (("colors", lambda a: a.shape[1:]), ("texture", lambda a: a.shape)):
+        shapes = sorted({shape_of(getattr(m, name)) for m in meshes if getattr(m, name) is not None})
+        if len(shapes) > 1:
+            raise JaxvoxError(f"stack_meshes: the meshes' {name} have different shapes {shapes}; "
+                              "they must match to be stacked")
+    padded = []
+    for mesh in meshes:
+        p = pad_mesh(mesh, num_vertices, num_faces)
+        faces = np.array(p.faces)
+        faces[mesh.num_faces:] = faces[0, 0]
+        padded.append(Mesh(p.vertices, faces, p.colors, p.uvs, p.texture))
+    return _stack(padded)
+
+
+def stack_grids(grids: Sequence[Grid]) -> Grid:
+    """Stacks grids of one resolution along a leading batch axis.
+
+    Args:
+      grids: B `Grid` objects, all of resolution R.
+
+    Returns:
+      A `Grid` with origin [B, 3] float32, voxel_size [B] float32 and resolution R.
+
+    Raises:
+      JaxvoxError: no grids, or different resolutions (the resolution is static: one
+        compiled program has one).
+    """
+    grids = list(grids)
+    if not grids:
+        raise JaxvoxError("stack_grids needs at least one grid")
+    resolutions = sorted({g.resolution for g in grids})
+    if len(resolutions) > 1:
+        raise JaxvoxError(f"stack_grids: all grids must have one resolution, got {resolutions}")
+    return _stack(grids)
+
+
+# ----------------------------------------------------------------------------- capacities
+
+
+def _level_sizes(coords: np.ndarray, depth: int) -> np.ndarray:
+    """Octree nodes per level [D] int64 of Morton-sorted voxels [n, 3] (root level first):
+    level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order."""
+    sizes = np.zeros(depth, np.int64)
+    if len(coords):
+        for level in range(depth):
+            cell = coords >> (depth - level)
+            sizes[level] = 1 + np.count_nonzero(np.any(cell[1:] != cell[:-1], axis=1))
+    return sizes
+
+
+def _tree_capacities(sizes) -> tuple[int, ...]:
+    """Per-level capacities on the ladder for octree node counts `sizes` (root first):
+    ``bucket(n, 1)`` capped at ``8^l``; the root level holds exactly one node."""
+    return (1,) + tuple(min(8**level, bucket(int(n), 1)) for level, n in enumerate(sizes) if level)
+
+
+def _grid_list(grids: Grid | Sequence[Grid], count: int) -> list[Grid]:
+    grids = [grids] * count if isinstance(grids, Grid) else list(grids)
+    if len(grids) != count:
+        raise JaxvoxError(f"got {count} meshes but {len(grids)} grids")
+    return grids
+
+
+def batch_capacities(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *,
+                     mode: str = CONSERVATIVE) -> tuple[Capacities, tuple[int, ...]]:
+    """Host-side capacities with which `voxelize_build_trace` fits every item.
+
+    The voxelizer's are the elementwise maximum over the items of `voxel_capacities`
+    (each on the shape ladder); the octree's are, per level, the most octree nodes of any
+    item's voxels (counted on the host; for a DAG they bound the nodes before
+    deduplication, as `build_dag` expects), rounded with ``bucket(n, 1)`` and capped at
+    ``8^l``, with 1 for the root. Similar batches so get equal capacities and share one
+    compiled program.
+
+    Args:
+      meshes: B `Mesh` objects (unpadded).
+      grids: one `Grid` for all items or B grids, all of one resolution R = 2^D.
+      mode: "conservative" or "6-separating".
+
+    Returns:
+      (`Capacities`, D ints: per-level octree capacities, root level first).
+
+    Raises:
+      JaxvoxError: bad mode or mesh, grid count or resolutions that do not match.
+    """
+    meshes = list(meshes)
+    grids = _grid_list(grids, len(meshes))
+    if not meshes:
+        raise JaxvoxError("batch_capacities needs at least one mesh")
+    stack_grids(grids)  # checks that there is one resolution
+    depth = grids[0].resolution.bit_length() - 1
+    caps, sizes = [], np.zeros(depth, np.int64)
+    for mesh, grid in zip(meshes, grids):
+        caps.append(voxel_capacities(mesh, grid, mode=mode))
+        sizes = np.maximum(sizes, _level_sizes(voxelize(mesh, grid, mode=mode).to_numpy(), depth))
+    return Capacities(*(max(c) for c in zip(*caps))), _tree_capacities(sizes)
+
+
+# ----------------------------------------------------------------------------- jittable pipeline
+
+
+@functools.partial(jax.jit, static_argnames=("capacities", "tree_capacities", "mode", "dag", "method",
+                                             "max_steps", "lanes"))
+def _voxelize_build_trace(meshes, grids, origins, directions, *, capacities, tree_capacities, mode,
+                          dag, method, max_steps, lanes):
+    build = build_dag if dag else build_octree
+
+    def one(mesh, grid, o, d):
+        vox = voxelize_fixed(mesh, grid, capacities, mode=mode)
+        tree = build(vox, capacities=tree_capacities)
+        return vox, tree, trace(tree, o, d, method=method, max_steps=max_steps, lanes=lanes, shard=False)
+
+    grid_axis = 0 if grids.origin.ndim == 2 else None
+    return jax.vmap(one, in_axes=(0, grid_axis, 0, 0))(meshes, grids, origins, directions)
+
+
+def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directions: jax.Array, *,
+                         capacities: Capacities, tree_capacities: Sequence[int],
+                         mode: str = CONSERVATIVE, dag: bool = True, method: str = "esvo",
+                         max_steps: int | None = None,
+                         lanes: int | None = 16384) -> tuple[Voxels, Octree, Hit]:
+    """Voxelizes, builds and traces a batch of meshes in one jitted, vmapped program.
+
+    Per item: `voxelize_fixed` -> `build_dag` (or `build_octree`) with static capacities
+    -> `trace` (``shard=False``). Pure and jittable; usable inside a caller's `jax.jit`.
+    Nothing is resized: an item whose work does not fit its capacities is truncated and
+    flagged (``vox.overflow[b]``: the ``OVERFLOW_*`` bits of the voxelizer;
+    ``tree.overflow[b]``: those and `OVERFLOW_NODES`); its tree and hits are then not to be
+    used. `run_batch` re-runs such items with larger capacities.
+
+    The capacities, `mode`, `dag`, `method`, `max_steps`, `lanes`, the grid resolution and
+    all array shapes are static: changing one compiles a new program.
+
+    Args:
+      meshes: a `Mesh` with vertices [B, V, 3] float32 and faces [B, F, 3] int32
+        (`stack_meshes`).
+      grids: a `Grid` with origin [B, 3] and voxel_size [B] (`stack_grids`), or one
+        unbatched `Grid` for every item.
+      origins, directions: [B, ..., 3] float32 rays per item in world coordinates.
+      capacities: `Capacities` of the voxelizer (`batch_capacities`).
+      tree_capacities: D ints, per-level octree node capacities, root level first, 1 for
+        the root (`batch_capacities`).
+      mode: "conservative" or "6-separating".
+      dag: build DAGs (True) or plain octrees (False).
+      method, max_steps, lanes: as in `trace`.
+
+    Returns:
+      (voxels, trees, hits): `Voxels` with coords [B, capacities.voxels, 3] int32, count
+      and overflow [B] int32; `Octree` with every leaf batched [B, ...] (tables of
+      ``sum(tree_capacities)`` rows); `Hit` with fields [B, ...].
+
+    Raises:
+      JaxvoxError: meshes without a batch axis, rays whose leading axis is not B, or
+        tree capacities that are not D ints with a root capacity of 1.
+    """
+    if np.ndim(meshes.vertices) != 3 or np.ndim(meshes.faces) != 3:
+        raise JaxvoxError(f"meshes need a leading batch axis (stack_meshes): vertices [B, V, 3], "
+                          f"faces [B, F, 3]; got {np.shape(meshes.vertices)}, {np.shape(meshes.faces)}")
+    count = np.shape(meshes.faces)[0]
+    if np.shape(origins)[:1] != (count,) or np.shape(directions)[:1] != (count,):
+        raise JaxvoxError(f"rays need a leading batch axis of {count}: got origins {np.shape(origins)}, "
+                          f"directions {np.shape(directions)}")
+    if np.ndim(grids.origin) == 2 and np.shape(grids.origin)[0] != count:
+        raise JaxvoxError(f"got {count} meshes but {np.shape(grids.origin)[0]} grids")
+    depth = grids.resolution.bit_length() - 1
+    tree_capacities = tuple(int(c) for c in tree_capacities)
+    if len(tree_capacities) != depth or tree_capacities[0] != 1 or min(tree_capacities) < 0:
+        raise JaxvoxError(f"tree_capacities must be {depth} non-negative ints with tree_capacities[0] == 1, "
+                          f"got {tree_capacities}")
+    if max_steps is not None:
+        max_steps = int(max_steps)
+    return _voxelize_build_trace(meshes, grids, origins, directions,
+                                 capacities=Capacities(*(int(c) for c in capacities)),
+                                 tree_capacities=tree_capacities, mode=mode, dag=bool(dag),
+                                 method=method, max_steps=max_steps, lanes=lanes)
+
+
+# ----------------------------------------------------------------------------- host helper
+
+
+class BatchResult(NamedTuple):
+    """Per-item results of `run_batch` (host-side), equal to the one-by-one host path.
+
+    Attributes:
+      voxels: B host int32 arrays [n_b, 3], each item's voxels in Morton order (as
+        ``voxelize(mesh, grid).to_numpy()``).
+      trees: B compact `Octree` objects (as ``compact(build_dag(voxelize(mesh, grid)))``).
+      hits: `Hit` with host numpy fields [B, ...] (as ``trace(tree, origins[b],
+        directions[b])``).
+      retried: one tuple per re-run round: the items that overflowed and were re-run.
+      capacities: the voxelizer `Capacities` of the last round.
+      tree_capacities: the octree per-level capacities of the last round.
+    """
+
+    voxels: list[np.ndarray]
+    trees: list[Octree]
+    hits: Hit
+    retried: tuple[tuple[int, ...], ...]
+    capacities: Capacities
+    tree_capacities: tuple[int, ...]
+
+
+def _grow(capacities: Capacities, tree_capacities: tuple[int, ...], flags: int):
+    """Doubles (on the ladder) every capacity whose overflow bit is set in `flags`."""
+    bits = (OVERFLOW_COLUMNS, OVERFLOW_ROWS, OVERFLOW_CANDIDATES, OVERFLOW_VOXELS)
+    sizes = [bucket(2 * c) if flags & bit else c for c, bit in zip(capacities[:4], bits)]
+    if flags & OVERFLOW_NODES:
+        tree_capacities = _tree_capacities((1,) + tuple(2 * c for c in tree_capacities[1:]))
+    return Capacities(*sizes, capacities.row_chunk), tree_capacities
+
+
+def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, directions, *,
+              capacities: Capacities | None = None, tree_capacities: Sequence[int] | None = None,
+              mode: str = CONSERVATIVE, dag: bool = True, method: str = "esvo",
+              max_steps: int | None = None, lanes: int | None = 16384,
+              max_tries: int = 8) -> BatchResult:
+    """Runs a batch through `voxelize_build_trace`; re-runs only the items that overflowed.
+
+    The meshes are stacked with `stack_meshes` and run in one compiled program. Items
+    whose ``tree.overflow`` is nonzero are re-run alone (as a sub-batch padded to a
+    power-of-two size by repeating its first item) with every flagged capacity doubled on
+    the ladder (`OVERFLOW_NODES` doubles every octree level), until none overflows.
+
+    Args:
+      meshes: B `Mesh` objects (unpadded).
+      grids: one `Grid` for all items or B grids of one resolution.
+      origins, directions: [B, ..., 3] float32 rays per item in world coordinates.
+      capacities, tree_capacities: the starting capacities (default: `batch_capacities`,
+        which fit every item, so nothing is re-run).
+      mode, dag, method, max_steps, lanes: as in `voxelize_build_trace`.
+      max_tries: runs of the pipeline in all before giving up.
+
+    Returns:
+      `BatchResult`.
+
+    Raises:
+      JaxvoxError: bad input (see `stack_meshes`, `voxelize_build_trace`), or items still
+        overflowing after `max_tries` runs.
+    """
+    meshes = list(meshes)
+    grid_list = _grid_list(grids, len(meshes))
+    if capacities is None or tree_capacities is None:
+        found = batch_capacities(meshes, grid_list, mode=mode)
+        capacities = found[0] if capacities is None else capacities
+        tree_capacities = found[1] if tree_capacities is None else tree_capacities
+    capacities = Capacities(*(int(c) for c in capacities))
+    tree_capacities = tuple(int(c) for c in tree_capacities)
+    if max_tries < 1:
+        raise JaxvoxError(f"max_tries must be at least 1, got {max_tries}")
+    # Host copies: items are picked with numpy indexing, which compiles nothing.
+    stacked = jax.device_get(stack_meshes(meshes))
+    grid_batch = grids if isinstance(grids, Grid) else jax.device_get(stack_grids(grid_list))
+    origins, directions = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
+    count = len(meshes)
+    voxels, trees, hit_rows = [None] * count, [None] * count, [None] * count
+    pending, retried = np.arange(count), []
+    for attempt in range(max_tries):
+        take = pending
+        if attempt:  # a re-run: the sub-batch size goes on the ladder too
+            take = np.concatenate([pending, np.full(bucket(len(pending), 1) - len(pending), pending[0])])
+        pick = lambda tree: jax.tree.map(lambda x: np.asarray(x)[take], tree)
+        sub_grids = grid_batch if isinstance(grids, Grid) else pick(grid_batch)
+        out = voxelize_build_trace(pick(stacked), sub_grids, origins[take], directions[take],
+                                   capacities=capacities, tree_capacities=tree_capacities, mode=mode,
+                                   dag=dag, method=method, max_steps=max_steps, lanes=lanes)
+        vox, tree, hit = jax.device_get(out)
+        flags = np.asarray(tree.overflow)[: len(pending)]
+        for row, item in enumerate(pending):
+            if flags[row]:
+                continue
+            part = lambda x: x[row]
+            voxels[item] = jax.tree.map(part, vox).to_numpy()
+            trees[item] = compact(jax.device_put(jax.tree.map(part, tree)))
+            hit_rows[item] = jax.tree.map(part, hit)
+        if not flags.any():
+            break
+        pending = pending[flags != 0]
+        retried.append(tuple(int(i) for i in pending))
+        capacities, tree_capacities = _grow(capacities, tree_capacities,
+                                            int(np.bitwise_or.reduce(flags[flags != 0])))
+    else:
+        raise JaxvoxError(f"items {retried[-1]} still overflow after {max_tries} runs "
+                          f"(capacities {tuple(capacities)}, tree capacities {tree_capacities})")
+    hits = jax.tree.map(lambda *rows: np.stack(rows), *hit_rows)
+    return BatchResult(voxels, trees, hits, tuple(retried), capacities, tree_capacities)

@@ -1,0 +1,62 @@
+"""Compile budget: a new mesh of a familiar size runs programs that are already compiled."""
+
+from __future__ import annotations
+
+import contextlib
+
+import jax
+import numpy as np
+import pytest
+
+import jaxvox as jv
+
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: _compiles.append(secs) if name == COMPILE_EVENT else None)
+
+
+@contextlib.contextmanager
+def count_compiles():
+    """Yields a list that holds, on exit, the number of XLA compilations inside the block."""
+    start, out = len(_compiles), []
+    yield out
+    out.append(len(_compiles) - start)
+
+
+def _rotated(mesh: jv.Mesh, degrees: float) -> jv.Mesh:
+    a = np.radians(degrees)
+    rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], np.float32)
+    return jv.Mesh(np.asarray(mesh.vertices) @ rot.T, np.asarray(mesh.faces))
+
+
+def _pipeline(mesh: jv.Mesh, resolution: int):
+    grid = jv.Grid.fit(mesh, resolution)
+    dag = jv.build_dag(jv.voxelize(mesh, grid))
+    eye, centre = jv.look_at_view(mesh)
+    origins, directions = jv.pinhole_rays(eye, centre, width=48, height=32)
+    hit = jv.trace(dag, origins, directions)
+    image = jv.render(dag, eye, centre, width=48, height=32, spp=2, bounces=1)
+    jax.block_until_ready((hit.t, image.radiance))
+    return dag, hit
+
+
+def test_a_new_mesh_of_a_familiar_size_compiles_nothing(meshes_dir):
+    spot = jv.load_mesh(meshes_dir / "spot.obj")
+    _pipeline(spot, 64)  # warm-up
+    others = [_rotated(spot, 35.0), _rotated(spot, -60.0)]  # other meshes, same buckets
+    for mesh in others:
+        with count_compiles() as n:
+            dag, hit = _pipeline(mesh, 64)
+        assert int(dag.voxel_count) > 0 and (np.asarray(hit.status) == jv.HIT).any()
+        assert n[0] == 0, f"{n[0]} programs compiled for a mesh in the warmed-up buckets"
+
+
+def test_counting_sees_compiles():
+    """The counter itself works: a program of a new shape compiles once, then never."""
+    f = jax.jit(lambda x: x * 3 + 1)
+    with count_compiles() as first:
+        f(np.zeros(7919, np.float32)).block_until_ready()
+    with count_compiles() as again:
+        f(np.ones(7919, np.float32)).block_until_ready()
+    assert first[0] >= 1 and again[0] == 0
