@@ -75,7 +75,7 @@ def worker(spec: dict) -> dict:
     result = dict(spec, voxels=int(vox.count), rays=width * height, voxel_size_world=h,
                   extent_world=float(np.ptp(np.asarray(mesh.vertices), 0).max()),
                   nodes={k: t.num_nodes for k, t in trees.items()},
-                  bytes={k: t.nbytes for k, t in trees.items()},
+                  bytes={k: t.compact_nbytes for k, t in trees.items()},
                   mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes))
     eye, target = jv.look_at_view(mesh)
     o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=width, height=height))

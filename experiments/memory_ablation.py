@@ -17,12 +17,12 @@ octree-33B          every node as a mask + 8 uint32 pointers (33 bytes), the lev
                     Dragon at 8192^3 is this layout's octree/DAG ratio, i.e. the node ratio)
 octree              jaxvox's table without prefix sums: 1 byte per node + 8 uint32
                     pointers per node above the mask-only level (the slides' naive layout)
-octree+prefix       ``svo.nbytes``: the above plus 8 uint32 prefix sums per inner node
+octree+prefix       ``svo.compact_nbytes``: the above plus 8 uint32 prefix sums per inner node
 octree-sparse       1 byte + 1 uint32 first-child pointer per inner node, 1 byte per
                     mask-only node (an octree's children are consecutive)
 dag-33B             the DAG, 33 bytes per node
 dag                 the DAG in jaxvox's table without prefix sums
-dag+prefix          ``dag.nbytes``: jaxvox's DAG as stored
+dag+prefix          ``dag.compact_nbytes``: jaxvox's DAG as saved (no ladder padding)
 dag-sparse          empty slots dropped: per inner node a uint32 header (mask) and one
                     uint32 pointer per present child, addressed by the popcount of the
                     mask bits below the slot; 1 byte per mask-only node
@@ -75,11 +75,11 @@ def layout_bytes(svo, dag, resolution: int) -> dict[str, int]:
         "spc+exsum": 5 * s_nodes,
         "octree-33B": 33 * s_nodes,
         "octree": s_nodes + 32 * s_inner,
-        "octree+prefix": svo.nbytes,
+        "octree+prefix": svo.compact_nbytes,
         "octree-sparse": s_nodes + 4 * s_inner,
         "dag-33B": 33 * d_nodes,
         "dag": d_nodes + 32 * d_inner,
-        "dag+prefix": dag.nbytes,
+        "dag+prefix": dag.compact_nbytes,
         "dag-sparse": 4 * (d_inner + d_children) + d_last,
         "dag-sparse+prefix": 4 * (d_inner + d_children) + d_last + 4 * (d_children - d_inner),
     }

@@ -60,7 +60,7 @@ def worker(spec: dict) -> dict:
         start = time.perf_counter()
         tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=R)))
         tree.mask.block_until_ready()
-        row.update(resolution=R, build_s=time.perf_counter() - start, dag_bytes=int(tree.nbytes),
+        row.update(resolution=R, build_s=time.perf_counter() - start, dag_bytes=int(tree.compact_nbytes),
                    voxels=int(tree.voxel_count))
         run = lambda: jax.block_until_ready(jv.render(tree, eye, target, **settings))
     repeats = 0 if spec["case"] == "reference" else spec["repeats"]

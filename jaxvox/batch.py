@@ -14,11 +14,16 @@ pieces around that:
 * `run_batch`: the host helper: runs the pipeline, re-runs only the items that overflowed
   with doubled capacities, and returns per-item results equal to the one-by-one host path
   (`voxelize`, `build_dag` / `build_octree`, `compact`, `trace`).
+
+Bit-for-bit equality with the host path holds when the grids' voxel sizes are powers of
+two. Otherwise XLA may evaluate ``x / h`` (world to grid units) inside the vmapped program
+as ``x * (1 / h)``, one ulp away: ``t`` can differ in its last bit, and geometry lying
+exactly on a voxel plane (a flat mesh in one) or a ray exactly through a voxel edge can
+land on the other side of the tie, as they can in any jitted `voxelize_fixed`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from typing import NamedTuple, Sequence
 
@@ -60,25 +65,30 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
                  num_faces: int | None = None) -> Mesh:
     """Pads meshes to common sizes and stacks them along a new leading batch axis.
 
-    Every mesh is validated and padded with `pad_mesh`; the padding faces are then
-    pointed at the mesh's first face's first vertex (pad_mesh uses vertex 0, which a mesh
-    need not reference), so in conservative mode they add only voxels that the real faces
-    already set, and nothing in 6-separating mode: a padded mesh voxelizes exactly as
-    the original.
+    Every mesh is validated and padded with `pad_mesh`; then its padding vertices are set
+    to NaN and its padding faces point at the first of them. `voxelize_fixed` skips
+    non-finite triangles before any work is expanded, so padding costs no capacity and
+    adds no voxels in either mode: a padded mesh voxelizes exactly as the original, and
+    `batch_capacities` of the unpadded meshes fit the stacked batch. (pad_mesh's own
+    padding, faces ``(0, 0, 0)``, would take columns, rows and candidates in conservative
+    mode, about two of each per padding face.) The stacked mesh is meant for the batched
+    pipeline only: host-side functions that validate meshes reject the NaN vertices.
 
     Args:
       meshes: B `Mesh` objects with V_b vertices and F_b >= 1 faces each.
-      num_vertices: V, vertices per item (default ``bucket(max V_b)``, the shape ladder).
-      num_faces: F, faces per item (default ``bucket(max F_b)``).
+      num_vertices: V > max V_b, vertices per item (default ``bucket(max V_b + 1)``, the
+        shape ladder; at least one padding vertex).
+      num_faces: F >= max F_b, faces per item (default ``bucket(max F_b)``).
 
     Returns:
-      A `Mesh` with vertices [B, V, 3] float32, faces [B, F, 3] int32, and colors
-      [B, V, C], uvs [B, V, 2], texture [B, H, W, C] float32 where every item has them.
+      A `Mesh` with vertices [B, V, 3] float32 (NaN past V_b), faces [B, F, 3] int32 (rows
+      past F_b are ``(V_b, V_b, V_b)``), and colors [B, V, C], uvs [B, V, 2], texture
+      [B, H, W, C] float32 where every item has them.
 
     Raises:
-      JaxvoxError: no meshes, a malformed or faceless mesh, target sizes below a mesh's,
-        or optional fields (colours, texture coordinates, textures) that only some items
-        have or whose shapes differ.
+      JaxvoxError: no meshes, a malformed or faceless mesh, target sizes too small for a
+        mesh, or optional fields (colours, texture coordinates, textures) that only some
+        items have or whose shapes differ.
     """
     meshes = list(meshes)
     if not meshes:
@@ -89,11 +99,12 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
             raise JaxvoxError(f"mesh {b} has no faces (its padding faces would add voxels)")
     v_max = max(m.num_vertices for m in meshes)
     f_max = max(m.num_faces for m in meshes)
-    num_vertices = bucket(v_max) if num_vertices is None else int(num_vertices)
+    num_vertices = bucket(v_max + 1) if num_vertices is None else int(num_vertices)
     num_faces = bucket(f_max) if num_faces is None else int(num_faces)
-    if num_vertices < v_max or num_faces < f_max:
-        raise JaxvoxError(f"stack_meshes: target size {num_vertices} vertices, {num_faces} faces is "
-                          f"below the largest mesh ({v_max} vertices, {f_max} faces)")
+    if num_vertices <= v_max or num_faces < f_max:
+        raise JaxvoxError(f"stack_meshes: target size {num_vertices} vertices, {num_faces} faces is too "
+                          f"small for the largest mesh ({v_max} vertices, {f_max} faces; one padding "
+                          "vertex is needed)")
     for name in _OPTIONAL:
         present = [getattr(m, name) is not None for m in meshes]
         if any(present) and not all(present):
@@ -109,9 +120,10 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
     padded = []
     for mesh in meshes:
         p = pad_mesh(mesh, num_vertices, num_faces)
-        faces = np.array(p.faces)
-        faces[mesh.num_faces:] = faces[0, 0]
-        padded.append(Mesh(p.vertices, faces, p.colors, p.uvs, p.texture))
+        vertices, faces = np.array(p.vertices), np.array(p.faces)
+        vertices[mesh.num_vertices:] = np.nan
+        faces[mesh.num_faces:] = mesh.num_vertices
+        padded.append(Mesh(vertices, faces, p.colors, p.uvs, p.texture))
     return _stack(padded)
 
 
@@ -229,7 +241,8 @@ def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directio
     Nothing is resized: an item whose work does not fit its capacities is truncated and
     flagged (``vox.overflow[b]``: the ``OVERFLOW_*`` bits of the voxelizer;
     ``tree.overflow[b]``: those and `OVERFLOW_NODES`); its tree and hits are then not to be
-    used. `run_batch` re-runs such items with larger capacities.
+    used. `run_batch` re-runs such items with larger capacities. Results equal the host
+    path's bit for bit with power-of-two voxel sizes (see the module docstring).
 
     The capacities, `mode`, `dag`, `method`, `max_steps`, `lanes`, the grid resolution and
     all array shapes are static: changing one compiles a new program.
@@ -303,6 +316,11 @@ class BatchResult(NamedTuple):
     tree_capacities: tuple[int, ...]
 
 
+def _take(tree, index):
+    """Host pytree of the items `index` (an int or an int array) of a batched host pytree."""
+    return jax.tree.map(lambda x: np.asarray(x)[index], tree)
+
+
 def _grow(capacities: Capacities, tree_capacities: tuple[int, ...], flags: int):
     """Doubles (on the ladder) every capacity whose overflow bit is set in `flags`."""
     bits = (OVERFLOW_COLUMNS, OVERFLOW_ROWS, OVERFLOW_CANDIDATES, OVERFLOW_VOXELS)
@@ -359,30 +377,29 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
     pending, retried = np.arange(count), []
     for attempt in range(max_tries):
         take = pending
-        if attempt:  # a re-run: the sub-batch size goes on the ladder too
+        if attempt:  # a re-run of the overflowed items; the sub-batch size goes on the ladder too
+            retried.append(tuple(int(i) for i in pending))
             take = np.concatenate([pending, np.full(bucket(len(pending), 1) - len(pending), pending[0])])
-        pick = lambda tree: jax.tree.map(lambda x: np.asarray(x)[take], tree)
-        sub_grids = grid_batch if isinstance(grids, Grid) else pick(grid_batch)
-        out = voxelize_build_trace(pick(stacked), sub_grids, origins[take], directions[take],
+        sub_grids = grid_batch if isinstance(grids, Grid) else _take(grid_batch, take)
+        out = voxelize_build_trace(_take(stacked, take), sub_grids, origins[take], directions[take],
                                    capacities=capacities, tree_capacities=tree_capacities, mode=mode,
                                    dag=dag, method=method, max_steps=max_steps, lanes=lanes)
         vox, tree, hit = jax.device_get(out)
         flags = np.asarray(tree.overflow)[: len(pending)]
         for row, item in enumerate(pending):
-            if flags[row]:
-                continue
-            part = lambda x: x[row]
-            voxels[item] = jax.tree.map(part, vox).to_numpy()
-            trees[item] = compact(jax.device_put(jax.tree.map(part, tree)))
-            hit_rows[item] = jax.tree.map(part, hit)
+            if not flags[row]:
+                voxels[item] = _take(vox, row).to_numpy()
+                trees[item] = compact(jax.device_put(_take(tree, row)))
+                hit_rows[item] = _take(hit, row)
         if not flags.any():
             break
         pending = pending[flags != 0]
-        retried.append(tuple(int(i) for i in pending))
-        capacities, tree_capacities = _grow(capacities, tree_capacities,
-                                            int(np.bitwise_or.reduce(flags[flags != 0])))
+        if attempt + 1 < max_tries:
+            capacities, tree_capacities = _grow(capacities, tree_capacities,
+                                                int(np.bitwise_or.reduce(flags[flags != 0])))
     else:
-        raise JaxvoxError(f"items {retried[-1]} still overflow after {max_tries} runs "
-                          f"(capacities {tuple(capacities)}, tree capacities {tree_capacities})")
+        raise JaxvoxError(f"items {tuple(int(i) for i in pending)} still overflow (flags "
+                          f"{sorted(set(flags[flags != 0].tolist()))}) after {max_tries} runs; last capacities "
+                          f"{tuple(capacities)}, tree capacities {tree_capacities}")
     hits = jax.tree.map(lambda *rows: np.stack(rows), *hit_rows)
     return BatchResult(voxels, trees, hits, tuple(retried), capacities, tree_capacities)

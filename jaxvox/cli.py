@@ -70,8 +70,8 @@ def _build_timed(vox, kind: str):
 
 def _tree_line(tree, seconds: float) -> str:
     kind = "DAG" if tree.dag else "octree"
-    return (f"{kind:6s} {tree.num_nodes:>9,d} nodes, {tree.nbytes / 2**20:8.2f} MiB "
-            f"({8 * tree.nbytes / max(int(tree.voxel_count), 1):.1f} bits/voxel), built in {seconds:.2f} s")
+    return (f"{kind:6s} {tree.num_nodes:>9,d} nodes, {tree.compact_nbytes / 2**20:8.2f} MiB "
+            f"({8 * tree.compact_nbytes / max(int(tree.voxel_count), 1):.1f} bits/voxel), built in {seconds:.2f} s")
 
 
 def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> None:
@@ -289,8 +289,8 @@ def cmd_info(args) -> int:
           f"{', '.join(f'{x:.6g}' for x in np.asarray(g.origin))}")
     print(f"  levels: {tree.depth}, nodes per level: {list(tree.level_sizes)}")
     print(f"  nodes: {tree.num_nodes:,}, voxels: {voxels:,}")
-    print(f"  bytes: {tree.nbytes:,} ({tree.nbytes / 2**20:.2f} MiB), "
-          f"{8 * tree.nbytes / max(voxels, 1):.2f} bits per voxel")
+    print(f"  bytes: {tree.compact_nbytes:,} ({tree.compact_nbytes / 2**20:.2f} MiB), "
+          f"{8 * tree.compact_nbytes / max(voxels, 1):.2f} bits per voxel")
     names = ", ".join(f"{k} {tuple(v.shape)} {v.dtype}" for k, v in sorted(attributes.items()))
     print(f"  attributes: {names or 'none'}")
     return 0

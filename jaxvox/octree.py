@@ -48,7 +48,7 @@ from jaxvox._shapes import bucket, expand_counts, key_bits
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh, sample_texture
+from jaxvox.mesh import Mesh, pad_mesh, sample_texture
 from jaxvox.voxelize import UNUSED, Voxels
 
 EMPTY = morton.EMPTY  # uint32 0xFFFFFFFF: an absent child (no node has that row index)
@@ -134,11 +134,17 @@ class Octree:
     def nbytes(self) -> int:
         """Bytes of the node tables as stored: `mask`, `child` and `prefix`.
 
-        That is 1 byte per node plus 64 bytes (8 uint32 child rows and 8 uint32 prefix
-        sums) per node above level D - 1, padding rows included (none in compact trees).
+        That is 1 byte per row plus 64 bytes (8 uint32 child rows and 8 uint32 prefix
+        sums) per row above level D - 1, padding rows included (see `compact_nbytes`).
         The grid, the per-level counts and the attribute arrays are not counted.
         """
         return int(self.mask.nbytes + self.child.nbytes + self.prefix.nbytes)
+
+    @property
+    def compact_nbytes(self) -> int:
+        """Bytes of the node tables without padding rows: what `compact` keeps and `save` writes."""
+        stored = stored_sizes(self.level_sizes)
+        return sum(stored) + 64 * sum(stored[:-1])
 
 
 def stored_sizes(level_sizes) -> tuple[int, ...]:
@@ -631,7 +637,8 @@ def voxel_attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
     """
     if vox.triangle is None:
         raise JaxvoxError("these voxels carry no triangle ids; voxelize with triangle_ids=True")
-    return _attributes(mesh, vox)
+    # Padded to the shape ladder, so that meshes of similar size share the program.
+    return _attributes(pad_mesh(mesh, bucket(mesh.num_vertices), bucket(mesh.num_faces)), vox)
 
 
 @jax.jit

@@ -36,8 +36,8 @@ vox = jv.voxelize(mesh, grid, triangle_ids=True)
 svo = jv.build_octree(vox)
 dag = jv.build_dag(vox)
 print(f"{int(vox.count):,} voxels at {RESOLUTION}^3")
-print(f"SVO: {svo.num_nodes:,} nodes, {svo.nbytes / 2**20:.2f} MiB")
-print(f"DAG: {dag.num_nodes:,} nodes, {dag.nbytes / 2**20:.2f} MiB "
+print(f"SVO: {svo.num_nodes:,} nodes, {svo.compact_nbytes / 2**20:.2f} MiB")
+print(f"DAG: {dag.num_nodes:,} nodes, {dag.compact_nbytes / 2**20:.2f} MiB "
       f"({svo.num_nodes / dag.num_nodes:.1f}x fewer nodes)")
 
 # Both trees expand back to exactly the voxels they were built from.
@@ -72,9 +72,9 @@ def table_bytes(tree, prefix=True):
 layouts = {
     "dense bits": RESOLUTION**3 / 8,
     "octree": table_bytes(svo, prefix=False),
-    "octree + prefix": svo.nbytes,
+    "octree + prefix": jv.compact(svo).nbytes,  # without the ladder's padding rows
     "DAG": table_bytes(dag, prefix=False),
-    "DAG + prefix": dag.nbytes,
+    "DAG + prefix": jv.compact(dag).nbytes,
 }
 assert layouts["octree + prefix"] == table_bytes(svo) and layouts["DAG + prefix"] == table_bytes(dag)
 ax_mem.barh(list(layouts), [v / 2**20 for v in layouts.values()])

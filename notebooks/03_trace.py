@@ -39,7 +39,7 @@ path = MESHES / "stanford-bunny.obj"
 mesh = jv.load_mesh(path) if path.exists() else jv.default_scene()
 grid = jv.Grid.fit(mesh, resolution=RESOLUTION)
 dag = jv.build_dag(jv.voxelize(mesh, grid))
-print(f"{int(dag.voxel_count):,} voxels, DAG of {dag.num_nodes:,} nodes ({dag.nbytes / 2**20:.1f} MiB)")
+print(f"{int(dag.voxel_count):,} voxels, DAG of {dag.num_nodes:,} nodes ({dag.compact_nbytes / 2**20:.1f} MiB)")
 
 # %% [markdown]
 # ## A depth image and a normal image

@@ -82,7 +82,7 @@ def _check_tree(tree: jv.Octree, ijk: np.ndarray) -> None:
     np.testing.assert_array_equal(reference_expand(tree), ijk)
     np.testing.assert_array_equal(np.asarray(jv.voxel_index(tree, ijk)), np.arange(len(ijk)))
     stored = [max(expected[0], 1)] + expected[1:]  # an empty tree keeps its root row
-    assert jv.compact(tree).nbytes == sum(stored) + 64 * sum(stored[:-1])
+    assert jv.compact(tree).nbytes == tree.compact_nbytes == sum(stored) + 64 * sum(stored[:-1])
     # Host-built trees are padded to the shape ladder: power-of-two tables, at most twice
     # the rows (four times for the one-byte masks).
     n, m = tree.mask.shape[0], tree.child.shape[0]
