@@ -79,7 +79,7 @@ def test_vmap_over_padded_meshes_of_different_sizes():
     padded = [jv.pad_mesh(m, 5, 5) for m in (small, mesh_b)]
     batch = jax.tree.map(lambda *xs: jnp.stack(xs), *padded)
     caps = jv.voxel_capacities(mesh_b, grid, mode="6-separating")
-    out = jax.vmap(lambda m: jv.voxelize_fixed(m, grid, caps, mode="6-separating"))(batch)
+    out = jax.jit(jax.vmap(lambda m: jv.voxelize_fixed(m, grid, caps, mode="6-separating")))(batch)
     for b, e in enumerate(expected):
         np.testing.assert_array_equal(np.asarray(out.coords[b, : int(out.count[b])]), e)
 
@@ -159,7 +159,7 @@ def test_high_resolutions_use_two_word_keys():
         grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / r, resolution=r)
         streamed = jv.voxelize(tri, grid).to_numpy()
         caps = jv.voxel_capacities(tri, grid)
-        whole = jv.voxelize_fixed(tri, grid, caps).to_numpy()
+        whole = jax.jit(lambda m, g: jv.voxelize_fixed(m, g, caps))(tri, grid).to_numpy()
         np.testing.assert_array_equal(streamed, whole)
         p = np.asarray(grid.to_grid_units(tri.vertices))
         assert (streamed >= np.floor(p.min(0)) - 1).all() and (streamed <= np.floor(p.max(0))).all()

@@ -314,7 +314,7 @@ def test_jit_vmap_and_eager_agree(dag):
     eager = [jv.compact(build(v, capacities=caps)) for v in sets]
     host = [jv.compact(build(v)) for v in sets]
     jitted = jax.jit(lambda v: build(v, capacities=caps))
-    batched = jax.vmap(lambda v: build(v, capacities=caps))(jax.tree.map(lambda *x: jnp.stack(x), *sets))
+    batched = jax.jit(jax.vmap(lambda v: build(v, capacities=caps)))(jax.tree.map(lambda *x: jnp.stack(x), *sets))
     for i, v in enumerate(sets):
         one = jax.tree.map(lambda x: x[i], batched)
         for tree in (eager[i], jv.compact(jitted(v)), jv.compact(one)):
