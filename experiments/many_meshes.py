@@ -230,6 +230,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--smoke", action="store_true",
                         help="R = 32, 64 on 6 meshes; outputs are named many_meshes_smoke.*")
+    parser.add_argument("--update", action="store_true",
+                        help="merge into the existing JSON: replace its resolutions that were run, keep the others")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
@@ -250,9 +252,13 @@ def main(argv=None) -> None:
         case = _common.run_worker(__file__, spec, timeout=args.timeout)
         cases.append(dict(case, resolution=resolution))
     stem = "many_meshes_smoke" if args.smoke else "many_meshes"
+    if args.update and (args.out / f"{stem}.json").exists():
+        kept = [c for c in json.loads((args.out / f"{stem}.json").read_text())["results"]
+                if c["resolution"] not in args.resolutions]
+        cases = sorted(kept + cases, key=lambda c: c["resolution"])
     report = f"## Many meshes through the host API\n\n{table(cases)}"
     data = dict(machine=_common.machine_info(["jax", "jaxlib", "open3d", "trimesh", "numpy"]),
-                settings=dict(resolutions=args.resolutions, meshes=args.meshes, image=args.image),
+                settings=dict(resolutions=[c["resolution"] for c in cases], meshes=args.meshes, image=args.image),
                 results=cases)
     _common.write_json(args.out / f"{stem}.json", data)
     (args.out / f"{stem}.md").write_text(report)

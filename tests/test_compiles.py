@@ -6,7 +6,6 @@ import contextlib
 
 import jax
 import numpy as np
-import pytest
 
 import jaxvox as jv
 
