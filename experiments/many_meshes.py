@@ -28,6 +28,8 @@ Examples:
   python experiments/many_meshes.py                     # R = 128, 256, 512, 1024
   python experiments/many_meshes.py --smoke             # R = 32, 64 on 6 meshes
   python experiments/many_meshes.py --resolutions 256 --meshes 12
+  python experiments/many_meshes.py --resolutions 256 --cache /tmp/xla --out /tmp/a   # twice: the
+      # second run is a new session with a warm persistent cache
 """
 
 from __future__ import annotations
@@ -93,12 +95,16 @@ def mesh_stream(mesh_dir: Path, count: int, seed: int = 0) -> list[tuple[str, np
 def worker(spec: dict) -> dict:
     """Runs the stream at one resolution: jaxvox (first pass and compiled) and Open3D.
 
-    spec: mesh_dir, count, resolution, width, height.
+    spec: mesh_dir, count, resolution, width, height, cache (a persistent compilation
+    cache folder, or None for none: every program is compiled in this process).
     """
     import jax
 
     sys.path.insert(0, str(_common.REPO_ROOT))
     import jaxvox as jv
+
+    if spec.get("cache"):
+        jv.enable_compilation_cache(spec["cache"])
 
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
@@ -230,6 +236,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--smoke", action="store_true",
                         help="R = 32, 64 on 6 meshes; outputs are named many_meshes_smoke.*")
+    parser.add_argument("--cache", help="persistent compilation cache folder for the workers (default: none, "
+                        "so first calls compile; run twice with a folder to measure a returning session)")
     parser.add_argument("--update", action="store_true",
                         help="merge into the existing JSON: replace its resolutions that were run, keep the others")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -248,7 +256,7 @@ def main(argv=None) -> None:
     cases = []
     for resolution in args.resolutions:
         spec = dict(mesh_dir=str(args.mesh_dir), count=args.meshes, resolution=resolution,
-                    width=args.image[0], height=args.image[1])
+                    width=args.image[0], height=args.image[1], cache=args.cache)
         case = _common.run_worker(__file__, spec, timeout=args.timeout)
         cases.append(dict(case, resolution=resolution))
     stem = "many_meshes_smoke" if args.smoke else "many_meshes"
