@@ -331,14 +331,17 @@ def _build_level(ijk, n, counts, ids, *, capacity: int, dag: bool, id_bits: int 
 
 def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> list[_Level]:
     """All levels, root first; level ``l`` has `capacity[l]` rows. The DAG's sort keys
-    are as narrow as the capacity of the level below allows (`key_bits`)."""
+    are as narrow as the ids of the level below allow (`key_bits`): below its capacity,
+    and below 255 for the mask level."""
     depth = vox.grid.resolution.bit_length() - 1
     ijk, n, counts, ids = vox.coords, jnp.minimum(vox.count, vox.coords.shape[0]), None, None
     levels, below = [], 0
     for level_index in range(depth - 1, -1, -1):
         cap = capacity[level_index]
         level = _build_level(ijk, n, counts, ids, capacity=cap, dag=dag, id_bits=key_bits(below) if dag else 32)
-        below = cap
+        # Distinct non-empty masks number at most 255, so the level above the masks sorts
+        # two packed keys whatever its capacity.
+        below = min(cap, 255) if level_index == depth - 1 else cap
         levels.append(level)
         ijk, n, counts, ids = level.cells, level.n_cells, level.cell_counts, level.cell_ids
     return levels[::-1]
@@ -364,12 +367,19 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
                  capacity, dag)
 
 
-def _schedule(slots: int, depth: int) -> tuple[int, ...]:
-    """Per-level build capacities from the voxel buffer's length alone (so that trees of
-    similar size share one compiled build): ``min(8^l, slots / 2^(2 (D - l) - 1))``,
-    twice the nodes of a surface (about a quarter as many per level as the level
-    below; measured 0.06-0.5 of ``slots / 4^(D - 1 - l)`` on the shared meshes)."""
-    return tuple(min(8**level, max(slots >> (2 * (depth - level) - 1), 64)) for level in range(depth))
+def _schedule(counted) -> tuple[int, ...]:
+    """Per-level build capacities from the bottom level's node count alone, so that trees
+    of similar size share one compiled build.
+
+    A surface has about a quarter as many nodes per level as the level below (measured
+    0.25-0.28 on the shared meshes at 128^3-1024^3), so level ``D - 1 - k`` gets
+    ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1), doubled above the three
+    bottom levels where the ratio creeps up; a level counted above that (scattered
+    voxels) gets the bucket of its own count. Capped at ``8^l``.
+    """
+    depth, bottom = len(counted), bucket(int(counted[-1]), 64)
+    return tuple(min(8**level, max(bottom >> 2 * k << (k >= 3), bucket(int(n), 64)))
+                 for level, (k, n) in enumerate(zip(range(depth - 1, -1, -1), counted)))
 
 
 def _relayout(tree: Octree, sizes: tuple[int, ...]) -> Octree:
@@ -396,13 +406,9 @@ def _relayout(tree: Octree, sizes: tuple[int, ...]) -> Octree:
 
 
 def _build_padded(vox: Voxels, counted: np.ndarray, dag: bool) -> Octree:
-    """Host-side build: one compiled build whose capacities come from the voxel buffer's
-    length (`_schedule`; a level that would not fit, which a surface does not produce,
-    gets the power of two above its counted size instead), then the tables laid out on
-    the shape ladder (`padded_sizes`)."""
-    capacity = _schedule(vox.coords.shape[0], len(counted))
-    if any(int(n) > c for n, c in zip(counted, capacity)):
-        capacity = tuple(min(8**level, bucket(int(n), 64)) for level, n in enumerate(counted))
+    """Host-side build: one compiled build with the capacities of `_schedule` (which fit
+    the counted levels), then the tables laid out on the shape ladder (`padded_sizes`)."""
+    capacity = _schedule(counted)
     tree = _build(vox, capacity=capacity, dag=dag)
     if int(tree.overflow):
         raise JaxvoxError(f"internal error: octree levels {list(counted)} overflowed capacities {capacity}")
@@ -427,11 +433,15 @@ def _survey(coords: jax.Array, count: jax.Array, *, resolution: int):
     inside = jnp.all((coords >= 0) & (coords < resolution) | ~valid[:, None])
     hi, lo = morton.encode(jnp.clip(coords, 0, resolution - 1))
     increasing = (hi[1:] > hi[:-1]) | ((hi[1:] == hi[:-1]) & (lo[1:] > lo[:-1]))
+    # Consecutive voxels first differ at the highest set bit p of their codes' XOR; they
+    # sit in different nodes of level l exactly when l >= D - p // 3.
+    x_hi, x_lo = hi[1:] ^ hi[:-1], lo[1:] ^ lo[:-1]
+    top = jnp.where(x_hi != 0, 61 - jax.lax.clz(x_hi), 31 - jax.lax.clz(x_lo)).astype(jnp.int32)
     depth = resolution.bit_length() - 1
-    sizes = [jnp.minimum(count, 1) + jnp.sum(valid[1:] & jnp.any((coords[1:] ^ coords[:-1]) >> (depth - level) != 0,
-                                                                  axis=1), dtype=jnp.int32)
-             for level in range(depth)]
-    return inside, jnp.all(increasing | ~valid[1:]), jnp.stack(sizes)
+    first_level = jnp.where(valid[1:] & (top >= 0), depth - top // 3, depth)
+    new_nodes = jnp.cumsum(jnp.zeros(depth + 1, jnp.int32).at[first_level].add(1))[:depth]
+    sizes = jnp.minimum(count, 1) + new_nodes
+    return inside, jnp.all(increasing | ~valid[1:]), sizes
 
 
 def _check_voxels(vox: Voxels) -> np.ndarray:

@@ -608,7 +608,7 @@ _CHUNK = 4096
 _WINDOW_COLUMNS = 1 << 15
 _WINDOW_ROWS = 1 << 16
 _WINDOW_CANDIDATES = 1 << 17
-_PAGE = 1 << 18  # slots per page of a region's sort buffer (the emit program writes one page)
+_PAGE = 1 << 18  # slots per page of a region's sort buffer (the emit program writes two)
 
 
 def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
@@ -646,38 +646,43 @@ def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
     return jnp.stack([n_cols, n_slots, n_cand])
 
 
-@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("page",))
-def _emit_chunk(tris_grid, ids, region_lo, region_hi, page, offset, *, six_sep, with_ids):
-    """Writes the candidates of a chunk that fall in one page of the region's sort buffer.
+@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("pages",))
+def _emit_chunk(tris_grid, ids, region_lo, region_hi, pages, offset, *, six_sep, with_ids):
+    """Writes the candidates of a chunk that fall in two consecutive pages of the region's
+    sort buffer (a chunk holds fewer candidates than a page, so one call usually writes
+    all of them).
 
     Args:
       tris_grid: [_CHUNK, 3, 3] float32 triangles in grid units (NaN rows are skipped).
       ids: [_CHUNK] int32 triangle ids to record.
-      page: (keys,) or (keys, distance bits, triangle ids), uint32 [_PAGE] (donated).
-      offset: [] int32 slot of the chunk's first candidate relative to the page's first
-        slot (negative when the chunk started in an earlier page); candidates outside
-        the page are skipped.
+      pages: two pages, each (keys,) or (keys, distance bits, triangle ids) of uint32
+        [_PAGE] (donated).
+      offset: [] int32 slot of the chunk's first candidate relative to the first page's
+        first slot (negative when the chunk started in an earlier page); candidates
+        outside the two pages are skipped.
 
     Returns:
-      The page.
+      The two pages.
     """
     def visit(rows, carry):
-        page, offset = carry
+        pages, offset = carry
         n = jnp.sum(rows.n_depth)
 
         def step(state):
-            start, page = state
+            start, pages = state
             keys, payload, _ = _candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
             slot = start + jnp.arange(_WINDOW_CANDIDATES, dtype=jnp.int32)
-            pos = offset + slot
-            pos = jnp.where((slot < n) & (pos >= 0), pos, _PAGE)  # outside the page: dropped
+            pos = jnp.where((slot < n) & (offset + slot >= 0), offset + slot, 2 * _PAGE)
             return start + _WINDOW_CANDIDATES, tuple(
-                b.at[pos].set(v, mode="drop") for b, v in zip(page, keys + payload))
+                tuple(b.at[pos - first].set(v, mode="drop") for b, v in zip(page, keys + payload))
+                for first, page in zip((0, _PAGE), pages))  # slots outside a page are dropped
 
-        _, page = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < _PAGE), step, (jnp.int32(0), page))
-        return page, offset + n
+        # Only the windows that overlap the pages: from the one holding their first slot.
+        first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
+        _, pages = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < 2 * _PAGE), step, (first, pages))
+        return pages, offset + n
 
-    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (page, offset))[2][0]
+    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (pages, offset))[2][0]
 
 
 @jax.jit
@@ -737,15 +742,19 @@ def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: 
     ends = np.cumsum(_count_chunks(chunks, lo, hi, six_sep)[:, 2])
     starts = ends - np.diff(ends, prepend=0)
     total = int(ends[-1])
+    n_pages = bucket(total, _PAGE) // _PAGE
     pages = []
-    for first in range(0, bucket(total, _PAGE), _PAGE):
+    for _ in range(n_pages + 1):  # and a spare page past the end, written as the last pair's second
         page = [np.full(_PAGE, morton.EMPTY, np.uint32)] + [np.zeros(_PAGE, np.uint32) for _ in range(2 * with_ids)]
-        page = tuple(jax.device_put(b, may_alias=False) for b in page)
-        for (t, ids), start, end in zip(chunks, starts, ends):
-            if start < first + _PAGE and end > first:
-                page = _emit_chunk(t, ids, lo, hi, page, np.int32(start - first), six_sep=six_sep,
-                                   with_ids=with_ids)
-        pages.append(page)
+        pages.append(tuple(jax.device_put(b, may_alias=False) for b in page))
+    for (t, ids), start, end in zip(chunks, starts, ends):
+        page = int(start) // _PAGE
+        while page * _PAGE < end:  # two pages per call: once, unless a chunk spans more
+            pages[page], pages[page + 1] = _emit_chunk(t, ids, lo, hi, (pages[page], pages[page + 1]),
+                                                       np.int32(start - page * _PAGE), six_sep=six_sep,
+                                                       with_ids=with_ids)
+            page += 2
+    pages = pages[:n_pages]
     coords, triangle, count = _sort_region(pages, lo)
     count = int(count)
     # The pages were sized by the exact count of the same walk, so nothing is dropped
