@@ -87,6 +87,15 @@ def run_worker(script: str | Path, spec: dict, *, timeout: float) -> dict:
     return json.loads(lines[-1])
 
 
+def answer_as_worker(args, worker: Callable[[dict], dict]) -> bool:
+    """When the script runs as a worker (``--worker '<spec>'``), prints `worker(spec)` as
+    the JSON line `run_worker` reads and returns True; otherwise returns False."""
+    if not args.worker:
+        return False
+    print(json.dumps(worker(json.loads(args.worker))))
+    return True
+
+
 def package_versions(names: Iterable[str]) -> dict[str, str | None]:
     """Installed versions of the given distributions (None where one is missing), without importing them."""
     versions = {}

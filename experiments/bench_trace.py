@@ -190,8 +190,7 @@ def main():
     parser.add_argument("--plot-only", action="store_true", help="redraw the table and chart from the JSON")
     parser.add_argument("--worker")
     args = parser.parse_args()
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     width, height, n_inc = (1920, 1080, 2**20) if not args.smoke else (480, 270, 2**16)
     resolutions = args.resolutions if not args.smoke else [64, 128]

@@ -40,7 +40,6 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -333,8 +332,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     """Runs the sweep (and the --huge case), then writes JSON, PNG and markdown."""
     args = parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     methods = [m for m in METHODS if m in args.methods]  # the reference runs first
     cases = [(mesh, r) for mesh in args.meshes for r in args.resolutions]

@@ -34,7 +34,6 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
@@ -202,8 +201,7 @@ def main() -> None:
     parser.add_argument("--smoke", action="store_true", help="spot at R = 16, 4 frames")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     if args.smoke:
         args.meshes, args.resolutions, args.frames = ["spot"], [16], 4

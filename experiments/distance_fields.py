@@ -207,8 +207,7 @@ def main(argv=None) -> None:
     parser.add_argument("--smoke", action="store_true", help="spot at R = 32, 64, one repeat")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     if args.smoke:
         args.meshes, args.resolutions, args.repeats, args.subsample = ["spot"], [32, 64], 1, 300

@@ -250,8 +250,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     """Runs one worker per resolution, then writes JSON, PNG and markdown."""
     args = parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     cases = []
     for resolution in args.resolutions:

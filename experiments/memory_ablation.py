@@ -212,8 +212,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> None:
     """Runs every case in its own process, then writes JSON, PNG and markdown."""
     args = parse_args(argv)
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     stem = "memory_ablation_smoke" if args.smoke else "memory_ablation"
     if args.plot_only:

@@ -21,7 +21,6 @@ against PSNR, SSIM against resolution) and ``render_vs_mesh_strip.png`` (the ima
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -134,8 +133,7 @@ def main():
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--worker")
     args = parser.parse_args()
-    if args.worker:
-        print(json.dumps(worker(json.loads(args.worker))))
+    if _common.answer_as_worker(args, worker):
         return
     if args.smoke:
         args.size, args.spp, args.reference_spp, args.resolutions, args.repeats = "64x48", 2, 8, [32, 64], 1
