@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, Octree, _voxel_index
@@ -467,6 +468,25 @@ def _run(structure, origins, directions, t_max, *, method, max_steps, lanes, sha
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), hits)
 
 
+def _rays_on_ladder(call, origins, directions, t_max) -> Hit:
+    """``call(origins, directions, t_max)`` with the rays flattened and padded to the shape
+    ladder when they are concrete arrays (host-side use), so that ray batches of similar
+    counts (image sizes) share one compiled program; inside a caller's `jax.jit` the rays
+    pass through unchanged. Padding rays have a zero direction (status `INVALID`, no
+    work) and are sliced off on the host.
+    """
+    if any(isinstance(x, jax.core.Tracer) for x in (origins, directions, t_max)):
+        return call(origins, directions, t_max)
+    o, d, t = (np.asarray(x, np.float32) for x in (origins, directions, t_max))
+    shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], t.shape)
+    n = int(np.prod(shape, dtype=np.int64))
+    pad = bucket(n) - n
+    flat = lambda a, tail: np.concatenate([np.broadcast_to(a, shape + tail).reshape((n,) + tail),
+                                           np.zeros((pad,) + tail, np.float32)])
+    hit = call(flat(o, (3,)), flat(d, (3,)), flat(t, ()))
+    return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n].reshape(shape + x.shape[1:])), hit)
+
+
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
     hit = _run(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
@@ -481,7 +501,8 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
     Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
-    `shard` are static.
+    `shard` are static. Called on concrete rays, it pads the flattened rays to the shape
+    ladder first, so that similar ray counts (image sizes) share one compiled program.
 
     Args:
       tree: an `Octree` from `build_octree` or `build_dag`.
@@ -506,8 +527,8 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     if method not in TRACE_METHODS:
         raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {TRACE_METHODS}")
     steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
-    return _trace(tree, origins, directions, t_max, method=method, max_steps=steps, lanes=lanes,
-                  shard=shard)
+    return _rays_on_ladder(functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes,
+                                             shard=shard), origins, directions, t_max)
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
@@ -544,4 +565,5 @@ def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions
         raise JaxvoxError(f"occupancy has shape {occupancy.shape}, expected {(res,) * 3} for the grid")
     steps = int(max_steps) if max_steps is not None else 3 * res + 8
     dense = _DenseGrid(occupancy.astype(bool).reshape(-1), grid)
-    return _trace_dense(dense, origins, directions, t_max, max_steps=steps, lanes=lanes, shard=shard)
+    return _rays_on_ladder(functools.partial(_trace_dense, dense, max_steps=steps, lanes=lanes, shard=shard),
+                           origins, directions, t_max)

@@ -49,6 +49,11 @@ def test_a_new_mesh_of_a_familiar_size_compiles_nothing(meshes_dir):
             dag, hit = _pipeline(mesh, 64)
         assert int(dag.voxel_count) > 0 and (np.asarray(hit.status) == jv.HIT).any()
         assert n[0] == 0, f"{n[0]} programs compiled for a mesh in the warmed-up buckets"
+    # Another image size with a ray count in the same bucket (1,200 rays against 1,536).
+    origins, directions = jv.pinhole_rays(*jv.look_at_view(others[0]), width=40, height=30)
+    with count_compiles() as n:
+        hit = jv.trace(dag, origins, directions)
+    assert hit.t.shape == (30, 40) and n[0] == 0
 
 
 def test_counting_sees_compiles():
