@@ -372,7 +372,7 @@ def _schedule(counted) -> tuple[int, ...]:
     of similar size share one compiled build.
 
     A surface has about a quarter as many nodes per level as the level below (measured
-    0.25-0.28 on the shared meshes at 128^3-1024^3), so level ``D - 1 - k`` gets
+    0.25-0.28 near the bottom on five shared meshes at 128^3 and 1024^3), so level ``D - 1 - k`` gets
     ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1), doubled above the three
     bottom levels where the ratio creeps up; a level counted above that (scattered
     voxels) gets the bucket of its own count. Capped at ``8^l``.
@@ -416,8 +416,10 @@ def _build_padded(vox: Voxels, counted: np.ndarray, dag: bool) -> Octree:
 
 
 def padded(tree: Octree) -> Octree:
-    """`tree` laid out on the shape ladder (`padded_sizes`), host-side."""
-    return _relayout(tree, padded_sizes(tree.level_sizes))
+    """`tree` laid out on the shape ladder (`padded_sizes`), host-side; a tree already
+    laid out so is returned as it is."""
+    sizes = padded_sizes(tree.level_sizes)
+    return tree if sizes == tree.level_capacities else _relayout(tree, sizes)
 
 
 @functools.partial(jax.jit, static_argnames=("resolution",))
@@ -593,33 +595,25 @@ def _expand_nodes(mask, child, voxel_count, *, depth: int, capacity: int):
     return jnp.where((jnp.arange(ijk.shape[0]) < n)[:, None], ijk, UNUSED), n
 
 
-def _padded_pow2(a: jax.Array, fill) -> jax.Array:
-    """Host copy of `a` padded with `fill` rows to a power-of-two length."""
-    a = np.asarray(a)
-    pad = bucket(len(a), 1) - len(a)
-    return jax.device_put(np.concatenate([a, np.full((pad,) + a.shape[1:], fill, a.dtype)]), may_alias=True)
-
-
 def expand(tree: Octree, *, capacity: int | None = None) -> Voxels:
     """The voxels of a tree, in Morton order (the inverse of the builds).
 
     A top-down pass per level: every node instance emits its children in slot order,
     so the output is Morton-sorted without a sort. Without `capacity` (host-side) the
-    buffer is sized by ``tree.voxel_count`` (and the tables are padded to power-of-two
-    sizes so that similar trees share a compiled program); with a static `capacity` it is
+    buffer is sized by ``tree.voxel_count`` (and a tree not yet on the shape ladder is
+    laid out on it, `padded`, so that similar trees share a compiled program); with a static `capacity` it is
     jittable, and a tree with more voxels sets `OVERFLOW_NODES` in the result's
     ``overflow``.
 
     Returns:
       `Voxels` (``triangle`` is None; attributes stay in their own arrays).
     """
-    mask, child = tree.mask, tree.child
     if capacity is None:
         if int(tree.overflow):
             raise JaxvoxError(f"the tree is truncated (overflow flags {int(tree.overflow)})")
         capacity = bucket(int(tree.voxel_count))
-        mask, child = _padded_pow2(mask, 0), _padded_pow2(child, EMPTY)
-    coords, n = _expand_nodes(mask, child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
+        tree = padded(tree)
+    coords, n = _expand_nodes(tree.mask, tree.child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
     overflow = tree.overflow | jnp.where(tree.voxel_count > capacity, OVERFLOW_NODES, 0)
     return Voxels(coords, n, overflow.astype(jnp.int32), None, tree.grid, tree.mode)
 
