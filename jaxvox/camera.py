@@ -5,6 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._checks import check_int, check_number, check_vector, is_concrete, refuse
+
 
 def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25.0,
                  distance: float = 2.2):
@@ -12,16 +14,45 @@ def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25
 
     The eye is ``distance`` times the box's largest extent away from the box centre, at
     the given azimuth about +y and elevation above the xz plane (degrees).
+
+    Raises:
+      JaxvoxError: bounds that are not two finite 3-vectors, a mesh without vertices or
+        with non-finite ones, non-finite angles or a distance that is not > 0.
     """
-    if isinstance(mesh_or_bounds, tuple):
-        lo, hi = (np.asarray(b, np.float64) for b in mesh_or_bounds)
-    else:
-        v = np.asarray(mesh_or_bounds.vertices, np.float64)
+    if isinstance(mesh_or_bounds, tuple) and len(mesh_or_bounds) == 2:
+        lo, hi = (check_vector("look_at_view bounds", b, 3) for b in mesh_or_bounds)
+    elif hasattr(mesh_or_bounds, "vertices"):
+        v = np.asarray(mesh_or_bounds.vertices, np.float64).reshape(-1, 3)
+        if not len(v) or not np.isfinite(v).all():
+            raise refuse("look_at_view mesh", "needs vertices, all finite", v if len(v) else v.shape)
         lo, hi = v.min(0), v.max(0)
+    else:
+        raise refuse("look_at_view mesh_or_bounds", "expected a jaxvox.Mesh or (lo, hi) bounds", mesh_or_bounds)
+    azimuth, elevation = (check_number(f"look_at_view {n}", a) for n, a in (("azimuth", azimuth), ("elevation", elevation)))
+    distance = check_number("look_at_view distance", distance, above=0.0)
     centre, extent = (lo + hi) / 2, float(np.max(hi - lo))
     a, e = np.radians(azimuth), np.radians(elevation)
     offset = np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
     return (centre + distance * extent * offset).astype(np.float32), centre.astype(np.float32)
+
+
+def check_view(caller: str, eye, target, up, fov) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """A camera's concrete ``(eye, target, up)`` as float64 [3] vectors and its field of view.
+
+    Raises:
+      JaxvoxError (naming `caller`): vectors that are not three finite numbers, a target
+        equal to the eye, an ``up`` parallel to the view direction, a field of view
+        outside (0, 180) degrees.
+    """
+    e, t = check_vector(f"{caller} eye", eye, 3), check_vector(f"{caller} target", target, 3)
+    u = check_vector(f"{caller} up", up, 3)
+    fov = check_number(f"{caller} fov", fov, above=0.0, below=180.0)
+    if not np.any(t - e):
+        raise refuse(f"{caller} target", "must differ from the eye", t)
+    view = (t - e) / np.linalg.norm(t - e)
+    if np.linalg.norm(np.cross(view, u)) <= 1e-6 * np.linalg.norm(u):
+        raise refuse(f"{caller} up", f"must not be parallel to the view direction {view.round(6).tolist()}", u)
+    return e, t, u, fov
 
 
 def pinhole_rays(eye, target, *, width: int, height: int, fov: float = 40.0, up=(0.0, 1.0, 0.0)):
@@ -36,7 +67,15 @@ def pinhole_rays(eye, target, *, width: int, height: int, fov: float = 40.0, up=
     Returns:
       (origins, directions): [height, width, 3] float32 each; directions are unit
       length, row 0 is the top of the image.
+
+    Raises:
+      JaxvoxError: sizes that are not integers >= 1, a field of view outside (0, 180),
+        and (for concrete values) non-finite or coincident eye and target, or an ``up``
+        parallel to the view direction.
     """
+    width, height = check_int("pinhole_rays width", width, minimum=1), check_int("pinhole_rays height", height, minimum=1)
+    if all(is_concrete(x) for x in (eye, target, up)):
+        check_view("pinhole_rays", eye, target, up, fov)
     eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
     forward = target - eye
     forward = forward / jnp.linalg.norm(forward)

@@ -24,14 +24,23 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> str | Non
 
     Returns:
       The folder used, or None when the cache stays off.
+
+    Raises:
+      JaxvoxError: the folder cannot be created (a file of that name, no permission).
     """
     import jax
+
+    from jaxvox._checks import refuse
 
     folder = os.fspath(path) if path is not None else os.environ.get("JAXVOX_CACHE_DIR", DEFAULT_DIR)
     if not folder:
         return None
     folder = os.path.abspath(os.path.expanduser(folder))
-    os.makedirs(folder, exist_ok=True)
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError as exc:
+        raise refuse("enable_compilation_cache path", f"cannot create the folder ({exc.strerror or exc})",
+                     folder) from None
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder

@@ -70,10 +70,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._checks import (
+    check_choice,
+    check_int,
+    check_number,
+    check_type,
+    check_vector,
+    is_concrete,
+    refuse,
+)
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
-from jaxvox.grid import Grid
+from jaxvox._shapes import bucket, expand_counts
+from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.trace import HIT, MISS, STEP_CAP
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, _point_triangle_dist2, voxelize
@@ -331,12 +340,6 @@ def _sweep(u, free, iterations: int):
 # -------------------------------------------------------------------------- sign
 
 
-def _check_sign_method(sign: str) -> str:
-    if sign not in SIGN_METHODS:
-        raise JaxvoxError(f"unknown sign method {sign!r}; expected one of {SIGN_METHODS}")
-    return sign
-
-
 def open_edges(mesh: Mesh) -> int:
     """Number of edges not shared by an even number of faces (0 for a watertight mesh).
 
@@ -475,8 +478,9 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float 
       JaxvoxError: bad method or mesh, "parity" on a mesh that is not watertight, or a
         grid too large (the result costs R^3 bytes plus temporaries).
     """
+    check_type("solid_voxelize grid", grid, Grid)
     validate_mesh(mesh)
-    _check_sign_method(method)
+    check_choice("solid_voxelize method", method, SIGN_METHODS)
     _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
     r = grid.resolution
     return _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, (r, r, r), method, beta)
@@ -492,13 +496,8 @@ def distance_field_bytes(resolution: int, *, method: str = "jfa+sweep", signed: 
     result itself is 4 R^3 bytes (512^3: 0.5 GiB; a signed "jfa+sweep" build is estimated
     at 14 GiB there).
     """
-    return int(resolution) ** 3 * (BYTES_PER_VOXEL[_check_method(method)] + (SIGN_BYTES_PER_VOXEL if signed else 0))
-
-
-def _check_method(method: str) -> str:
-    if method not in METHODS:
-        raise JaxvoxError(f"unknown distance field method {method!r}; expected one of {METHODS}")
-    return method
+    per_voxel = BYTES_PER_VOXEL[check_choice("distance_field_bytes method", method, METHODS)]
+    return check_resolution(resolution) ** 3 * (per_voxel + (SIGN_BYTES_PER_VOXEL if signed else 0))
 
 
 def _default_max_bytes() -> int:
@@ -564,9 +563,10 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
       JaxvoxError: bad method, band, sweeps, sign or mesh; "parity" sign on a mesh that
         is not watertight; a grid that would not fit in `max_bytes`.
     """
+    check_type("distance_field grid", grid, Grid)
     validate_mesh(mesh)
-    _check_method(method)
-    _check_sign_method(sign)
+    check_choice("distance_field method", method, METHODS)
+    check_choice("distance_field sign", sign, SIGN_METHODS)
     band = {"jfa+sweep": 1, "band": 4}.get(method, 0) if band is None else band
     if method == "exact":
         band = 0
@@ -642,8 +642,11 @@ def quantize_field(field: jax.Array, grid: Grid, *, format: str = "fixed16",
 
     The error a field actually costs: ``abs(q.decode() - field) / grid.voxel_size``.
     """
-    if format not in FORMATS:
-        raise JaxvoxError(f"unknown 16-bit format {format!r}; expected one of {FORMATS}")
+    check_choice("quantize_field format", format, FORMATS)
+    if np.shape(field) != (grid.resolution,) * 3:
+        raise refuse("quantize_field field", f"must have the grid's shape {(grid.resolution,) * 3}", np.shape(field))
+    if is_concrete(steps_per_voxel):
+        check_number("quantize_field steps_per_voxel", steps_per_voxel, above=0.0)
     voxels = field / grid.voxel_size
     if format == "float16":
         return QuantizedField(voxels.astype(jnp.float16), grid.voxel_size, jnp.float32(1.0), format)
@@ -849,13 +852,14 @@ def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, vox
       `Clipmap` with fields [N, R, R, R] float32 (4 N R^3 bytes).
     """
     validate_mesh(mesh)
-    r = Grid(origin, voxel_size, resolution).resolution  # checks the resolution
-    if num_cascades < 1:
-        raise JaxvoxError(f"num_cascades must be at least 1, got {num_cascades}")
+    r = Grid(origin, voxel_size, resolution).resolution  # checks the placement and resolution
+    num_cascades = check_int("build_clipmap num_cascades", num_cascades, minimum=1)
+    check_vector("build_clipmap camera", camera, 3)
+    truncation = check_number("build_clipmap truncation", truncation, above=0.0)
     far = np.full((num_cascades, 3), np.iinfo(np.int32).min // 2, np.int32)  # nothing in common
     empty = Clipmap(jnp.zeros((num_cascades, r, r, r), jnp.float32), jnp.asarray(far),
                     jnp.asarray(origin, jnp.float32), jnp.float32(voxel_size), float(truncation),
-                    _check_method(method))
+                    check_choice("build_clipmap method", method, METHODS))
     return update_clipmap(empty, mesh, camera)
 
 
@@ -876,7 +880,10 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
       The updated `Clipmap`; cascades not updated keep their window.
     """
     validate_mesh(mesh)
+    check_vector("update_clipmap camera", camera, 3)
     cascades = range(clip.num_cascades) if cascades is None else cascades
+    for c in cascades:
+        check_int("update_clipmap cascades", c, minimum=0, maximum=clip.num_cascades - 1)
     new = clipmap_corners(camera, clip.origin, clip.voxel_size, clip.resolution, clip.num_cascades)
     corner = np.asarray(clip.corner).copy()
     fields = clip.fields
@@ -890,7 +897,13 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
 
 def time_sliced_cascades(frame: int, num_cascades: int) -> tuple[int, ...]:
     """The cascades to update at `frame`: the finest on even frames, the others in turn
-    on odd frames (as in the thread), so at most one cascade is rebuilt per frame."""
+    on odd frames (as in the thread), so at most one cascade is rebuilt per frame.
+
+    Raises:
+      JaxvoxError: `frame` not an integer >= 0, `num_cascades` not an integer >= 1.
+    """
+    frame = check_int("time_sliced_cascades frame", frame, minimum=0)
+    num_cascades = check_int("time_sliced_cascades num_cascades", num_cascades, minimum=1)
     if frame % 2 == 0 or num_cascades == 1:
         return (0,)
     return (1 + (frame // 2) % (num_cascades - 1),)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import check_number, refuse
 from jaxvox._pytree import pytree_dataclass
 
 MAX_RESOLUTION = 1 << 20  # Morton keys are two 30-bit words: 20 bits per axis.
@@ -16,11 +16,28 @@ MAX_RESOLUTION = 1 << 20  # Morton keys are two 30-bit words: 20 bits per axis.
 
 def check_resolution(resolution: int) -> int:
     """Returns `resolution` as an int, or raises `JaxvoxError` if it is not a power of two in [2, 2^20]."""
-    r = int(resolution)
-    if r != resolution or r < 2 or r > MAX_RESOLUTION or (r & (r - 1)):
-        raise JaxvoxError(
-            f"resolution must be a power of two between 2 and {MAX_RESOLUTION}, got {resolution!r}")
+    integral = isinstance(resolution, (int, np.integer)) and not isinstance(resolution, (bool, np.bool_))
+    r = int(resolution) if integral else 0
+    if r < 2 or r > MAX_RESOLUTION or (r & (r - 1)):
+        raise refuse("resolution", f"must be a power of two between 2 and {MAX_RESOLUTION}", resolution)
     return r
+
+
+def _leaf(what: str, value, shape: tuple, expected: str) -> jax.Array:
+    """A float32 grid leaf of `shape`; concrete values must be finite (and a voxel size > 0)."""
+    if isinstance(value, jax.core.Tracer):
+        return jnp.asarray(value, jnp.float32).reshape(shape)
+    try:
+        a = np.asarray(value)
+        ok = a.dtype.kind in "fiu" and a.size == int(np.prod(shape))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise refuse(what, f"must be {expected}", value)
+    a = a.astype(np.float32).reshape(shape)
+    if not np.isfinite(a).all() or (shape == () and not a > 0):
+        raise refuse(what, f"must be {expected}", value)
+    return jnp.asarray(a, jnp.float32)
 
 
 @pytree_dataclass
@@ -43,8 +60,8 @@ class Grid:
     resolution: int = dataclasses.field(metadata=dict(static=True))
 
     def __init__(self, origin, voxel_size, resolution):
-        object.__setattr__(self, "origin", jnp.asarray(origin, jnp.float32).reshape(3))
-        object.__setattr__(self, "voxel_size", jnp.asarray(voxel_size, jnp.float32).reshape(()))
+        object.__setattr__(self, "origin", _leaf("Grid origin", origin, (3,), "three finite numbers"))
+        object.__setattr__(self, "voxel_size", _leaf("Grid voxel_size", voxel_size, (), "one finite number > 0"))
         object.__setattr__(self, "resolution", check_resolution(resolution))
 
     @classmethod
@@ -54,17 +71,20 @@ class Grid:
         Args:
           mesh: a `jaxvox.Mesh` (or anything with a `vertices` [V, 3] array).
           resolution: voxels per axis, a power of two.
-          padding: extra margin on each side, as a fraction of the largest extent.
+          padding: extra margin on each side, as a fraction of the largest extent (>= 0).
 
         Raises:
-          JaxvoxError: bad resolution, empty or non-finite vertices.
+          JaxvoxError: bad resolution or padding, empty or non-finite vertices.
         """
         resolution = check_resolution(resolution)
+        padding = check_number("Grid.fit padding", padding, minimum=0.0)
+        if not hasattr(mesh, "vertices"):
+            raise refuse("Grid.fit mesh", "expected a jaxvox.Mesh", type(mesh))
         v = np.asarray(mesh.vertices, np.float64)
         if v.size == 0:
-            raise JaxvoxError("Grid.fit: the mesh has no vertices")
+            raise refuse("Grid.fit mesh", "has no vertices", v.shape)
         if not np.isfinite(v).all():
-            raise JaxvoxError("Grid.fit: the mesh has NaN or inf vertex coordinates")
+            raise refuse("Grid.fit mesh", "has NaN or inf vertex coordinates", v[~np.isfinite(v).all(1)][0])
         lo, hi = v.min(0), v.max(0)
         extent = float((hi - lo).max())
         extent = extent * (1.0 + 2.0 * padding) if extent > 0 else 1.0

@@ -2,8 +2,9 @@
 
 EXR files hold 32-bit float channels, one 2-D array per channel name, losslessly
 compressed (ZIP), so a write followed by a read gives back the same bits. The renderer
-writes ``R``, ``G``, ``B`` (linear radiance), ``Z`` (depth) and ``N.X``, ``N.Y``,
-``N.Z`` (normal), the usual layer naming of compositing tools.
+writes ``R``, ``G``, ``B`` (linear radiance), ``Z`` (depth, +inf where the pixel sees no
+surface unless `save_render` is given a finite ``far``), ``A`` (coverage) and ``N.X``,
+``N.Y``, ``N.Z`` (normal), the usual layer naming of compositing tools.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 
 import numpy as np
 
+from jaxvox._checks import check_choice, check_output_path, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._files import read_bytes
 
@@ -119,8 +121,7 @@ def tonemap(radiance, *, exposure: float = 0.0, curve: str = "aces") -> np.ndarr
     ACES filmic curve, which rolls highlights off; ``"clip"``: clamp to [0, 1]), then
     the sRGB transfer function. NaN becomes 0.
     """
-    if curve not in TONEMAP_CURVES:
-        raise JaxvoxError(f"unknown tone curve {curve!r}; expected one of {TONEMAP_CURVES}")
+    check_choice("tonemap curve", curve, TONEMAP_CURVES)
     x = np.nan_to_num(np.asarray(radiance, np.float64), nan=0.0, posinf=1e30) * 2.0**exposure
     x = np.maximum(x, 0.0)
     if curve == "aces":
@@ -137,7 +138,18 @@ def srgb_to_linear(c):
 
 
 def write_png(path: str | os.PathLike, rgb) -> None:
-    """Writes an 8-bit image ([H, W] or [H, W, 3] uint8) as PNG."""
+    """Writes an 8-bit image ([H, W] grey, [H, W, 3] RGB or [H, W, 4] RGBA; uint8, or
+    integers in [0, 255]) as PNG.
+
+    Raises:
+      JaxvoxError: another shape, values outside [0, 255] or fractional, a missing folder.
+    """
     import imageio.v3 as iio
 
-    iio.imwrite(os.fspath(path), np.asarray(rgb, np.uint8), extension=".png")
+    a = np.asarray(rgb)
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (3, 4))) or min(a.shape[:2], default=0) < 1:
+        raise refuse("write_png rgb", "must be an [H, W], [H, W, 3] or [H, W, 4] image", a.shape)
+    if a.dtype != np.uint8 and not (a.dtype.kind in "iuf" and np.all((a >= 0) & (a <= 255) & (a == np.round(a)))):
+        raise refuse("write_png rgb", "must be uint8 or integers in [0, 255] (tone-map float images first)",
+                     a.dtype)
+    iio.imwrite(check_output_path("write_png path", path), a.astype(np.uint8), extension=".png")

@@ -34,6 +34,7 @@ import zlib
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._checks import check_output_path, check_type
 from jaxvox._errors import JaxvoxError
 from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
@@ -59,8 +60,11 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
         the first ``voxel_count`` rows are stored. Read back with `load_attributes`.
 
     Raises:
-      JaxvoxError: the tree is truncated (overflow set) or an attribute is too short.
+      JaxvoxError: not an `Octree`, a path whose folder does not exist, the tree is
+        truncated (overflow set) or an attribute is too short.
     """
+    path = check_output_path("save path", path)
+    check_type("save tree", tree, Octree)
     if int(tree.overflow):
         raise JaxvoxError(f"refusing to save a truncated tree (overflow flags {int(tree.overflow)})")
     tree = compact(tree)

@@ -44,9 +44,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._shapes import bucket, expand_counts, key_bits
+from jaxvox._checks import check_int, check_type
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
+from jaxvox._shapes import bucket, expand_counts, key_bits
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, sample_texture
 from jaxvox.voxelize import UNUSED, Voxels
@@ -607,7 +608,14 @@ def expand(tree: Octree, *, capacity: int | None = None) -> Voxels:
 
     Returns:
       `Voxels` (``triangle`` is None; attributes stay in their own arrays).
+
+    Raises:
+      JaxvoxError: not an `Octree`, a `capacity` that is not an integer >= 1, or (host
+        side) a truncated tree.
     """
+    check_type("expand tree", tree, Octree)
+    if capacity is not None:
+        capacity = check_int("expand capacity", capacity, minimum=1)
     if capacity is None:
         if int(tree.overflow):
             raise JaxvoxError(f"the tree is truncated (overflow flags {int(tree.overflow)})")

@@ -51,10 +51,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._checks import check_int, check_number, check_output_path, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
+from jaxvox.camera import check_view
 from jaxvox.mesh import sample_texture
-from jaxvox.octree import Octree
+from jaxvox.octree import MISSING, Octree, voxel_index
 from jaxvox.trace import HIT, STEP_CAP, trace
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
@@ -166,9 +168,13 @@ class Environment:
 
 
 def _rgb(value, name: str) -> np.ndarray:
-    v = np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+    """[3] float32 from an RGB triple or one number; refuses other shapes, negatives, NaN, inf."""
+    try:
+        v = np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+    except (TypeError, ValueError):
+        raise refuse(name, "must be three finite non-negative numbers", value) from None
     if not np.isfinite(v).all() or (v < 0).any():
-        raise JaxvoxError(f"{name} must be three finite non-negative numbers, got {value!r}")
+        raise refuse(name, "must be three finite non-negative numbers", value)
     return v
 
 
@@ -351,7 +357,16 @@ def _voxel_surface(tree: Octree, origin, direction, hit) -> _Surface:
     v = jnp.maximum(hit.voxel, 0).astype(jnp.float32)
     n = hit.normal
     inside = jnp.clip(p, v + _OFFSET, v + 1 - _OFFSET)
-    p = jnp.where(n != 0, v + 0.5 + n * (0.5 + _OFFSET), inside)
+    across = jnp.where(n != 0, v + 0.5 + n * (0.5 + _OFFSET), inside)
+    # A ray through a voxel edge or corner comes in diagonally, and the voxel across the
+    # entry face it reports can be occupied (a bounce from there would start inside it).
+    # Then the point leaves through every face the hit touches on the side the ray came
+    # from, into the voxel the ray crossed just before.
+    incoming = jnp.where(direction > 0, v, v + 1)
+    touching = (n != 0) | (jnp.abs(p - incoming) <= _OFFSET)
+    diagonal = jnp.where(touching, v + 0.5 - jnp.sign(direction) * (0.5 + _OFFSET), inside)
+    blocked = voxel_index(tree, jnp.floor(across).astype(jnp.int32)) != MISSING
+    p = jnp.where(blocked[:, None], diagonal, across)
     point = grid.origin + p * grid.voxel_size
     live = jnp.any(direction != 0, axis=-1)
     return _Surface(hit=is_hit & entered, escaped=live & (hit.status != HIT) & (hit.status != STEP_CAP),
@@ -487,15 +502,13 @@ def _table(value, rows: int, name: str, default) -> jax.Array:
     return jnp.asarray(a)
 
 
-def _check_settings(width, height, spp, bounces, fov, batch_rays) -> None:
+def _check_settings(caller: str, width, height, spp, bounces, batch_rays) -> None:
     for name, value, low in (("width", width, 1), ("height", height, 1), ("spp", spp, 1), ("bounces", bounces, 0),
                              ("batch_rays", batch_rays, 1)):
-        if int(value) != value or value < low:
-            raise JaxvoxError(f"{name} must be an integer >= {low}, got {value!r}")
-    if not 0 < fov < 180:
-        raise JaxvoxError(f"fov must be between 0 and 180 degrees, got {fov!r}")
+        check_int(f"{caller} {name}", value, minimum=low)
     if width * height * spp >= 2**31:
-        raise JaxvoxError(f"{width}x{height} pixels at {spp} spp is more than 2^31 samples; render fewer")
+        raise refuse(f"{caller} width x height x spp", "must be below 2^31 samples; render fewer",
+                     f"{width}x{height} at {spp} spp")
 
 
 def _as_key(key):
@@ -505,14 +518,9 @@ def _as_key(key):
     return key if jnp.issubdtype(key.dtype, jax.dtypes.prng_key) else jax.random.wrap_key_data(key)
 
 
-def _camera(eye, target, up, fov):
-    eye, target, up = (np.asarray(v, np.float32).reshape(3) for v in (eye, target, up))
-    forward = target - eye
-    if not (np.isfinite(eye).all() and np.isfinite(target).all()) or np.linalg.norm(forward) == 0:
-        raise JaxvoxError("the camera needs finite eye and target positions that differ")
-    if np.linalg.norm(np.cross(forward, up)) <= 1e-6 * np.linalg.norm(forward) * np.linalg.norm(up):
-        raise JaxvoxError("the camera's up direction is parallel to its viewing direction")
-    return tuple(jnp.asarray(v) for v in (eye, target, up, np.float32(fov)))
+def _camera(caller: str, eye, target, up, fov):
+    """The checked camera (eye, target, up [3], fov []) as float32 device arrays."""
+    return tuple(jnp.asarray(v, jnp.float32) for v in check_view(caller, eye, target, up, fov))
 
 
 def _progress(total: int, progress: bool | None, what: str):
@@ -554,7 +562,7 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
     Raises:
       JaxvoxError: bad settings, camera, albedo or emission, or a truncated tree.
     """
-    _check_settings(width, height, spp, bounces, fov, batch_rays)
+    _check_settings("render", width, height, spp, bounces, batch_rays)
     if int(tree.overflow):
         raise JaxvoxError(f"cannot render a truncated tree (overflow flags {int(tree.overflow)})")
     env = sky_environment() if env is None else env
@@ -563,7 +571,7 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
     rows = int(tree.voxel_count)
     albedo = _table(albedo, rows, "albedo", (0.7, 0.7, 0.7))
     emission = _table(emission, rows, "emission", (0.0, 0.0, 0.0))
-    camera = _camera(eye, target, up, fov)
+    camera = _camera("render", eye, target, up, fov)
     steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
     key = _as_key(key)
     total = width * height * spp
@@ -671,7 +679,7 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
       A `RenderResult`; ``depth`` and ``normal`` are those of the triangles (normals face
       the camera).
     """
-    _check_settings(width, height, spp, bounces, fov, batch_rays)
+    _check_settings("render_mesh", width, height, spp, bounces, batch_rays)
     env = sky_environment() if env is None else env
     if not isinstance(env, Environment):
         raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
@@ -679,7 +687,7 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
     vertices = np.asarray(mesh.vertices, np.float64)
     eps = 1e-4 * float(np.max(vertices.max(0) - vertices.min(0))) if len(vertices) else 1e-4
     intersect = _embree(mesh)
-    camera = _camera(eye, target, up, fov)
+    camera = _camera("render_mesh", eye, target, up, fov)
     key = _as_key(key)
     total = width * height * spp
     batch = min(int(batch_rays), total)
@@ -770,7 +778,7 @@ def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True
 
     Args:
       attributes: dict with an optional ``"color"`` [V, 3 or 4] array in [0, 1].
-      default: RGB used when there are no colours (a material colour).
+      default: RGB in [0, 1] used when there are no colours (a material colour).
       srgb: the colours are sRGB-encoded (vertex colours usually are): decode to linear.
 
     Returns:
@@ -780,27 +788,46 @@ def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True
 
     color = attributes.get("color") if attributes else None
     if color is None:
-        return jnp.asarray(_rgb(default, "default")[None])
+        rgb = _rgb(default, "voxel_albedo default")
+        if (rgb > 1).any():
+            raise refuse("voxel_albedo default", "an albedo must lie in [0, 1]", default)
+        return jnp.asarray(rgb[None])
     c = np.asarray(color, np.float32)[:, :3]
     return jnp.asarray((srgb_to_linear(c) if srgb else np.clip(c, 0.0, 1.0)).astype(np.float32))
 
 
 def save_render(path: str | os.PathLike, result: RenderResult, *, exposure: float = 0.0,
-                curve: str = "aces") -> tuple[str, str]:
+                curve: str = "aces", far: float = float("inf")) -> tuple[str, str]:
     """Writes a render as a linear EXR at `path` and a tone-mapped sRGB PNG beside it.
 
-    The EXR holds ``R, G, B`` (radiance), ``Z`` (depth) and ``N.X, N.Y, N.Z`` (normal),
-    float32. The PNG has the same name with the suffix ``.png``.
+    The EXR holds float32 channels ``R, G, B`` (linear radiance, the environment
+    included: not premultiplied), ``Z`` (depth: the distance from the eye to the surface
+    seen through the pixel centre, ``far`` where that ray escapes), ``A`` (coverage: 1
+    where the pixel centre sees a surface, 0 where it sees the environment; use it to
+    mask ``Z`` and the normals or to composite) and ``N.X, N.Y, N.Z`` (unit normal, 0
+    where the ray escapes). The PNG has the same name with the suffix ``.png``.
+
+    Args:
+      path: the ``.exr`` file to write.
+      result: a `RenderResult` from `render` or `render_mesh`.
+      exposure: stops applied before tone mapping the PNG (the EXR stays linear).
+      curve: the PNG's tone curve, one of `jaxvox.image.TONEMAP_CURVES`.
+      far: the depth written where the ray escapes; ``inf`` by default (legal in EXR,
+        and what `RenderResult.depth` holds), or a finite value for tools that expect one.
 
     Returns:
       (exr path, png path).
     """
     from jaxvox.image import tonemap, write_exr, write_png
 
-    path = os.fspath(path)
+    path = check_output_path("save_render path", path)
+    far = check_number("save_render far", far, above=0.0, finite=False)
+    check_number("save_render exposure", exposure)
+    check_type("save_render result", result, RenderResult)
     rgb, depth, normal = (np.asarray(a) for a in (result.radiance, result.depth, result.normal))
-    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Z": depth,
-                "N.X": normal[..., 0], "N.Y": normal[..., 1], "N.Z": normal[..., 2]}
+    covered = np.isfinite(depth)
+    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Z": np.where(covered, depth, far),
+                "A": covered.astype(np.float32), "N.X": normal[..., 0], "N.Y": normal[..., 1], "N.Z": normal[..., 2]}
     png = os.path.splitext(path)[0] + ".png"
     write_exr(path, channels)
     write_png(png, tonemap(rgb, exposure=exposure, curve=curve))

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._checks import check_choice
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
@@ -520,8 +521,7 @@ def normal(scene: SDF, points, *, method: str = "grad", h: float = 1e-3) -> jax.
     ``method="grad"`` differentiates the scene with `jax.grad`; ``"central"`` uses central
     differences with step `h` (world units). Zero where the gradient vanishes.
     """
-    if method not in NORMAL_METHODS:
-        raise JaxvoxError(f"unknown normal method {method!r}; expected one of {NORMAL_METHODS}")
+    check_choice("normals method", method, NORMAL_METHODS)
     _check_scene(scene)
     p = jnp.asarray(points, jnp.float32)
     if p.shape[-1:] != (3,):

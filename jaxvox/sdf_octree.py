@@ -30,12 +30,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._shapes import bucket
+from jaxvox._checks import check_type
 from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, _check_scene, lipschitz_bound
-from jaxvox.sphere_tracing import _RUNNING, _checked, _surface_hit, _trace_one, _unit
+from jaxvox.sphere_tracing import _RUNNING, _checked, _refine, _surface_hit, _trace_one, _unit
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, trace
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
@@ -75,6 +76,7 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
     Raises:
       JaxvoxError: the scene is NaN at a cell centre, or `lipschitz` is not positive.
     """
+    check_type("voxelize_sdf grid", grid, Grid)
     _check_scene(scene)
     lip = float(lipschitz_bound(scene) if lipschitz is None else lipschitz)
     if not lip > 0 or not math.isfinite(lip):
@@ -108,6 +110,7 @@ def build_octree_from_sdf(scene: SDF, grid: Grid, *, dag: bool = False,
     `voxelize_sdf` followed by `jaxvox.build_octree` (or `jaxvox.build_dag` when `dag`);
     host-side. Memory follows the surface: no array of the grid's volume is made.
     """
+    check_type("build_octree_from_sdf grid", grid, Grid)
     vox = voxelize_sdf(scene, grid, lipschitz=lipschitz)
     return build_dag(vox) if dag else build_octree(vox)
 
@@ -121,6 +124,7 @@ class _Round(NamedTuple):
     leaves: jax.Array  # int32 leaves entered so far
     voxel: jax.Array  # [n, 3] int32 leaf of the last round
     on_surface: jax.Array  # bool: the hit is a surface point (not a start inside)
+    d: jax.Array  # float32 signed distance at t of the last leaf march (the hit test's value)
 
 
 def _exit_distance(grid: Grid, voxel, o, u):
@@ -157,13 +161,14 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         return _Round(t=jnp.where(entered, t_next, s.t), status=status.astype(jnp.int32), steps=steps,
                       leaves=leaves, voxel=jnp.where(entered[:, None], leaf.voxel, s.voxel),
                       on_surface=jnp.where(entered, jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0),
-                                           s.on_surface))
+                                           s.on_surface),
+                      d=jnp.where(entered, final.d_prev, s.d))
 
     inside = scene._distance(o) < 0  # starts inside the surface: a hit at t = 0, as sphere_trace
     init = _Round(t=jnp.zeros(n, jnp.float32),
                   status=jnp.where(bad, INVALID, jnp.where(inside, HIT, _RUNNING)).astype(jnp.int32),
                   steps=jnp.ones(n, jnp.int32), leaves=jnp.zeros(n, jnp.int32),
-                  voxel=jnp.full((n, 3), -1, jnp.int32), on_surface=jnp.zeros(n, bool))
+                  voxel=jnp.full((n, 3), -1, jnp.int32), on_surface=jnp.zeros(n, bool), d=jnp.zeros(n, jnp.float32))
     final = jax.lax.while_loop(lambda s: jnp.any(s.status == _RUNNING), body, init)
     return final
 
@@ -173,8 +178,9 @@ def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=
                         method: str = "esvo", return_steps: bool = False):
     """Sphere tracing that skips empty space with an octree of the scene.
 
-    As `jaxvox.sphere_trace` with ``t_min = 0`` (same hit test, ``t`` along the unit
-    direction, same statuses; a ray whose origin is inside is a `HIT` at ``t = 0``;
+    As `jaxvox.sphere_trace` with ``t_min = 0`` (same hit test and refinement of ``t``
+    onto the surface, ``t`` along the unit direction, same statuses; a ray whose origin
+    is inside is a `HIT` at ``t = 0``;
     the first scene evaluation is that inside test), except that space
     outside the tree's leaves is never sampled: build the tree with
     `build_octree_from_sdf` of the same scene (at any resolution), or a surface outside
@@ -218,8 +224,9 @@ def _sphere_trace_octree(scene, tree, o, directions, t_max, epsilon, relaxation,
     frozen = jax.lax.stop_gradient((scene, tree, o, u))
     final = _octree_trace(*frozen, t_max, epsilon, relaxation, max_steps=max_steps, max_leaves=max_leaves,
                           method=method)
-    hit = _surface_hit(scene, o, u, final.t, final.status, final.on_surface)
     is_hit = final.status == HIT
+    t, extra = _refine(frozen[0], frozen[2], frozen[3], final.t, final.d, is_hit & final.on_surface, 0.0, t_max)
+    hit = _surface_hit(scene, o, u, t, final.status, final.on_surface)
     voxel = jnp.where(is_hit[:, None], final.voxel, -1)
     index = jnp.where(is_hit, voxel_index(frozen[1], jnp.maximum(voxel, 0)), -1)
-    return dataclasses.replace(hit, voxel=voxel, index=index), final.steps
+    return dataclasses.replace(hit, voxel=voxel, index=index), final.steps + extra

@@ -49,9 +49,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket
+from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
 from jaxvox._pytree import pytree_dataclass
+from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, Octree, _voxel_index
 
@@ -487,6 +487,23 @@ def _rays_on_ladder(call, origins, directions, t_max) -> Hit:
     return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n].reshape(shape + x.shape[1:])), hit)
 
 
+def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
+    """Refuses rays that are not [..., 3] with broadcastable batch shapes, a NaN `t_max`
+    (checked when concrete) and a lane count below 1."""
+    for name, a in (("origins", origins), ("directions", directions)):
+        if np.ndim(a) < 1 or np.shape(a)[-1] != 3:
+            raise refuse(f"{caller} {name}", "must have shape [..., 3]", np.shape(a))
+    try:
+        np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
+    except ValueError:
+        raise refuse(f"{caller} origins, directions, t_max", "batch shapes must broadcast",
+                     (np.shape(origins), np.shape(directions), np.shape(t_max))) from None
+    if is_concrete(t_max) and np.isnan(np.asarray(t_max, np.float32)).any():
+        raise refuse(f"{caller} t_max", "must not be NaN", t_max)
+    if lanes is not None:
+        check_int(f"{caller} lanes", lanes, minimum=1)
+
+
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
     hit = _run(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
@@ -524,9 +541,11 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     Returns:
       A `Hit` with the batch shape of the rays.
     """
-    if method not in TRACE_METHODS:
-        raise JaxvoxError(f"unknown traversal method {method!r}; expected one of {TRACE_METHODS}")
-    steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
+    check_type("trace tree", tree, Octree)
+    check_choice("trace method", method, TRACE_METHODS)
+    _check_rays("trace", origins, directions, t_max, lanes)
+    steps = (check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None
+             else 6 * tree.grid.resolution + 16 * tree.depth)
     return _rays_on_ladder(functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes,
                                              shard=shard), origins, directions, t_max)
 
@@ -557,13 +576,15 @@ def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions
     Returns:
       A `Hit`; ``index`` is the flat C-order index ``(i R + j) R + k``.
     """
+    check_type("trace_dense grid", grid, Grid)
     occupancy = jnp.asarray(occupancy)
     res = grid.resolution
     if res > 1024:
-        raise JaxvoxError(f"trace_dense takes resolutions up to 1024 (flat int32 index), got {res}")
+        raise refuse("trace_dense grid", "resolutions up to 1024 only (flat int32 index)", res)
     if occupancy.shape != (res, res, res):
-        raise JaxvoxError(f"occupancy has shape {occupancy.shape}, expected {(res,) * 3} for the grid")
-    steps = int(max_steps) if max_steps is not None else 3 * res + 8
+        raise refuse("trace_dense occupancy", f"must have shape {(res,) * 3} for the grid", occupancy.shape)
+    _check_rays("trace_dense", origins, directions, t_max, lanes)
+    steps = check_int("trace_dense max_steps", max_steps, minimum=1) if max_steps is not None else 3 * res + 8
     dense = _DenseGrid(occupancy.astype(bool).reshape(-1), grid)
     return _rays_on_ladder(functools.partial(_trace_dense, dense, max_steps=steps, lanes=lanes, shard=shard),
                            origins, directions, t_max)

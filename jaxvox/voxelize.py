@@ -38,9 +38,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._checks import check_choice, check_type
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
+from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 
@@ -60,12 +61,6 @@ REGION_SIZE = 1 << morton.WORD_BITS  # largest region sorted with one 32-bit key
 ROW_CHUNK = 4  # rows per gather on the host path (`Capacities.row_chunk` of `voxel_capacities`)
 _TOL = 2.0**-19  # relative half-plane widening, see the module docstring
 _BIG = float(1 << 30)  # clamp for interval bounds before integer conversion
-
-
-def _check_mode(mode: str) -> str:
-    if mode not in MODES:
-        raise JaxvoxError(f"unknown voxelization mode {mode!r}; expected one of {MODES}")
-    return mode
 
 
 class Capacities(NamedTuple):
@@ -149,7 +144,7 @@ class Voxels:
         n = len(codes)
         coords = np.full((bucket(n), 3), UNUSED, np.int32)
         coords[:n] = a[first]
-        return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, _check_mode(mode))
+        return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, check_choice("Voxels mode", mode, MODES))
 
     def to_numpy(self) -> np.ndarray:
         """The valid voxels as a host int32 [count, 3] array in Morton order.
@@ -590,7 +585,8 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
     Returns:
       `Voxels` with capacity ``capacities.voxels``.
     """
-    six_sep = _check_mode(mode) == SIX_SEPARATING
+    check_type("voxelize_fixed grid", grid, Grid)
+    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
     tris = grid.to_grid_units(mesh.triangles())
     coords, triangle, count, overflow = _pipeline(
         tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, Capacities(*capacities), triangle_ids)
@@ -836,7 +832,8 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
     Raises:
       JaxvoxError: bad mode, region size or mesh.
     """
-    six_sep = _check_mode(mode) == SIX_SEPARATING
+    check_type("voxelize grid", grid, Grid)
+    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
     validate_mesh(mesh)
     if region_size < 1 or region_size & (region_size - 1) or region_size > REGION_SIZE:
         raise JaxvoxError(f"region_size must be a power of two <= {REGION_SIZE}, got {region_size}")
@@ -868,7 +865,8 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Cap
     voxel count of `voxelize`), each rounded up on the shape ladder so that similar
     inputs share a compiled function.
     """
-    six_sep = _check_mode(mode) == SIX_SEPARATING
+    check_type("voxel_capacities grid", grid, Grid)
+    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
     validate_mesh(mesh)
     if mesh.num_faces == 0:
         return Capacities(*(bucket(0),) * 4, ROW_CHUNK)

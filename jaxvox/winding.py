@@ -35,8 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._checks import check_type
 from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 
@@ -199,6 +200,7 @@ def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4
     Returns:
       [R, R, R] float32, indexed (i, j, k); zeros for a mesh without faces.
     """
+    check_type("winding_numbers grid", grid, Grid)
     validate_mesh(mesh)
     r = grid.resolution
     return _box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r),

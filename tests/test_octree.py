@@ -225,7 +225,7 @@ def test_load_mesh_reads_a_texture_and_voxels_sample_it(textured_quad):
     assert padded.texture.shape == mesh.texture.shape and padded.uvs.shape == (mesh.num_vertices + 3, 2)
     with pytest.raises(jv.JaxvoxError, match="both uvs"):
         validate_mesh(jv.Mesh(mesh.vertices, mesh.faces, uvs=mesh.uvs))
-    with pytest.raises(jv.JaxvoxError, match="uvs must have shape"):
+    with pytest.raises(jv.JaxvoxError, match="uvs: must have shape"):
         validate_mesh(jv.Mesh(mesh.vertices, mesh.faces, uvs=np.zeros((2, 2)), texture=mesh.texture))
 
 
