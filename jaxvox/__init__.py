@@ -41,7 +41,7 @@ from jaxvox.distance import (
 from jaxvox.grid import Grid
 from jaxvox.image import read_exr, read_hdr, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
-from jaxvox.mesh import Mesh, load_mesh, pad_mesh, sample_texture
+from jaxvox.mesh import Mesh, load_mesh, pad_mesh, sample_texture, save_mesh
 from jaxvox.octree import (
     EMPTY,
     MISSING,
@@ -70,6 +70,8 @@ from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
 from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
+from jaxvox.voxel_files import load_binvox, load_voxels, save_binvox, save_voxels
+from jaxvox.voxel_surface import voxels_to_mesh
 from jaxvox.voxelize import (
     CONSERVATIVE,
     OVERFLOW_CANDIDATES,
@@ -131,8 +133,10 @@ __all__ = [
     "expand",
     "load",
     "load_attributes",
+    "load_binvox",
     "load_environment",
     "load_mesh",
+    "load_voxels",
     "look_at_view",
     "morton",
     "open_edges",
@@ -146,7 +150,10 @@ __all__ = [
     "run_batch",
     "sample_texture",
     "save",
+    "save_binvox",
+    "save_mesh",
     "save_render",
+    "save_voxels",
     "sdf",
     "sky_environment",
     "solid_voxelize",
@@ -170,6 +177,7 @@ __all__ = [
     "voxelize_build_trace",
     "voxelize_fixed",
     "voxelize_sdf",
+    "voxels_to_mesh",
     "winding_numbers",
     "write_exr",
     "write_png",

@@ -22,9 +22,9 @@ def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25
     if isinstance(mesh_or_bounds, tuple) and len(mesh_or_bounds) == 2:
         lo, hi = (check_vector("look_at_view bounds", b, 3) for b in mesh_or_bounds)
     elif hasattr(mesh_or_bounds, "vertices"):
-        v = np.asarray(mesh_or_bounds.vertices, np.float64).reshape(-1, 3)
-        if not len(v) or not np.isfinite(v).all():
-            raise refuse("look_at_view mesh", "needs vertices, all finite", v if len(v) else v.shape)
+        v = np.asarray(mesh_or_bounds.vertices, np.float64)
+        if v.ndim != 2 or v.shape[1] != 3 or not len(v) or not np.isfinite(v).all():
+            raise refuse("look_at_view mesh", "needs [V, 3] vertices, V >= 1, all finite", v if v.size <= 12 else v.shape)
         lo, hi = v.min(0), v.max(0)
     else:
         raise refuse("look_at_view mesh_or_bounds", "expected a jaxvox.Mesh or (lo, hi) bounds", mesh_or_bounds)

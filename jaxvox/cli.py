@@ -38,22 +38,17 @@ def _voxelize_timed(mesh, grid, mode: str):
     return vox, time.perf_counter() - start
 
 
-def _save_npz(path: str, ijk: np.ndarray, grid, mode: str) -> None:
-    """Writes voxel indices with the grid that places them."""
-    np.savez_compressed(path, ijk=ijk, origin=np.asarray(grid.origin), voxel_size=np.asarray(grid.voxel_size),
-                        resolution=grid.resolution, mode=mode)
-
-
 def cmd_voxelize(args) -> int:
-    """Voxelizes a mesh and writes the voxel indices (and the grid) to an .npz file."""
+    """Voxelizes a mesh and writes the voxels (.binvox, .npz, or their surface as .ply / .obj)."""
     import jaxvox as jv
+    from jaxvox.voxel_files import check_save_path
 
+    check_save_path("--out", args.out)  # before the work: an unknown extension or a missing folder
     mesh, name = _load(args.mesh)
     grid = jv.Grid.fit(mesh, resolution=args.resolution)
     vox, seconds = _voxelize_timed(mesh, grid, args.mode)
-    ijk = vox.to_numpy()
-    _save_npz(args.out, ijk, grid, args.mode)
-    print(f"{name}: {mesh.num_faces} triangles -> {len(ijk)} voxels ({args.mode}, {args.resolution}^3) "
+    jv.save_voxels(args.out, vox)
+    print(f"{name}: {mesh.num_faces} triangles -> {int(vox.count)} voxels ({args.mode}, {args.resolution}^3) "
           f"in {seconds:.2f} s; wrote {args.out}")
     return 0
 
@@ -138,7 +133,7 @@ def cmd_run(args) -> int:
     png = os.path.join(args.out, "voxels.png")
     save_projections(png, results, args.resolution)
     npz = os.path.join(args.out, "voxels.npz")
-    _save_npz(npz, results["conservative"], grid, "conservative")
+    jv.save_voxels(npz, vox)  # the conservative voxels
     jvx = os.path.join(args.out, "scene.jvx")
     jv.save(jvx, trees["dag"], attributes=attributes)
     render = os.path.join(args.out, "render.png")
@@ -268,10 +263,14 @@ def cmd_render(args) -> int:
     exr, png = jv.save_render(args.out, result, exposure=args.exposure)
     samples = width * height * args.spp
     print(f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed} "
-          f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)"
-          + (f"; {int(result.stopped)} paths stopped early" if int(result.stopped) else ""))
+          f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)")
+    if int(result.stopped):
+        print(f"  note: {int(result.stopped)} of {samples:,} paths ({100 * int(result.stopped) / samples:.4f}%) ended "
+              "before their last bounce (a ray reached the traversal's step cap, or started inside a voxel); "
+              "each keeps the light it gathered, so its pixel is at most that fraction darker")
     print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
-    print(f"wrote {exr} (linear HDR: R, G, B, depth Z, normal N.X N.Y N.Z)")
+    print(f"wrote {exr} (linear HDR: R, G, B; depth Z, +inf where a pixel sees no surface; coverage A; "
+          "normal N.X N.Y N.Z)")
     print(f"wrote {png} (tone-mapped sRGB)")
     return 0
 
@@ -320,8 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     command("run", cmd_run, "main job: voxelize the default scene (or MESH), build its octree and DAG, "
             "report, write a PNG and the DAG", 256, DEFAULT_OUT, "output folder (default: out)")
-    vox = command("voxelize", cmd_voxelize, "voxelize a mesh to an .npz of voxel indices", 512, "voxels.npz",
-                  "output .npz file")
+    vox = command("voxelize", cmd_voxelize, "voxelize a mesh to a voxel file", 512, "voxels.npz",
+                  "output file: .binvox, .npz (voxel indices and the grid), or the voxels' surface as "
+                  ".ply / .obj (default: voxels.npz)")
     vox.add_argument("--mode", choices=["conservative", "6-separating"], default="conservative")
     build = command("build", cmd_build, "voxelize a mesh and save its DAG (or octree) with attributes", 512,
                     "tree.jvx", "output tree file")

@@ -81,6 +81,8 @@ class Grid:
         if not hasattr(mesh, "vertices"):
             raise refuse("Grid.fit mesh", "expected a jaxvox.Mesh", type(mesh))
         v = np.asarray(mesh.vertices, np.float64)
+        if v.ndim != 2 or v.shape[1] != 3:
+            raise refuse("Grid.fit mesh", "vertices must have shape [V, 3]", v.shape)
         if v.size == 0:
             raise refuse("Grid.fit mesh", "has no vertices", v.shape)
         if not np.isfinite(v).all():

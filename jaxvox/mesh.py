@@ -1,4 +1,4 @@
-"""Triangle meshes: the `Mesh` pytree, loading from files, validation."""
+"""Triangle meshes: the `Mesh` pytree, loading from and saving to files, validation."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import check_choice, check_output_path, is_concrete, refuse
 from jaxvox._pytree import pytree_dataclass
 
 
@@ -41,12 +41,12 @@ class Mesh:
     texture: jax.Array | None = None  # [H, W, C] float32
 
     def __init__(self, vertices, faces, colors=None, uvs=None, texture=None):
-        optional = lambda a: None if a is None else jnp.asarray(a, jnp.float32)
-        object.__setattr__(self, "vertices", jnp.asarray(vertices, jnp.float32))
-        object.__setattr__(self, "faces", jnp.asarray(faces, jnp.int32))
-        object.__setattr__(self, "colors", optional(colors))
-        object.__setattr__(self, "uvs", optional(uvs))
-        object.__setattr__(self, "texture", optional(texture))
+        optional = lambda name, a: None if a is None else _numeric(f"Mesh {name}", a, jnp.float32)
+        object.__setattr__(self, "vertices", _numeric("Mesh vertices", vertices, jnp.float32))
+        object.__setattr__(self, "faces", _numeric("Mesh faces", faces, jnp.int32))
+        object.__setattr__(self, "colors", optional("colors", colors))
+        object.__setattr__(self, "uvs", optional("uvs", uvs))
+        object.__setattr__(self, "texture", optional("texture", texture))
 
     @property
     def num_faces(self) -> int:
@@ -63,46 +63,74 @@ class Mesh:
         return self.vertices[self.faces]
 
 
+def _numeric(what: str, value, dtype) -> jax.Array:
+    """`value` as a `dtype` array; concrete values must be numbers, and integer-valued for int32."""
+    if not is_concrete(value):
+        return jnp.asarray(value, dtype)
+    try:
+        a = np.asarray(value)
+        ok = a.dtype.kind in ("biu" if dtype == jnp.int32 else "biuf")
+        ok = ok or (dtype == jnp.int32 and a.dtype.kind == "f")
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise refuse(what, f"must be an array of {'integers' if dtype == jnp.int32 else 'numbers'}", value)
+    if dtype == jnp.int32 and a.dtype.kind == "f":
+        whole = np.isfinite(a) & (a == np.round(a))
+        if not whole.all():
+            raise refuse(what, "must hold integer vertex indices", a[~whole].ravel()[0])
+    if dtype == jnp.int32 and a.size and (a.min() < np.iinfo(np.int32).min or a.max() > np.iinfo(np.int32).max):
+        raise refuse(what, "vertex indices must fit in int32", a.max() if a.max() > 0 else a.min())
+    return jnp.asarray(a, dtype)
+
+
 def validate_mesh(mesh: Mesh) -> None:
     """Raises `JaxvoxError` naming the problem when `mesh` is malformed (host-side check).
 
     Checks shapes, that every vertex coordinate is finite, that every face index lies
-    in ``[0, V)``, that colours (if any) are [V, 3] or [V, 4] and finite, and that
-    texture coordinates and a texture come together, [V, 2] and [H, W, 3 or 4], finite.
+    in ``[0, V)``, that colours (if any) are [V, 3] or [V, 4] in [0, 1], and that
+    texture coordinates and a texture come together, [V, 2] finite and [H, W, 3 or 4]
+    in [0, 1]. (`Mesh` itself refuses non-numeric arrays and fractional face indices.)
     """
+    if not isinstance(mesh, Mesh):
+        raise refuse("mesh", "expected a jaxvox.Mesh", type(mesh))
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
     if v.ndim != 2 or v.shape[1] != 3:
-        raise JaxvoxError(f"mesh vertices must have shape [V, 3], got {v.shape}")
+        raise refuse("Mesh vertices", "must have shape [V, 3]", v.shape)
     if f.ndim != 2 or f.shape[1] != 3:
-        raise JaxvoxError(f"mesh faces must have shape [F, 3], got {f.shape}")
+        raise refuse("Mesh faces", "must have shape [F, 3]", f.shape)
     bad = ~np.isfinite(v).all(axis=1)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
-        raise JaxvoxError(
-            f"mesh has {int(bad.sum())} vertices with NaN or inf coordinates "
-            f"(first: vertex {first} = {v[first].tolist()})")
+        raise refuse("Mesh vertices", f"{int(bad.sum())} hold NaN or inf (first: vertex {first})", v[first])
     if f.size and (f.min() < 0 or f.max() >= len(v)):
         bad_face = int(np.flatnonzero((f < 0).any(1) | (f >= len(v)).any(1))[0])
-        raise JaxvoxError(
-            f"face index out of range: face {bad_face} = {f[bad_face].tolist()} "
-            f"but the mesh has {len(v)} vertices")
+        raise refuse("Mesh faces", f"index out of range [0, {len(v)}) in face {bad_face}", f[bad_face])
     if mesh.colors is not None:
         c = np.asarray(mesh.colors)
         if c.ndim != 2 or c.shape[0] != len(v) or c.shape[1] not in (3, 4):
-            raise JaxvoxError(f"mesh colors must have shape [V, 3] or [V, 4] with V = {len(v)}, got {c.shape}")
-        if not np.isfinite(c).all():
-            raise JaxvoxError("mesh colors hold NaN or inf")
+            raise refuse("Mesh colors", f"must have shape [V, 3] or [V, 4] with V = {len(v)}", c.shape)
+        _unit_range("Mesh colors", c)
     if (mesh.uvs is None) != (mesh.texture is None):
-        raise JaxvoxError("a mesh texture needs both uvs [V, 2] and texture [H, W, C]; got only one")
+        raise refuse("Mesh texture", "needs both uvs [V, 2] and texture [H, W, C]",
+                     "only uvs" if mesh.texture is None else "only a texture")
     if mesh.uvs is not None:
         uv, tex = np.asarray(mesh.uvs), np.asarray(mesh.texture)
         if uv.shape != (len(v), 2):
-            raise JaxvoxError(f"mesh uvs must have shape [V, 2] with V = {len(v)}, got {uv.shape}")
+            raise refuse("Mesh uvs", f"must have shape [V, 2] with V = {len(v)}", uv.shape)
+        if not np.isfinite(uv).all():
+            raise refuse("Mesh uvs", "must be finite", uv[~np.isfinite(uv).all(1)][0])
         if tex.ndim != 3 or min(tex.shape[:2]) < 1 or tex.shape[2] not in (3, 4):
-            raise JaxvoxError(f"mesh texture must have shape [H, W, 3] or [H, W, 4], got {tex.shape}")
-        if not (np.isfinite(uv).all() and np.isfinite(tex).all()):
-            raise JaxvoxError("mesh uvs or texture hold NaN or inf")
+            raise refuse("Mesh texture", "must have shape [H, W, 3] or [H, W, 4]", tex.shape)
+        _unit_range("Mesh texture", tex)
+
+
+def _unit_range(what: str, a: np.ndarray) -> None:
+    """Raises unless every value of `a` lies in [0, 1] (NaN refused)."""
+    bad = ~((a >= 0) & (a <= 1))
+    if bad.any():
+        raise refuse(what, "must lie in [0, 1]", a[bad].ravel()[0])
 
 
 def sample_texture(texture: jax.Array, uv: jax.Array) -> jax.Array:
@@ -151,13 +179,13 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
 
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise JaxvoxError(f"mesh file not found: {path}")
+        raise refuse("load_mesh path", "is a directory" if os.path.isdir(path) else "file not found", path)
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for corrupt files
-        raise JaxvoxError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
+        raise refuse("load_mesh path", f"cannot read the mesh ({type(exc).__name__}: {exc})", path) from exc
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise JaxvoxError(f"{path} holds no triangles")
+        raise refuse("load_mesh path", "holds no triangles", path)
     colors = uvs = texture = None
     kind = getattr(loaded.visual, "kind", None)
     if kind == "vertex":
@@ -173,6 +201,44 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     return mesh
 
 
+MESH_SAVE_FORMATS = (".ply", ".obj")  # extensions `save_mesh` writes
+
+
+def file_format(what: str, path: str | os.PathLike, formats: tuple[str, ...]) -> str:
+    """The lower-case extension of `path` (e.g. ``".ply"``) if it is one of `formats`; raises naming them."""
+    return check_choice(f"{what} extension", os.path.splitext(os.fspath(path))[1].lower(), formats)
+
+
+def save_mesh(path: str | os.PathLike, mesh: Mesh) -> None:
+    """Writes a triangle mesh as binary little-endian PLY or Wavefront OBJ, chosen by the extension.
+
+    Vertex positions (float32 in PLY, 8 decimals in OBJ) and faces are written as they
+    are, with vertex colours (8-bit RGBA) where the mesh has them; no normals (a
+    viewer computes flat ones from the counter-clockwise faces). Texture coordinates
+    and a texture are not written. `load_mesh` reads both formats back.
+
+    Args:
+      path: destination file ending in one of `MESH_SAVE_FORMATS` (any case).
+      mesh: a `Mesh`.
+
+    Raises:
+      JaxvoxError: an unknown extension, a missing folder or a malformed mesh.
+    """
+    import trimesh
+
+    path = check_output_path("save_mesh path", path)
+    ext = file_format("save_mesh path", path, MESH_SAVE_FORMATS)
+    validate_mesh(mesh)
+    colors = None if mesh.colors is None else np.round(np.asarray(mesh.colors) * 255).astype(np.uint8)
+    out = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), vertex_colors=colors, process=False)
+    if ext == ".ply":
+        data = trimesh.exchange.ply.export_ply(out, encoding="binary", vertex_normal=False)
+    else:
+        data = trimesh.exchange.obj.export_obj(out, include_normals=False, include_texture=False).encode()
+    with open(path, "wb") as fh:
+        fh.write(data)
+
+
 def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
     """Pads a mesh to a fixed size so several meshes can be stacked for `jax.vmap`.
 
@@ -183,7 +249,8 @@ def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
     if num_vertices < len(v) or num_faces < len(f):
-        raise JaxvoxError("pad_mesh: target size is smaller than the mesh")
+        raise refuse("pad_mesh num_vertices, num_faces", f"must be at least the mesh's ({len(v)}, {len(f)})",
+                     (num_vertices, num_faces))
     repeat_first = lambda a: np.concatenate([a, np.repeat(a[:1], num_vertices - len(a), axis=0)])
     f_pad = np.concatenate([f, np.zeros((num_faces - len(f), 3), np.int32)])
     colors, uvs = (None if a is None else repeat_first(np.asarray(a)) for a in (mesh.colors, mesh.uvs))
