@@ -47,11 +47,17 @@ def check_view(caller: str, eye, target, up, fov) -> tuple[np.ndarray, np.ndarra
     e, t = check_vector(f"{caller} eye", eye, 3), check_vector(f"{caller} target", target, 3)
     u = check_vector(f"{caller} up", up, 3)
     fov = check_number(f"{caller} fov", fov, above=0.0, below=180.0)
-    if not np.any(t - e):
-        raise refuse(f"{caller} target", "must differ from the eye", t)
-    view = (t - e) / np.linalg.norm(t - e)
-    if np.linalg.norm(np.cross(view, u)) <= 1e-6 * np.linalg.norm(u):
-        raise refuse(f"{caller} up", f"must not be parallel to the view direction {view.round(6).tolist()}", u)
+    # The camera's basis is computed in float32: the view vector and `up` must have a
+    # float32 length that is finite, not denormal, and beyond the rounding of the positions.
+    e32, t32, u32 = (a.astype(np.float32) for a in (e, t, u))
+    forward = t32 - e32
+    length = np.linalg.norm(forward)
+    if not (np.isfinite(length) and length > max(1e-12, 1e-6 * float(np.abs([e32, t32]).max()))):
+        raise refuse(f"{caller} target", "must differ from the eye by more than float32 rounding (1e-6 relative)", t)
+    view = forward / length
+    up_length = np.linalg.norm(u32)
+    if not (np.isfinite(up_length) and up_length > 1e-12 and np.linalg.norm(np.cross(view, u32 / up_length)) > 1e-6):
+        raise refuse(f"{caller} up", f"must not be zero or parallel to the view direction {view.round(6).tolist()}", u)
     return e, t, u, fov
 
 

@@ -487,11 +487,21 @@ def _rays_on_ladder(call, origins, directions, t_max) -> Hit:
     return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n].reshape(shape + x.shape[1:])), hit)
 
 
+def _numeric(a) -> bool:
+    """Whether `a` converts to a float array (numbers, not strings or objects)."""
+    try:
+        return np.asarray(a).dtype.kind in "biuf"
+    except (TypeError, ValueError):
+        return False
+
+
 def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
     """Refuses rays that are not [..., 3] with broadcastable batch shapes, a NaN `t_max`
     (checked when concrete) and a lane count below 1."""
-    for name, a in (("origins", origins), ("directions", directions)):
-        if np.ndim(a) < 1 or np.shape(a)[-1] != 3:
+    for name, a in (("origins", origins), ("directions", directions), ("t_max", t_max)):
+        if is_concrete(a) and not _numeric(a):
+            raise refuse(f"{caller} {name}", "must be numbers", a)
+        if name != "t_max" and (np.ndim(a) < 1 or np.shape(a)[-1] != 3):
             raise refuse(f"{caller} {name}", "must have shape [..., 3]", np.shape(a))
     try:
         np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
