@@ -93,7 +93,9 @@ def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> N
 def cmd_build(args) -> int:
     """Voxelizes a mesh, builds its octree or DAG and saves it with per-voxel attributes."""
     import jaxvox as jv
+    from jaxvox._checks import check_output_path
 
+    check_output_path("--out", args.out)  # before the work
     mesh, name = _load(args.mesh)
     vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=args.resolution), triangle_ids=True)
     tree, seconds = _build_timed(vox, args.kind)
@@ -109,11 +111,15 @@ def cmd_run(args) -> int:
     """The main job: voxelize a mesh (default: the built-in scene) in both modes, build its
     octree and DAG, report, draw."""
     import jaxvox as jv
+    from jaxvox._checks import refuse
     from jaxvox.plot import save_projections
 
     mesh, name = _load(args.mesh)
     grid = jv.Grid.fit(mesh, resolution=args.resolution)
-    os.makedirs(args.out, exist_ok=True)
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as exc:
+        raise refuse("--out", f"cannot create the folder ({exc.strerror or exc})", args.out) from None
     print(f"scene: {name}, {mesh.num_faces} triangles, {mesh.num_vertices} vertices")
     results = {}
     for mode in ("conservative", "6-separating"):
@@ -148,24 +154,24 @@ def cmd_run(args) -> int:
 
 def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
     """Comma-separated floats, as many as one of `counts`; a `JaxvoxError` otherwise."""
-    from jaxvox._errors import JaxvoxError
+    from jaxvox._checks import refuse
 
     try:
         values = [float(x) for x in text.split(",")]
     except ValueError:
         values = []
     if len(values) not in counts or not np.isfinite(values).all():
-        raise JaxvoxError(f"--{name} takes {' or '.join(map(str, counts))} comma-separated numbers, got {text!r}")
+        raise refuse(f"--{name}", f"takes {' or '.join(map(str, counts))} comma-separated finite numbers", text)
     return values
 
 
 def _size(text: str) -> tuple[int, int]:
     """``WIDTHxHEIGHT`` -> (width, height)."""
-    from jaxvox._errors import JaxvoxError
+    from jaxvox._checks import refuse
 
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
-        raise JaxvoxError(f"--size takes WIDTHxHEIGHT in pixels (e.g. 640x360), got {text!r}")
+        raise refuse("--size", "takes WIDTHxHEIGHT in pixels (e.g. 640x360)", text)
     return int(parts[0]), int(parts[1])
 
 
@@ -224,24 +230,36 @@ def _render_scene(args):
 
 def _emitter(text: str):
     """``XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B`` -> (lo, hi, rgb)."""
-    from jaxvox._errors import JaxvoxError
+    from jaxvox._checks import refuse
 
     box, _, rgb = text.partition(":")
     if not rgb:
-        raise JaxvoxError(f"--emit takes XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B, got {text!r}")
+        raise refuse("--emit", "takes XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B", text)
     corners = _numbers(box, "emit box", (6,))
     colour = _numbers(rgb, "emit colour", (1, 3))
     if min(colour) < 0:
-        raise JaxvoxError(f"--emit radiance must be non-negative, got {rgb!r}")
+        raise refuse("--emit radiance", "must be non-negative", rgb)
     return corners[:3], corners[3:], np.broadcast_to(colour, 3)
 
 
 def cmd_render(args) -> int:
     """Path-traces a mesh (voxelized into a DAG), a saved tree, or the default scene; writes EXR + PNG."""
     import jaxvox as jv
+    from jaxvox._checks import check_choice, check_int, check_number, refuse
+    from jaxvox.camera import check_view
 
+    # Every option is checked before the scene is voxelized.
+    check_choice("--out extension", os.path.splitext(args.out)[1].lower(), (".exr",))  # the PNG goes beside it
     width, height = _size(args.size)
+    for name, low in (("spp", 1), ("bounces", 0), ("batch_rays", 1)):
+        check_int(f"--{name.replace('_', '-')}", getattr(args, name), minimum=low)
+    check_number("--exposure", args.exposure)
+    if not all(0.0 <= a <= 1.0 for a in _numbers(args.albedo, "albedo", (1, 3))):
+        raise refuse("--albedo", "a reflectance must lie in [0, 1]", args.albedo)
     camera = _numbers(args.camera, "camera", (2, 3, 6)) if args.camera else [35.0, 25.0]
+    if len(camera) == 6:
+        check_view("--camera", camera[:3], camera[3:], (0.0, 1.0, 0.0), args.fov)
+    check_number("--fov", args.fov, above=0.0, below=180.0)
     _numbers(args.albedo, "albedo", (1, 3))
     for text in args.emit or ():
         _emitter(text)
@@ -356,13 +374,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from jaxvox.compilation_cache import enable_compilation_cache
-
-    enable_compilation_cache()  # $JAXVOX_CACHE_DIR, ~/.cache/jaxvox/xla by default
     from jaxvox._errors import JaxvoxError
+    from jaxvox.compilation_cache import enable_compilation_cache
     from jaxvox.grid import check_resolution
 
     try:
+        enable_compilation_cache()  # $JAXVOX_CACHE_DIR, ~/.cache/jaxvox/xla by default
         if getattr(args, "resolution", None) is not None:
             check_resolution(args.resolution)
         return args.func(args)

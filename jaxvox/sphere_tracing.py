@@ -10,6 +10,24 @@ the previous point, steps by ``d_prev`` and continues with ``omega = 1``.
 Each ray is a `jax.lax.while_loop` over a `NamedTuple` state with a step cap, vmapped
 over the flattened batch; rays that reach the cap report `STEP_CAP`, never a hit or a
 miss.
+
+**Hit refinement.** The loop stops where ``|f| < epsilon * max(t, 1)``, which at an
+incidence ``a`` (from the tangent plane) lies up to ``epsilon * max(t, 1) / sin(a)`` short
+of the surface. `_refine` then moves ``t`` onto the crossing: probes march away from the
+hit point (forward when ``f > 0``, backward when an over-relaxed step ended inside),
+each 1.5 times the secant extrapolation of the last two outside values past the last
+(at least the unbounding step ``|f|`` there; twice the last step where ``f`` does not
+fall), at most `_REACH` ``|f|`` from the hit, until the sign flips; the bracket is then
+shrunk by Anderson-Bjorck regula falsi (bisection when an iterate would not move
+``t``) until it settles to float32 resolution. ``t`` is the bracket end of smaller
+``|f|``. A crossing farther than `_REACH` ``|f|`` (incidence below about 0.45
+degrees, or a loose distance bound) keeps the loop's ``t``: the status is never changed.
+A feature thinner than the probe spacing can be stepped over, as the hit test itself
+reports hits within epsilon of features a ray misses. The cost is one scene evaluation
+per iteration, at most `_REFINE_STEPS` per hit (one `jax.lax.while_loop` per ray, so
+under vmap a batch pays its slowest ray); on spheres and boxes at incidences of 1 to 90
+degrees the mean is 3-4 (about 6 below 2 degrees). What remains is float32 rounding of
+the scene near the hit: a few ulps of ``|x|`` over ``sin(a)``.
 """
 
 from __future__ import annotations
@@ -46,7 +64,7 @@ def _trace_one(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
         hit = (jnp.abs(d) < epsilon * jnp.maximum(s.t, 1.0)) | ((s.steps == 0) & (d < 0))
         t_next = jnp.maximum(s.t + s.omega * d, t_min)
         status = jnp.where(jnp.isnan(d), INVALID,
-                           jnp.where(hit, HIT, jnp.where(t_next > t_max, MISS, _RUNNING)))
+                           jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, _RUNNING)))
         steps = s.steps + 1
         accepted = _State(jnp.where(hit, s.t, t_next), s.t, d, s.omega, steps, status)
         fallback = _State(s.t_prev + s.d_prev, s.t_prev, s.d_prev, jnp.ones_like(s.omega), steps,
@@ -60,6 +78,105 @@ def _trace_one(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
     init = _State(t_min, t_min, jnp.zeros_like(t_min), relaxation, jnp.int32(0),
                   jnp.where(bad, INVALID, start).astype(jnp.int32))
     return jax.lax.while_loop(lambda s: s.status == _RUNNING, body, init)
+
+
+# Hit refinement, in units of |f| at the hit (see the module docstring).
+_FIRST = 2.0  # first probe: a surface met head-on lies |f| away, so this one is across it
+_OVERSHOOT = 1.5  # later probes: 1.5 times the secant's estimate of the remaining distance, ...
+_GROWTH = 8.0  # ... at least |f| there (a safe step), at most _GROWTH times the last probe's s
+_REACH = 128.0  # probes stop 128 |f| from the hit: crossings at incidence above ~0.45 degrees
+_REFINE_STEPS = 32  # cap on scene evaluations per refined hit (probes and bracket steps together)
+
+
+class _Refine(NamedTuple):
+    """One hit's refinement state.
+
+    Distances ``s >= 0`` run from the hit ``t0`` along ``sigma * u`` (``sigma`` the sign of
+    f at the hit) and values are ``g = sigma * f``, so the hit is outside (``g > 0``) and
+    the search looks for ``g <= 0``.
+    """
+
+    s_out: jax.Array  # [] float32 last probe with g > 0 (0: the hit)
+    g_out: jax.Array  # [] float32 g there (> 0)
+    s_old: jax.Array  # [] float32 the outside point before s_out (secant while searching)
+    g_old: jax.Array  # [] float32 g there
+    s_in: jax.Array  # [] float32 nearest point found with g <= 0 (bracketed only)
+    g_in: jax.Array  # [] float32 g there (<= 0)
+    w_out: jax.Array  # [] float32 Anderson-Bjorck weight of g_out in the regula falsi point
+    w_in: jax.Array  # [] float32 ... and of g_in
+    last_in: jax.Array  # [] bool the latest evaluation landed inside (g <= 0)
+    s_next: jax.Array  # [] float32 where the next evaluation goes
+    bracketed: jax.Array  # [] bool a sign change was found
+    done: jax.Array  # [] bool
+    steps: jax.Array  # [] int32 scene evaluations
+
+
+def _refine_one(scene, o, u, t0, f0, active, t_lo, t_hi):
+    """Moves a hit ``t0`` (with f = `f0` there, ``|f0|`` small) onto the crossing of f = 0.
+
+    Searches at most ``_REACH * |f0|`` away from ``t0``, within [`t_lo`, `t_hi`]; returns
+    ``(t, steps)`` ([] float32, [] int32): ``t0`` and 0 where not `active`, and ``t0`` when
+    no sign change is found.
+    """
+    sigma = jnp.where(f0 > 0, 1.0, -1.0)
+    g0 = jnp.abs(f0)
+    reach = jnp.minimum(_REACH * g0, jnp.where(f0 > 0, t_hi - t0, t0 - t_lo))
+    at = lambda s: t0 + sigma * s  # [] float32 t of a distance from the hit
+    ulp = jnp.abs(jnp.nextafter(t0, t0 + sigma) - t0)  # probes move t by at least this
+    zero, one, no = jnp.zeros_like(g0), jnp.ones_like(g0), jnp.bool_(False)
+    init = _Refine(s_out=zero, g_out=g0, s_old=zero, g_old=g0, s_in=zero, g_in=zero, w_out=one, w_in=one,
+                   last_in=no, s_next=jnp.minimum(jnp.maximum(_FIRST * g0, ulp), reach), bracketed=no,
+                   done=~(active & (g0 > 0) & jnp.isfinite(g0) & (reach > 0)), steps=jnp.int32(0))
+
+    def strictly_inside(s, r):  # whether t(s) lies strictly between the bracket ends as float32
+        return (sigma * (at(s) - at(r.s_out)) > 0) & (sigma * (at(r.s_in) - at(s)) > 0)
+
+    def body(r: _Refine) -> _Refine:
+        t = at(r.s_next)
+        s = sigma * (t - t0)  # the distance actually evaluated (t is rounded to float32)
+        g = sigma * scene._distance(o + t * u)
+        inside = g <= 0
+        # Anderson-Bjorck: when the same end is replaced twice running, scale the other's value.
+        same = r.bracketed & (inside == r.last_in)
+        ratio = jnp.where(inside, g / jnp.where(r.g_in < 0, r.g_in, -1.0), g / r.g_out)  # g_out > 0
+        scale = jnp.where(same, jnp.where((ratio < 1) & (ratio >= 0), 1.0 - ratio, 0.5), 1.0)
+        r = r._replace(
+            s_out=jnp.where(inside, r.s_out, s), g_out=jnp.where(inside, r.g_out, g),
+            s_old=jnp.where(inside, r.s_old, r.s_out), g_old=jnp.where(inside, r.g_old, r.g_out),
+            s_in=jnp.where(inside, s, r.s_in), g_in=jnp.where(inside, g, r.g_in),
+            w_out=jnp.where(inside, r.w_out * scale, 1.0), w_in=jnp.where(inside, 1.0, r.w_in * scale),
+            last_in=inside, bracketed=r.bracketed | inside, steps=r.steps + 1)
+        # Searching: extrapolate the secant of the last two outside points; where g does not
+        # fall (a tangency, or float32 noise just short of the crossing), double the last step.
+        last = r.s_out - r.s_old
+        slope = (r.g_out - r.g_old) / jnp.where(last > 0, last, 1.0)
+        remaining = r.g_out / jnp.where(slope < 0, -slope, 1.0)
+        planned = r.s_next  # the probe just made before float32 rounding of t (which may not move t)
+        step = jnp.where(slope < 0, jnp.minimum(_OVERSHOOT * remaining, _GROWTH * planned), 2.0 * last)
+        probe = jnp.minimum(r.s_out + jnp.maximum(jnp.maximum(step, r.g_out), ulp), reach)  # g_out: a safe step
+        # Bracketed: the weighted regula falsi point, or the midpoint.
+        wo, wi = r.w_out * r.g_out, r.w_in * r.g_in  # > 0 and <= 0
+        falsi = r.s_out + (r.s_in - r.s_out) * wo / jnp.where(wo - wi > 0, wo - wi, 1.0)
+        mid = 0.5 * (r.s_out + r.s_in)
+        latest = at(jnp.where(inside, r.s_in, r.s_out))
+        settled = at(falsi) == latest  # the secant moves t by less than half an ulp from the latest point
+        shrink = jnp.where(strictly_inside(falsi, r), falsi, mid)
+        converged = r.bracketed & (settled | ~strictly_inside(shrink, r))
+        stuck = ~r.bracketed & (planned >= reach)
+        done = jnp.isnan(g) | (g == 0) | converged | stuck | (r.steps >= _REFINE_STEPS)
+        return r._replace(s_next=jnp.where(r.bracketed, shrink, probe), done=done)
+
+    r = jax.lax.while_loop(lambda r: ~r.done, body, init)
+    s = jnp.where(r.bracketed, jnp.where(r.g_out < -r.g_in, r.s_out, r.s_in), zero)  # NaN g_out: s_in
+    return at(s), r.steps
+
+
+def _refine(scene, o, u, t, f, active, t_lo, t_hi):
+    """`_refine_one` over flat hits: o, u [n, 3], t, f [n] float32, active [n] bool,
+    t_lo, t_hi [] or [n] float32 -> (t [n] float32, steps [n] int32)."""
+    n = t.shape[0]
+    t_lo, t_hi = jnp.broadcast_to(t_lo, (n,)), jnp.broadcast_to(t_hi, (n,))
+    return jax.vmap(_refine_one, in_axes=(None, 0, 0, 0, 0, 0, 0, 0))(scene, o, u, t, f, active, t_lo, t_hi)
 
 
 def _unit(directions):
@@ -99,9 +216,10 @@ def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation,
     trace = lambda s, oo, uu: _trace_one(s, oo, uu, t_min, t_max, epsilon, relaxation, max_steps)
     final = jax.vmap(trace, in_axes=(None, 0, 0))(*frozen)
     on_surface = jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)
-    hit = _surface_hit(scene, o, u, final.t, final.status, on_surface)
+    t, extra = _refine(*frozen, final.t, final.d_prev, (final.status == HIT) & on_surface, t_min, t_max)
+    hit = _surface_hit(scene, o, u, t, final.status, on_surface)
     hit = jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), hit)
-    return (hit, final.steps.reshape(batch)) if return_steps else hit
+    return (hit, (final.steps + extra).reshape(batch)) if return_steps else hit
 
 
 def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: int = 256, epsilon=1e-4,
@@ -113,21 +231,29 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
       origins: [..., 3] float32 ray origins in world units.
       directions: [..., 3] float32 directions (normalized here; broadcast with `origins`).
       t_max: rays whose next point lies beyond this distance are a `MISS`. With the default
-        inf a ray that never hits ends as `STEP_CAP`; pass a finite bound.
+        inf, a ray whose distances keep growing is a `MISS` once its next point overflows
+        float32 (about 130 steps in an unbounded scene); one that lingers near a surface
+        without reaching it ends as `STEP_CAP`. Pass a finite bound to stop misses early.
       max_steps: scene evaluations per ray before giving up with `STEP_CAP` (static).
-      epsilon: a ray hits at t when ``|f| < epsilon * max(t, 1)``: relative to the distance
-        travelled, absolute within unit distance of the origin.
+      epsilon: a ray hits when ``|f| < epsilon * max(t, 1)`` at a point of its march:
+        relative to the distance travelled, absolute within unit distance of the origin.
+        ``t`` is then refined onto the crossing of ``f = 0`` (to float32 rounding on
+        exact scenes; see the module docstring), so epsilon decides hits and misses, not
+        the accuracy of ``t``.
       t_min: distance along the ray where tracing starts. A ray whose first point is inside
         (``f < 0`` at `t_min`) is a `HIT` at ``t = t_min``.
       relaxation: step factor omega in (0, 2); 1 is plain sphere tracing, above 1
         over-relaxes (with the fallback above), below 1 under-relaxes: steps of
         ``omega * d`` are safe for a scene whose Lipschitz bound is at most ``1 / omega``
         (e.g. ``1 / jaxvox.sdf.lipschitz_bound(scene)`` for `mix` or uncorrected scales).
-      return_steps: also return the number of scene evaluations per ray (static).
+      return_steps: also return the number of scene evaluations per ray, those of the
+        hit refinement included (static).
 
     Returns:
       A `jaxvox.Hit`: ``t`` [...] float32 distance along the unit direction (inf unless
-      `HIT`); ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`; not
+      `HIT`; the loop's ``t`` when no sign change lies within reach of the hit point, e.g.
+      below about 0.45 degrees of incidence; `t_min` for a ray that starts inside);
+      ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`; not
       differentiated);
       ``voxel`` -1 and ``index`` -1 (no voxels here); ``status`` [...] int32 `HIT`, `MISS`,
       `STEP_CAP` or `INVALID` (NaN origin, zero or NaN direction, NaN distance). With
