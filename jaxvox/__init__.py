@@ -25,18 +25,18 @@ from jaxvox.camera import look_at_view, pinhole_rays
 from jaxvox.compilation_cache import enable_compilation_cache
 from jaxvox.distance import (
     Clipmap,
+    QuantizedField,
     build_clipmap,
     clipmap_corners,
-    time_sliced_cascades,
-    trace_clipmap,
-    union_clipmaps,
-    update_clipmap,
-    QuantizedField,
     distance_field,
     distance_field_bytes,
     open_edges,
     quantize_field,
     solid_voxelize,
+    time_sliced_cascades,
+    trace_clipmap,
+    union_clipmaps,
+    update_clipmap,
 )
 from jaxvox.grid import Grid
 from jaxvox.image import read_exr, read_hdr, tonemap, write_exr, write_png
@@ -69,7 +69,16 @@ from jaxvox.render import (
 from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
 from jaxvox.sphere_tracing import sphere_trace
-from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, Hit, trace, trace_dense
+from jaxvox.trace import (
+    HIT,
+    INVALID,
+    MISS,
+    STEP_CAP,
+    TRACE_METHODS,
+    Hit,
+    trace,
+    trace_dense,
+)
 from jaxvox.voxel_files import load_binvox, load_voxels, save_binvox, save_voxels
 from jaxvox.voxel_surface import voxels_to_mesh
 from jaxvox.voxelize import (

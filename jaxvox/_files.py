@@ -4,14 +4,19 @@ from __future__ import annotations
 
 import os
 
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import refuse
 
 
-def read_bytes(path) -> bytes:
-    """The whole file at `path`; a `JaxvoxError` naming it when it cannot be read."""
+def read_bytes(what: str, path) -> bytes:
+    """The whole file at `path`; a `JaxvoxError` naming `what` (the parameter, e.g.
+    ``"load path"``) and the path when it is missing, a directory or unreadable."""
     path = os.fspath(path)
+    if os.path.isdir(path):
+        raise refuse(what, "is a directory, expected a file", path)
+    if not os.path.exists(path):
+        raise refuse(what, "file not found", path)
     try:
         with open(path, "rb") as fh:
             return fh.read()
     except OSError as exc:
-        raise JaxvoxError(f"cannot read {path}: {exc.strerror or exc}") from exc
+        raise refuse(what, f"cannot read it ({exc.strerror or exc})", path) from exc

@@ -30,20 +30,30 @@ from typing import NamedTuple, Sequence
 import jax
 import numpy as np
 
+from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
-from jaxvox.octree import OVERFLOW_NODES, Octree, build_dag, build_octree, compact
-from jaxvox.trace import Hit, trace
+from jaxvox.octree import (
+    OVERFLOW_NODES,
+    Octree,
+    build_dag,
+    build_octree,
+    check_level_capacities,
+    compact,
+)
+from jaxvox.trace import TRACE_METHODS, Hit, trace
 from jaxvox.voxelize import (
     CONSERVATIVE,
+    MODES,
     OVERFLOW_CANDIDATES,
     OVERFLOW_COLUMNS,
     OVERFLOW_ROWS,
     OVERFLOW_VOXELS,
     Capacities,
     Voxels,
+    check_capacities,
     voxel_capacities,
     voxelize,
     voxelize_fixed,
@@ -86,37 +96,39 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
       [B, H, W, C] float32 where every item has them.
 
     Raises:
-      JaxvoxError: no meshes, a malformed or faceless mesh, target sizes too small for a
-        mesh, or optional fields (colours, texture coordinates, textures) that only some
-        items have or whose shapes differ.
+      JaxvoxError: no meshes, a malformed or faceless mesh, target sizes that are not
+        integers or too small for a mesh, or optional fields (colours, texture
+        coordinates, textures) that only some items have or whose shapes differ.
     """
-    meshes = list(meshes)
-    if not meshes:
-        raise JaxvoxError("stack_meshes needs at least one mesh")
+    meshes = _mesh_list("stack_meshes", meshes)
     for b, mesh in enumerate(meshes):
         validate_mesh(mesh)
         if mesh.num_faces == 0:
-            raise JaxvoxError(f"mesh {b} has no faces (its padding faces would add voxels)")
+            raise refuse(f"stack_meshes meshes[{b}]", "must have faces (its padding faces would add voxels)",
+                         mesh.faces.shape)
     v_max = max(m.num_vertices for m in meshes)
     f_max = max(m.num_faces for m in meshes)
-    num_vertices = bucket(v_max + 1) if num_vertices is None else int(num_vertices)
-    num_faces = bucket(f_max) if num_faces is None else int(num_faces)
-    if num_vertices <= v_max or num_faces < f_max:
-        raise JaxvoxError(f"stack_meshes: target size {num_vertices} vertices, {num_faces} faces is too "
-                          f"small for the largest mesh ({v_max} vertices, {f_max} faces; one padding "
-                          "vertex is needed)")
+    if num_vertices is None:
+        num_vertices = bucket(v_max + 1)
+    elif check_int("stack_meshes num_vertices", num_vertices) <= v_max:
+        raise refuse("stack_meshes num_vertices", f"too small: must be above the largest mesh's {v_max} "
+                     "vertices (one padding vertex is needed)", num_vertices)
+    if num_faces is None:
+        num_faces = bucket(f_max)
+    elif check_int("stack_meshes num_faces", num_faces) < f_max:
+        raise refuse("stack_meshes num_faces", f"too small: must be at least the largest mesh's {f_max} faces",
+                     num_faces)
     for name in _OPTIONAL:
         present = [getattr(m, name) is not None for m in meshes]
         if any(present) and not all(present):
             missing = [b for b, p in enumerate(present) if not p]
-            raise JaxvoxError(f"stack_meshes: some meshes have {name} and some do not "
-                              f"(missing in items {missing}); strip them or add them to all")
+            raise refuse(f"stack_meshes meshes' {name}", "must be in every mesh or in none (strip them or add "
+                         "them to all)", f"missing in items {missing}")
     # Padding fixes the vertex axis of colours and uvs; channels and texture sizes must match.
     for name, shape_of in (("colors", lambda a: a.shape[1:]), ("texture", lambda a: a.shape)):
         shapes = sorted({shape_of(getattr(m, name)) for m in meshes if getattr(m, name) is not None})
         if len(shapes) > 1:
-            raise JaxvoxError(f"stack_meshes: the meshes' {name} have different shapes {shapes}; "
-                              "they must match to be stacked")
+            raise refuse(f"stack_meshes meshes' {name}", "must have one shape to be stacked", shapes)
     padded = []
     for mesh in meshes:
         p = pad_mesh(mesh, num_vertices, num_faces)
@@ -137,16 +149,10 @@ def stack_grids(grids: Sequence[Grid]) -> Grid:
       A `Grid` with origin [B, 3] float32, voxel_size [B] float32 and resolution R.
 
     Raises:
-      JaxvoxError: no grids, or different resolutions (the resolution is static: one
-        compiled program has one).
+      JaxvoxError: no grids, an item that is not a `Grid`, or different resolutions (the
+        resolution is static: one compiled program has one).
     """
-    grids = list(grids)
-    if not grids:
-        raise JaxvoxError("stack_grids needs at least one grid")
-    resolutions = sorted({g.resolution for g in grids})
-    if len(resolutions) > 1:
-        raise JaxvoxError(f"stack_grids: all grids must have one resolution, got {resolutions}")
-    return _stack(grids)
+    return _stack(_grid_list("stack_grids", grids))
 
 
 # ----------------------------------------------------------------------------- capacities
@@ -169,11 +175,38 @@ def _tree_capacities(sizes) -> tuple[int, ...]:
     return (1,) + tuple(min(8**level, bucket(int(n), 1)) for level, n in enumerate(sizes) if level)
 
 
-def _grid_list(grids: Grid | Sequence[Grid], count: int) -> list[Grid]:
-    grids = [grids] * count if isinstance(grids, Grid) else list(grids)
-    if len(grids) != count:
-        raise JaxvoxError(f"got {count} meshes but {len(grids)} grids")
-    return grids
+def _mesh_list(caller: str, meshes: Sequence[Mesh]) -> list[Mesh]:
+    """`meshes` as a non-empty list (items are validated where they are used)."""
+    try:
+        items = None if isinstance(meshes, Mesh) else list(meshes)
+    except TypeError:
+        items = None
+    if not items:
+        raise refuse(f"{caller} meshes", "must be a sequence of at least one jaxvox.Mesh",
+                     type(meshes) if items is None else items)
+    return items
+
+
+def _grid_list(caller: str, grids: Grid | Sequence[Grid], count: int | None = None) -> list[Grid]:
+    """`grids` as a list of `Grid` objects of one resolution: one grid repeated `count`
+    times, or a sequence of `count` grids (of at least one grid when `count` is None)."""
+    what = f"{caller} grids"
+    if isinstance(grids, Grid) and count is not None:
+        return [grids] * count
+    try:
+        items = list(grids)
+    except TypeError:
+        raise refuse(what, "expected a jaxvox.Grid or a sequence of them", type(grids)) from None
+    if count is None and not items:
+        raise refuse(what, "needs at least one grid", items)
+    if count is not None and len(items) != count:
+        raise refuse(what, f"must be one Grid or {count} (one per mesh)", f"{len(items)} grids")
+    for b, grid in enumerate(items):
+        check_type(f"{what}[{b}]", grid, Grid)
+    resolutions = sorted({g.resolution for g in items})
+    if len(resolutions) > 1:
+        raise refuse(what, "must all have one resolution (it is static)", resolutions)
+    return items
 
 
 def batch_capacities(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *,
@@ -196,13 +229,12 @@ def batch_capacities(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *,
       (`Capacities`, D ints: per-level octree capacities, root level first).
 
     Raises:
-      JaxvoxError: bad mode or mesh, grid count or resolutions that do not match.
+      JaxvoxError: no meshes, a bad mode or mesh, grid count or resolutions that do not
+        match.
     """
-    meshes = list(meshes)
-    grids = _grid_list(grids, len(meshes))
-    if not meshes:
-        raise JaxvoxError("batch_capacities needs at least one mesh")
-    stack_grids(grids)  # checks that there is one resolution
+    meshes = _mesh_list("batch_capacities", meshes)
+    grids = _grid_list("batch_capacities", grids, len(meshes))
+    check_choice("batch_capacities mode", mode, MODES)
     depth = grids[0].resolution.bit_length() - 1
     caps, sizes = [], np.zeros(depth, np.int64)
     for mesh, grid in zip(meshes, grids):
@@ -266,27 +298,33 @@ def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directio
       ``sum(tree_capacities)`` rows); `Hit` with fields [B, ...].
 
     Raises:
-      JaxvoxError: meshes without a batch axis, rays whose leading axis is not B, or
-        tree capacities that are not D ints with a root capacity of 1.
+      JaxvoxError: not a `Mesh` or `Grid`, meshes without a batch axis, rays whose
+        leading axis is not B, grids of another count, capacities or tree capacities that
+        are not valid (see `voxelize_fixed`, `build_octree`), or a bad mode, method,
+        max_steps or lanes.
     """
+    check_type("voxelize_build_trace meshes", meshes, Mesh)
+    check_type("voxelize_build_trace grids", grids, Grid)
     if np.ndim(meshes.vertices) != 3 or np.ndim(meshes.faces) != 3:
-        raise JaxvoxError(f"meshes need a leading batch axis (stack_meshes): vertices [B, V, 3], "
-                          f"faces [B, F, 3]; got {np.shape(meshes.vertices)}, {np.shape(meshes.faces)}")
+        raise refuse("voxelize_build_trace meshes", "need a leading batch axis (stack_meshes): vertices "
+                     "[B, V, 3], faces [B, F, 3]", (np.shape(meshes.vertices), np.shape(meshes.faces)))
     count = np.shape(meshes.faces)[0]
     if np.shape(origins)[:1] != (count,) or np.shape(directions)[:1] != (count,):
-        raise JaxvoxError(f"rays need a leading batch axis of {count}: got origins {np.shape(origins)}, "
-                          f"directions {np.shape(directions)}")
+        raise refuse("voxelize_build_trace origins, directions", f"need a leading batch axis of {count} "
+                     "(one per mesh)", (np.shape(origins), np.shape(directions)))
     if np.ndim(grids.origin) == 2 and np.shape(grids.origin)[0] != count:
-        raise JaxvoxError(f"got {count} meshes but {np.shape(grids.origin)[0]} grids")
+        raise refuse("voxelize_build_trace grids", f"must be one Grid or a stack of {count} (one per mesh)",
+                     f"{np.shape(grids.origin)[0]} grids")
     depth = grids.resolution.bit_length() - 1
-    tree_capacities = tuple(int(c) for c in tree_capacities)
-    if len(tree_capacities) != depth or tree_capacities[0] != 1 or min(tree_capacities) < 0:
-        raise JaxvoxError(f"tree_capacities must be {depth} non-negative ints with tree_capacities[0] == 1, "
-                          f"got {tree_capacities}")
+    capacities = check_capacities("voxelize_build_trace capacities", capacities)
+    tree_capacities = check_level_capacities("voxelize_build_trace tree_capacities", tree_capacities, depth)
+    check_choice("voxelize_build_trace mode", mode, MODES)
+    check_choice("voxelize_build_trace method", method, TRACE_METHODS)
     if max_steps is not None:
-        max_steps = int(max_steps)
-    return _voxelize_build_trace(meshes, grids, origins, directions,
-                                 capacities=Capacities(*(int(c) for c in capacities)),
+        max_steps = check_int("voxelize_build_trace max_steps", max_steps, minimum=1)
+    if lanes is not None:
+        lanes = check_int("voxelize_build_trace lanes", lanes, minimum=1)
+    return _voxelize_build_trace(meshes, grids, origins, directions, capacities=capacities,
                                  tree_capacities=tree_capacities, mode=mode, dag=bool(dag),
                                  method=method, max_steps=max_steps, lanes=lanes)
 
@@ -355,19 +393,19 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
       `BatchResult`.
 
     Raises:
-      JaxvoxError: bad input (see `stack_meshes`, `voxelize_build_trace`), or items still
-        overflowing after `max_tries` runs.
+      JaxvoxError: bad input (see `stack_meshes`, `voxelize_build_trace`), `max_tries`
+        not an integer >= 1, or items still overflowing after `max_tries` runs.
     """
-    meshes = list(meshes)
-    grid_list = _grid_list(grids, len(meshes))
+    meshes = _mesh_list("run_batch", meshes)
+    grid_list = _grid_list("run_batch", grids, len(meshes))
+    max_tries = check_int("run_batch max_tries", max_tries, minimum=1)
     if capacities is None or tree_capacities is None:
         found = batch_capacities(meshes, grid_list, mode=mode)
         capacities = found[0] if capacities is None else capacities
         tree_capacities = found[1] if tree_capacities is None else tree_capacities
-    capacities = Capacities(*(int(c) for c in capacities))
-    tree_capacities = tuple(int(c) for c in tree_capacities)
-    if max_tries < 1:
-        raise JaxvoxError(f"max_tries must be at least 1, got {max_tries}")
+    capacities = check_capacities("run_batch capacities", capacities)
+    depth = grid_list[0].resolution.bit_length() - 1
+    tree_capacities = check_level_capacities("run_batch tree_capacities", tree_capacities, depth)
     # Host copies: items are picked with numpy indexing, which compiles nothing.
     stacked = jax.device_get(stack_meshes(meshes))
     grid_batch = grids if isinstance(grids, Grid) else jax.device_get(stack_grids(grid_list))

@@ -79,7 +79,6 @@ from jaxvox._checks import (
     is_concrete,
     refuse,
 )
-from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid, check_resolution
@@ -351,7 +350,11 @@ def open_edges(mesh: Mesh) -> int:
 
     Returns:
       int, host-side.
+
+    Raises:
+      JaxvoxError: not a `Mesh`.
     """
+    check_type("open_edges mesh", mesh, Mesh)
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
     if len(f) == 0:
@@ -439,21 +442,27 @@ def _box_grid(origin, voxel_size, shape: tuple[int, int, int]) -> Grid:
     return Grid(origin, voxel_size, max(2, 1 << (max(shape) - 1).bit_length()))
 
 
+def _sign_method(what: str, mesh: Mesh, method: str) -> str:
+    """`method` of `SIGN_METHODS` for `mesh`: "auto" becomes "parity" for a watertight mesh,
+    else "winding"; "parity" on a mesh with open edges is refused (`what` names the method)."""
+    if method == "winding" or mesh.num_faces == 0:
+        return method
+    holes = open_edges(mesh)
+    if method == "auto":
+        return "winding" if holes else "parity"
+    if holes:
+        raise refuse(what, f"'parity' needs a watertight mesh, but {holes} edges are not shared by an even "
+                     "number of faces (holes or non-manifold edges); use 'winding' for open meshes", method)
+    return method
+
+
 def _solid(mesh: Mesh, tris, grid: Grid, shape: tuple[int, int, int], method: str, beta: float):
     """Inside bits [nx, ny, nz] of the voxel centres of the box made of the first `shape`
     voxels of `grid` (`tris`: `mesh`'s padded triangles in grid units, for parity; the
-    winding number reads `mesh`)."""
+    winding number reads `mesh`; `method`: "parity" or "winding", see `_sign_method`)."""
     if mesh.num_faces == 0:
         return jnp.zeros(shape, bool)
-    holes = 0 if method == "winding" else open_edges(mesh)
-    if method == "auto":
-        method = "winding" if holes else "parity"
     if method == "parity":
-        if holes:
-            raise JaxvoxError(
-                f"the parity sign needs a watertight mesh, but {holes} edges are not shared by an even "
-                "number of faces (holes or non-manifold edges); use sign='winding' (or method='winding') "
-                "for open meshes")
         return _parity(tris, shape=shape, capacity=bucket(int(_parity_count(tris, shape=shape))))
     return _box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), shape,
                                 beta=beta) > 0.5
@@ -472,16 +481,18 @@ def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float 
         `jaxvox.winding_numbers`' tree: right for open meshes with holes such as the
         Stanford bunny, and for closed ones), or "auto" (parity when
         `open_edges(mesh) == 0`, else winding).
-      beta: the far-field ratio of `jaxvox.winding_numbers` ("winding" only).
+      beta: the far-field ratio of `jaxvox.winding_numbers` ("winding" only), > 1.
 
     Raises:
-      JaxvoxError: bad method or mesh, "parity" on a mesh that is not watertight, or a
-        grid too large (the result costs R^3 bytes plus temporaries).
+      JaxvoxError: bad method, beta, grid or mesh, "parity" on a mesh that is not
+        watertight, or a grid too large (the result costs R^3 bytes plus temporaries).
     """
     check_type("solid_voxelize grid", grid, Grid)
     validate_mesh(mesh)
     check_choice("solid_voxelize method", method, SIGN_METHODS)
-    _check_bytes(grid.resolution, SIGN_BYTES_PER_VOXEL, None, "solid_voxelize")
+    beta = check_number("solid_voxelize beta", beta, above=1.0, finite=False)
+    _check_bytes("solid_voxelize", grid.resolution, SIGN_BYTES_PER_VOXEL, None)
+    method = _sign_method("solid_voxelize method", mesh, method)
     r = grid.resolution
     return _solid(mesh, _grid_triangles(_padded(mesh), grid), grid, (r, r, r), method, beta)
 
@@ -495,6 +506,9 @@ def distance_field_bytes(resolution: int, *, method: str = "jfa+sweep", signed: 
     ``R^3 * (BYTES_PER_VOXEL[method] + (SIGN_BYTES_PER_VOXEL if signed else 0))``; the
     result itself is 4 R^3 bytes (512^3: 0.5 GiB; a signed "jfa+sweep" build is estimated
     at 14 GiB there).
+
+    Raises:
+      JaxvoxError: an unknown method, or a resolution that is not a power of two.
     """
     per_voxel = BYTES_PER_VOXEL[check_choice("distance_field_bytes method", method, METHODS)]
     return check_resolution(resolution) ** 3 * (per_voxel + (SIGN_BYTES_PER_VOXEL if signed else 0))
@@ -504,14 +518,15 @@ def _default_max_bytes() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 2
 
 
-def _check_bytes(resolution: int, per_voxel: int, max_bytes: int | None, what: str) -> None:
+def _check_bytes(caller: str, resolution: int, per_voxel: int, max_bytes: int | None) -> None:
+    """Refuses a grid of `resolution`^3 voxels whose working memory (`per_voxel` bytes
+    each) exceeds `max_bytes` (default half the physical memory)."""
     need = resolution**3 * per_voxel
-    limit = _default_max_bytes() if max_bytes is None else int(max_bytes)
+    limit = _default_max_bytes() if max_bytes is None else max_bytes
     if need > limit:
-        raise JaxvoxError(
-            f"{what} at {resolution}^3 needs about {need / 2**30:.2f} GiB ({per_voxel} bytes per voxel), "
-            f"above max_bytes = {limit / 2**30:.2f} GiB (default: half the physical memory); "
-            "use a lower resolution or raise max_bytes")
+        raise refuse(f"{caller} grid resolution", f"needs about {need / 2**30:.2f} GiB ({per_voxel} bytes per "
+                     f"voxel), above max_bytes = {limit / 2**30:.2f} GiB (default: half the physical memory); use "
+                     "a lower resolution or raise max_bytes", resolution)
 
 
 @functools.partial(jax.jit, static_argnames=("shape", "method", "band", "sweeps", "clamped"))
@@ -570,15 +585,17 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     band = {"jfa+sweep": 1, "band": 4}.get(method, 0) if band is None else band
     if method == "exact":
         band = 0
-    if not isinstance(band, (int, np.integer)) or band < 0:
-        raise JaxvoxError(f"band must be a non-negative integer (passes), got {band!r}")
-    if not isinstance(sweeps, (int, np.integer)) or sweeps < 1:
-        raise JaxvoxError(f"sweeps must be a positive integer (iterations), got {sweeps!r}")
+    band = check_int("distance_field band", band, minimum=0)
+    sweeps = check_int("distance_field sweeps", sweeps, minimum=1)
+    if max_bytes is not None:
+        max_bytes = check_int("distance_field max_bytes", max_bytes, minimum=0)
     r = grid.resolution
-    _check_bytes(r, distance_field_bytes(1, method=method, signed=signed), max_bytes, f"distance_field({method!r})")
+    _check_bytes("distance_field", r, BYTES_PER_VOXEL[method] + (SIGN_BYTES_PER_VOXEL if signed else 0), max_bytes)
     if mesh.num_faces == 0:
         return jnp.full((r, r, r), jnp.inf, jnp.float32)
-    dist = _box_distance(mesh, grid, (r, r, r), method=method, band=int(band), sweeps=int(sweeps))
+    if signed:
+        sign = _sign_method("distance_field sign", mesh, sign)
+    dist = _box_distance(mesh, grid, (r, r, r), method=method, band=band, sweeps=sweeps)
     if signed:
         dist = jnp.where(_solid(mesh, _grid_triangles(_padded(mesh), grid), grid, (r, r, r), sign, 2.0), -dist, dist)
     return dist * grid.voxel_size
@@ -641,7 +658,12 @@ def quantize_field(field: jax.Array, grid: Grid, *, format: str = "fixed16",
       values beyond saturate there (still a safe step for sphere tracing).
 
     The error a field actually costs: ``abs(q.decode() - field) / grid.voxel_size``.
+
+    Raises:
+      JaxvoxError: not a `Grid`, an unknown format, a field not of the grid's shape, or
+        (when concrete) `steps_per_voxel` not a finite number > 0.
     """
+    check_type("quantize_field grid", grid, Grid)
     check_choice("quantize_field format", format, FORMATS)
     if np.shape(field) != (grid.resolution,) * 3:
         raise refuse("quantize_field field", f"must have the grid's shape {(grid.resolution,) * 3}", np.shape(field))
@@ -719,8 +741,18 @@ class Clipmap:
 
 
 def clipmap_corners(camera, origin, voxel_size, resolution: int, num_cascades: int) -> np.ndarray:
-    """Window corners [N, 3] int32 centring each cascade on `camera` (snapped to its voxels)."""
-    h = float(voxel_size) * 2.0 ** np.arange(num_cascades)[:, None]
+    """Window corners [N, 3] int32 centring each cascade on `camera` (snapped to its voxels).
+
+    Raises:
+      JaxvoxError: `camera` or `origin` not three finite numbers, `voxel_size` not a
+        finite number > 0, a bad resolution, `num_cascades` not an integer >= 1.
+    """
+    check_vector("clipmap_corners camera", camera, 3)
+    check_vector("clipmap_corners origin", origin, 3)
+    voxel_size = check_number("clipmap_corners voxel_size", voxel_size, above=0.0)
+    resolution = check_resolution(resolution)
+    num_cascades = check_int("clipmap_corners num_cascades", num_cascades, minimum=1)
+    h = voxel_size * 2.0 ** np.arange(num_cascades)[:, None]
     g = np.floor((np.asarray(camera, np.float64) - np.asarray(origin, np.float64)) / h)
     return (g - resolution // 2).astype(np.int32)
 
@@ -850,6 +882,10 @@ def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, vox
 
     Returns:
       `Clipmap` with fields [N, R, R, R] float32 (4 N R^3 bytes).
+
+    Raises:
+      JaxvoxError: a malformed mesh, a bad camera, placement, resolution, cascade count,
+        truncation or method.
     """
     validate_mesh(mesh)
     r = Grid(origin, voxel_size, resolution).resolution  # checks the placement and resolution
@@ -878,10 +914,18 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
 
     Returns:
       The updated `Clipmap`; cascades not updated keep their window.
+
+    Raises:
+      JaxvoxError: not a `Clipmap`, a malformed mesh, a bad camera, or cascades that are
+        not indices of the clipmap's cascades.
     """
+    check_type("update_clipmap clip", clip, Clipmap)
     validate_mesh(mesh)
     check_vector("update_clipmap camera", camera, 3)
-    cascades = range(clip.num_cascades) if cascades is None else cascades
+    if cascades is None:
+        cascades = range(clip.num_cascades)
+    elif not isinstance(cascades, (list, tuple, range, np.ndarray)):
+        raise refuse("update_clipmap cascades", "must be a sequence of cascade indices", cascades)
     for c in cascades:
         check_int("update_clipmap cascades", c, minimum=0, maximum=clip.num_cascades - 1)
     new = clipmap_corners(camera, clip.origin, clip.voxel_size, clip.resolution, clip.num_cascades)
@@ -911,7 +955,19 @@ def time_sliced_cascades(frame: int, num_cascades: int) -> tuple[int, ...]:
 
 def union_clipmaps(a: Clipmap, b: Clipmap) -> Clipmap:
     """Union of two scenes' clipmaps with the same windows (e.g. static scene and dynamic
-    objects rebuilt each frame): the pointwise min of their fields; jittable."""
+    objects rebuilt each frame): the pointwise min of their fields; jittable.
+
+    Raises:
+      JaxvoxError: not two `Clipmap` objects, fields of different shapes, or (when
+        concrete) different window corners.
+    """
+    check_type("union_clipmaps a", a, Clipmap)
+    check_type("union_clipmaps b", b, Clipmap)
+    if a.fields.shape != b.fields.shape:
+        raise refuse("union_clipmaps b", f"must have fields of a's shape {a.fields.shape}", b.fields.shape)
+    if is_concrete(a.corner) and is_concrete(b.corner) and np.any(np.asarray(a.corner) != np.asarray(b.corner)):
+        raise refuse("union_clipmaps b", f"must have a's windows (corners {np.asarray(a.corner).tolist()})",
+                     b.corner)
     return dataclasses.replace(a, fields=jnp.minimum(a.fields, b.fields))
 
 
@@ -953,7 +1009,21 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
       (t [n] float32 ray parameter of the hit (world units along the unit direction),
       status [n] int32 HIT / MISS / STEP_CAP,
       cascade [n] int32 cascade where the ray stopped).
+
+    Raises:
+      JaxvoxError: not a `Clipmap`, rays that are not both [n, 3], `max_steps` not an
+        integer >= 1, or (when concrete) a NaN `t_max` or a `hit_voxels` that is not a
+        finite number >= 0.
     """
+    check_type("trace_clipmap clip", clip, Clipmap)
+    if np.ndim(origins) != 2 or np.shape(origins)[1] != 3 or np.shape(directions) != np.shape(origins):
+        raise refuse("trace_clipmap origins, directions", "must both have shape [n, 3]",
+                     (np.shape(origins), np.shape(directions)))
+    max_steps = check_int("trace_clipmap max_steps", max_steps, minimum=1)
+    if is_concrete(t_max):
+        check_number("trace_clipmap t_max", t_max, finite=False)
+    if is_concrete(hit_voxels):
+        check_number("trace_clipmap hit_voxels", hit_voxels, minimum=0.0)
     last = clip.num_cascades - 1
 
     def one(o, d):

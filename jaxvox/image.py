@@ -10,11 +10,11 @@ surface unless `save_render` is given a finite ``far``), ``A`` (coverage) and ``
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 
 import numpy as np
 
-from jaxvox._checks import check_choice, check_output_path, refuse
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import check_choice, check_number, check_output_path, refuse
 from jaxvox._files import read_bytes
 
 TONEMAP_CURVES = ("aces", "clip")  # `tonemap` curves
@@ -29,19 +29,26 @@ def write_exr(path: str | os.PathLike, channels: dict) -> None:
         [H, W] array (converted to float32); all of the same shape.
 
     Raises:
-      JaxvoxError: no channels, channels of different or non-2-D shapes.
+      JaxvoxError: a missing folder, no channels, non-numeric channels, or channels of
+        different or non-2-D shapes.
     """
     import OpenEXR
 
-    if not channels:
-        raise JaxvoxError("write_exr: no channels to write")
-    arrays = {str(name): np.ascontiguousarray(np.asarray(a, np.float32)) for name, a in channels.items()}
-    shapes = {a.shape for a in arrays.values()}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise JaxvoxError(f"write_exr: channels must all be [H, W] arrays of one shape, got {sorted(shapes)}")
+    path = check_output_path("write_exr path", path)
+    if not isinstance(channels, Mapping) or not channels:
+        raise refuse("write_exr channels", "must be a non-empty dict of channel name to [H, W] array", channels)
+    arrays = {}
+    for name, a in channels.items():
+        try:
+            arrays[str(name)] = np.ascontiguousarray(np.asarray(a, np.float32))
+        except (TypeError, ValueError):
+            raise refuse(f"write_exr channels[{name!r}]", "must be an [H, W] array of numbers", a) from None
+    shapes = sorted({a.shape for a in arrays.values()})
+    if len(shapes) != 1 or len(shapes[0]) != 2:
+        raise refuse("write_exr channels", "must all be [H, W] arrays of one shape", shapes)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with OpenEXR.File(header, arrays) as exr:
-        exr.write(os.fspath(path))
+        exr.write(path)
 
 
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -54,12 +61,13 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise JaxvoxError(f"EXR file not found: {path}")
+        raise refuse("read_exr path", "is a directory, expected a file" if os.path.isdir(path) else "file not found",
+                     path)
     try:
         with OpenEXR.File(path, separate_channels=True) as exr:
             return {name: np.asarray(c.pixels, np.float32) for name, c in exr.channels().items()}
     except (RuntimeError, ValueError) as exc:
-        raise JaxvoxError(f"cannot read EXR file {path}: {exc}") from None
+        raise refuse("read_exr path", f"not a readable EXR file ({exc})", path) from None
 
 
 def read_hdr(path: str | os.PathLike) -> np.ndarray:
@@ -72,20 +80,25 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
       JaxvoxError: missing file, not an RGBE file, another orientation, or truncated data.
     """
     path = os.fspath(path)
-    data = read_bytes(path)
+    data = read_bytes("read_hdr path", path)
     if not data.startswith(b"#?"):
-        raise JaxvoxError(f"{path} is not a Radiance HDR file")
+        raise refuse("read_hdr path", "not a Radiance HDR file", path)
     end = data.find(b"\n\n")
     line_end = data.find(b"\n", end + 2)
     if end < 0 or line_end < 0:
-        raise JaxvoxError(f"{path}: truncated HDR header")
+        raise refuse("read_hdr path", "truncated HDR header", path)
     if b"FORMAT=" in data[:end] and b"FORMAT=32-bit_rle_rgbe" not in data[:end]:
-        raise JaxvoxError(f"{path}: only 32-bit_rle_rgbe HDR files are read")
+        raise refuse("read_hdr path", "only 32-bit_rle_rgbe HDR files are read", path)
     size = data[end + 2:line_end].split()
-    if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X":
-        raise JaxvoxError(f"{path}: unsupported HDR orientation {data[end + 2:line_end]!r} (expected -Y H +X W)")
+    if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X" or not (size[1].isdigit() and size[3].isdigit()):
+        raise refuse("read_hdr path", f"unsupported HDR size line {data[end + 2:line_end]!r} (expected -Y H +X W)",
+                     path)
     height, width = int(size[1]), int(size[3])
     buf, pos = np.frombuffer(data, np.uint8), line_end + 1
+    # A run-length encoded pixel takes at least 8/127 bytes (two per run of up to 127 per channel).
+    if height * width > 16 * (len(data) - pos):
+        raise refuse("read_hdr path", f"truncated HDR pixel data ({len(data) - pos} bytes for {height}x{width} "
+                     "pixels)", path)
     rgbe = np.empty((height, width, 4), np.uint8)
     try:
         for row in range(height):
@@ -108,7 +121,7 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
                 rgbe[row] = buf[pos:pos + 4 * width].reshape(width, 4)
                 pos += 4 * width
     except (IndexError, ValueError):
-        raise JaxvoxError(f"{path}: truncated or corrupt HDR pixel data") from None
+        raise refuse("read_hdr path", "truncated or corrupt HDR pixel data", path) from None
     exponent = rgbe[..., 3:].astype(np.int32)
     scale = np.where(exponent > 0, np.ldexp(1.0, exponent - 136), 0.0)
     return (rgbe[..., :3].astype(np.float64) * scale).astype(np.float32)
@@ -120,9 +133,18 @@ def tonemap(radiance, *, exposure: float = 0.0, curve: str = "aces") -> np.ndarr
     Scales by ``2**exposure``, applies the tone curve (``"aces"``: Narkowicz's fit of the
     ACES filmic curve, which rolls highlights off; ``"clip"``: clamp to [0, 1]), then
     the sRGB transfer function. NaN becomes 0.
+
+    Raises:
+      JaxvoxError: an unknown curve, an exposure that is not a finite number, or
+        radiance that is not an array of numbers.
     """
     check_choice("tonemap curve", curve, TONEMAP_CURVES)
-    x = np.nan_to_num(np.asarray(radiance, np.float64), nan=0.0, posinf=1e30) * 2.0**exposure
+    exposure = check_number("tonemap exposure", exposure)
+    try:
+        x = np.asarray(radiance, np.float64)
+    except (TypeError, ValueError):
+        raise refuse("tonemap radiance", "must be an array of numbers", radiance) from None
+    x = np.nan_to_num(x, nan=0.0, posinf=1e30) * 2.0**exposure
     x = np.maximum(x, 0.0)
     if curve == "aces":
         x = x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)

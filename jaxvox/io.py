@@ -30,11 +30,12 @@ import json
 import os
 import struct
 import zlib
+from collections.abc import Mapping
 
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_output_path, check_type
+from jaxvox._checks import check_output_path, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
@@ -61,10 +62,13 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
 
     Raises:
       JaxvoxError: not an `Octree`, a path whose folder does not exist, the tree is
-        truncated (overflow set) or an attribute is too short.
+        truncated (overflow set), `attributes` not a dict, or an attribute that is too
+        short or not a bool, integer or float array.
     """
     path = check_output_path("save path", path)
     check_type("save tree", tree, Octree)
+    if attributes is not None and not isinstance(attributes, Mapping):
+        raise refuse("save attributes", "expected a dict of arrays", type(attributes))
     if int(tree.overflow):
         raise JaxvoxError(f"refusing to save a truncated tree (overflow flags {int(tree.overflow)})")
     tree = compact(tree)
@@ -73,10 +77,9 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     for name, value in (attributes or {}).items():
         value = np.asarray(value)
         if value.ndim == 0 or value.shape[0] < n:
-            raise JaxvoxError(f"attribute {name!r} has shape {value.shape}; it needs {n} rows")
+            raise refuse(f"save attributes[{name!r}]", f"needs at least {n} rows (one per voxel)", value.shape)
         if value.dtype.kind not in _KINDS or value.dtype.fields is not None:
-            raise JaxvoxError(f"attribute {name!r} has dtype {value.dtype}; only bool, integer and float "
-                              "arrays are stored")
+            raise refuse(f"save attributes[{name!r}]", "must have a bool, integer or float dtype", value.dtype)
         arrays[f"attribute/{name}"] = value[:n]
     entries, blobs, offset = [], [], 0
     for name, value in arrays.items():
@@ -122,33 +125,34 @@ def _entry_bytes(entry: dict) -> int:
     return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
 
 
-def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
-    """Reads and verifies a file; returns (header, arrays by name)."""
+def _read(what: str, path) -> tuple[dict, dict[str, np.ndarray]]:
+    """Reads and verifies a file; returns (header, arrays by name). Errors name `what`."""
     path = os.fspath(path)
-    data = read_bytes(path)
+    data = read_bytes(what, path)
     if len(data) < _PREFIX.size or data[:8] != MAGIC:
-        raise JaxvoxError(f"{path} is not a jaxvox tree file (bad magic bytes)")
+        raise refuse(what, "not a jaxvox tree file (bad magic bytes)", path)
     _, version, head_len = _PREFIX.unpack_from(data)
     if version != FORMAT_VERSION:
-        raise JaxvoxError(f"{path} has format version {version}; this jaxvox reads version {FORMAT_VERSION}")
+        raise refuse(what, f"unsupported format version {version} (this jaxvox reads version {FORMAT_VERSION})",
+                     path)
     start = _PREFIX.size + head_len
     if start > len(data):
-        raise JaxvoxError(f"{path} is truncated: {len(data)} bytes, the header alone needs {start}")
+        raise refuse(what, f"truncated ({len(data)} bytes, the header alone needs {start})", path)
     try:
         header = json.loads(data[_PREFIX.size:start])
         entries = header["arrays"]
         sizes = [_entry_bytes(e) for e in entries]
         end = start + max([e["offset"] + s for e, s in zip(entries, sizes)], default=0)
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise JaxvoxError(f"{path} is corrupt: unreadable header ({exc})") from exc
+        raise refuse(what, f"corrupt (unreadable header: {exc})", path) from exc
     end = -(-end // _ALIGN) * _ALIGN
     if len(data) < end + 4:
-        raise JaxvoxError(f"{path} is truncated: {len(data)} bytes, expected {end + 4}")
+        raise refuse(what, f"truncated ({len(data)} bytes, expected {end + 4})", path)
     if len(data) > end + 4:
-        raise JaxvoxError(f"{path} is corrupt: {len(data) - end - 4} unexpected trailing bytes")
+        raise refuse(what, f"corrupt ({len(data) - end - 4} unexpected trailing bytes)", path)
     (stored,) = struct.unpack_from("<I", data, end)
     if zlib.crc32(memoryview(data)[:end]) != stored:
-        raise JaxvoxError(f"{path} is corrupt: checksum mismatch")
+        raise refuse(what, "corrupt (checksum mismatch)", path)
     arrays = {}
     for e, size in zip(entries, sizes):
         offset = start + e["offset"]
@@ -157,15 +161,15 @@ def _read(path) -> tuple[dict, dict[str, np.ndarray]]:
     return header, arrays
 
 
-def _check_tree(path, header, arrays) -> None:
+def _check_tree(what: str, path, header, arrays) -> None:
     """Checks that the header and tables describe a valid tree (beyond the checksum).
 
     Shapes and dtypes, the level count against the resolution, every child pointer
     against the level below, every prefix sum against the voxel counts of the children,
-    and the total against ``voxel_count``: one vectorised pass per level.
+    and the total against ``voxel_count``: one vectorised pass per level. Errors name `what`.
     """
-    def bad(what):
-        raise JaxvoxError(f"{path} is inconsistent: {what}")
+    def bad(problem):
+        raise refuse(what, f"inconsistent ({problem})", path)
 
     try:
         resolution = check_resolution(header["grid"]["resolution"])
@@ -173,13 +177,15 @@ def _check_tree(path, header, arrays) -> None:
         voxel_count = int(header["voxel_count"])
         kind, mode = header["kind"], header["mode"]
         origin = [float(x) for x in header["grid"]["origin"]]
-        float(header["grid"]["voxel_size"])
+        voxel_size = float(header["grid"]["voxel_size"])
     except (JaxvoxError, KeyError, TypeError, ValueError) as exc:
         bad(f"header fields ({exc})")
     depth = resolution.bit_length() - 1
     if (len(sizes) != depth or min(sizes) < 0 or sizes[0] > 1 or kind not in ("octree", "dag")
-            or mode not in MODES or len(origin) != 3):
-        bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}")
+            or mode not in MODES or len(origin) != 3 or not np.isfinite(origin + [voxel_size]).all()
+            or not voxel_size > 0):
+        bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}, "
+            f"voxel_size {voxel_size}")
     stored = stored_sizes(sizes)
     n_nodes, n_inner = sum(stored), sum(stored[:-1])
     expect = {"mask": ((n_nodes,), np.uint8), "child": ((n_inner, 8), np.uint32), "prefix": ((n_inner, 8), np.uint32)}
@@ -214,8 +220,8 @@ def load(path: str | os.PathLike) -> Octree:
       JaxvoxError: missing file, not a jaxvox file, unsupported version, truncated or
         corrupt (checksum mismatch), or inconsistent contents.
     """
-    header, arrays = _read(path)
-    _check_tree(os.fspath(path), header, arrays)
+    header, arrays = _read("load path", path)
+    _check_tree("load path", os.fspath(path), header, arrays)
     g = header["grid"]
     grid = Grid(origin=np.float32(g["origin"]), voxel_size=np.float32(g["voxel_size"]), resolution=g["resolution"])
     sizes = tuple(int(s) for s in header["level_sizes"])
@@ -232,6 +238,6 @@ def load_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
     Raises:
       JaxvoxError: as `load`.
     """
-    _, arrays = _read(path)
+    _, arrays = _read("load_attributes path", path)
     prefix = "attribute/"
     return {name[len(prefix):]: a for name, a in arrays.items() if name.startswith(prefix)}

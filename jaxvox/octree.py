@@ -44,12 +44,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_int, check_type
+from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts, key_bits
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh, pad_mesh, sample_texture
+from jaxvox.mesh import Mesh, pad_mesh, sample_texture, validate_mesh
 from jaxvox.voxelize import UNUSED, Voxels
 
 EMPTY = morton.EMPTY  # uint32 0xFFFFFFFF: an absent child (no node has that row index)
@@ -447,32 +447,46 @@ def _survey(coords: jax.Array, count: jax.Array, *, resolution: int):
     return inside, jnp.all(increasing | ~valid[1:]), sizes
 
 
-def _check_voxels(vox: Voxels) -> np.ndarray:
-    """Host-side validation of build input (raises `JaxvoxError`); returns the octree's
-    nodes per level (host int [D])."""
-    if not isinstance(vox, Voxels):
-        raise JaxvoxError(f"expected jaxvox.Voxels, got {type(vox).__name__}")
+def _check_voxels(caller: str, vox: Voxels) -> np.ndarray:
+    """Host-side validation of build input (raises `JaxvoxError` naming `caller`); returns
+    the octree's nodes per level (host int [D])."""
     if int(vox.overflow):
         raise JaxvoxError(f"the voxel buffer overflowed (flags {int(vox.overflow)}); "
                           "the tree would be truncated")
-    inside, ordered, sizes = jax.device_get(_survey(vox.coords, vox.count, resolution=vox.grid.resolution))
-    if not bool(inside):
-        raise JaxvoxError(f"voxel indices outside [0, {vox.grid.resolution})")
-    if not bool(ordered):
-        raise JaxvoxError("voxels are not unique and in Morton order (build them with "
-                          "jaxvox.voxelize or Voxels.from_coords)")
+    resolution = vox.grid.resolution
+    inside, ordered, sizes = jax.device_get(_survey(vox.coords, vox.count, resolution=resolution))
+    if not (bool(inside) and bool(ordered)):
+        ijk = np.asarray(vox.coords[: int(vox.count)])
+        outside = ((ijk < 0) | (ijk >= resolution)).any(1)
+        if outside.any():
+            raise refuse(f"{caller} vox", f"holds voxel indices outside [0, {resolution})", ijk[outside][0])
+        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(ijk))
+        codes = (hi << 30) | lo
+        first = int(np.flatnonzero(codes[1:] <= codes[:-1])[0])
+        raise refuse(f"{caller} vox", "voxels must be unique and in Morton order (build them with "
+                     "jaxvox.voxelize or Voxels.from_coords)", ijk[first:first + 2])
     return sizes
 
 
-def _build_host(vox: Voxels, capacities, dag: bool) -> Octree:
+def check_level_capacities(what: str, capacities, depth: int) -> tuple[int, ...]:
+    """`capacities` as `depth` Python ints >= 0, one per octree level (root first, 1 for the
+    root); raises `JaxvoxError` naming `what` otherwise."""
+    try:
+        caps = tuple(capacities)
+    except TypeError:
+        raise refuse(what, f"must be {depth} integers", capacities) from None
+    caps = tuple(check_int(f"{what}[{level}]", c, minimum=0) for level, c in enumerate(caps))
+    if len(caps) != depth or caps[0] != 1:
+        raise refuse(what, f"must be {depth} integers >= 0, one per level, root first, with 1 for the root", caps)
+    return caps
+
+
+def _build_host(caller: str, vox: Voxels, capacities, dag: bool) -> Octree:
+    check_type(f"{caller} vox", vox, Voxels)
     if capacities is not None:
-        capacities = tuple(int(c) for c in capacities)
         depth = vox.grid.resolution.bit_length() - 1
-        if len(capacities) != depth or capacities[0] != 1 or min(capacities) < 0:
-            raise JaxvoxError(f"capacities must be {depth} non-negative ints with capacities[0] == 1, "
-                              f"got {capacities}")
-        return _build(vox, capacity=capacities, dag=dag)
-    return _build_padded(vox, _check_voxels(vox), dag)
+        return _build(vox, capacity=check_level_capacities(f"{caller} capacities", capacities, depth), dag=dag)
+    return _build_padded(vox, _check_voxels(caller, vox), dag)
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
@@ -492,8 +506,13 @@ def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> O
 
     Returns:
       An `Octree` with ``dag=False`` whose nodes are in Morton order within each level.
+
+    Raises:
+      JaxvoxError: not `Voxels`, `capacities` that are not D integers >= 0 with 1 for the
+        root; without `capacities`, an overflowed voxel buffer, indices outside the grid,
+        or voxels that are not unique and Morton-sorted.
     """
-    return _build_host(vox, capacities, dag=False)
+    return _build_host("build_octree", vox, capacities, dag=False)
 
 
 def build_dag(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octree:
@@ -506,8 +525,11 @@ def build_dag(vox: Voxels, *, capacities: tuple[int, ...] | None = None) -> Octr
 
     Returns:
       An `Octree` with ``dag=True``; canonical (the same voxel set gives the same arrays).
+
+    Raises:
+      JaxvoxError: as `build_octree`.
     """
-    return _build_host(vox, capacities, dag=True)
+    return _build_host("build_dag", vox, capacities, dag=True)
 
 
 def compact(tree: Octree) -> Octree:
@@ -515,7 +537,11 @@ def compact(tree: Octree) -> Octree:
 
     Child rows are absolute, so each level's pointers shift by the change of its target
     level's offset. The work is host memory copies (numpy), so it compiles nothing.
+
+    Raises:
+      JaxvoxError: not an `Octree`.
     """
+    check_type("compact tree", tree, Octree)
     sizes = stored_sizes(tree.level_sizes)
     return tree if sizes == tree.level_capacities else _relayout(tree, sizes)
 
@@ -539,11 +565,13 @@ def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
       [...] int32.
 
     Raises:
-      JaxvoxError: `ijk` is not an integer array with a last axis of 3.
+      JaxvoxError: not an `Octree`, or `ijk` is not an integer array with a last axis of 3.
     """
+    check_type("voxel_index tree", tree, Octree)
     dtype = ijk.dtype if hasattr(ijk, "dtype") else np.asarray(ijk).dtype
     if not jnp.issubdtype(dtype, jnp.integer) or np.shape(ijk)[-1:] != (3,):
-        raise JaxvoxError(f"voxel_index needs integer indices [..., 3], got {dtype} {np.shape(ijk)}")
+        raise refuse("voxel_index ijk", "must be integer indices [..., 3]",
+                     ijk if jnp.issubdtype(dtype, jnp.integer) else f"{dtype} indices of shape {np.shape(ijk)}")
     return _voxel_index(tree, ijk)
 
 
@@ -646,9 +674,15 @@ def voxel_attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
         colours: the texture (`sample_texture` at the interpolated texture coordinates)
         or the vertex colours, interpolated at the point of the triangle's plane nearest
         the voxel centre (barycentric weights clipped to the triangle).
+
+    Raises:
+      JaxvoxError: a malformed mesh, not `Voxels`, or voxels without triangle ids.
     """
+    validate_mesh(mesh)
+    check_type("voxel_attributes vox", vox, Voxels)
     if vox.triangle is None:
-        raise JaxvoxError("these voxels carry no triangle ids; voxelize with triangle_ids=True")
+        raise refuse("voxel_attributes vox.triangle", "must hold triangle ids (voxelize with triangle_ids=True)",
+                     vox.triangle)
     # Padded to the shape ladder, so that meshes of similar size share the program.
     return _attributes(pad_mesh(mesh, bucket(mesh.num_vertices), bucket(mesh.num_faces)), vox)
 

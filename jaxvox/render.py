@@ -45,19 +45,28 @@ import functools
 import math
 import os
 import sys
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_int, check_number, check_output_path, check_type, refuse
+from jaxvox._checks import (
+    check_int,
+    check_number,
+    check_output_path,
+    check_type,
+    check_vector,
+    refuse,
+)
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.camera import check_view
-from jaxvox.mesh import sample_texture
+from jaxvox.mesh import sample_texture, validate_mesh
 from jaxvox.octree import MISSING, Octree, voxel_index
 from jaxvox.trace import HIT, STEP_CAP, trace
+from jaxvox.voxelize import Voxels
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
 _LIGHT_STREAM = 1 << 16  # random stream of the environment sample at vertex k: _LIGHT_STREAM + k
@@ -186,20 +195,27 @@ def _image_cdf(image: np.ndarray) -> np.ndarray:
     return np.cumsum(luminance * (2 * np.pi / w * (edges[:-1] - edges[1:]))[:, None]).astype(np.float32)
 
 
-def _environment(image, *, zenith=0.0, horizon=0.0, ground=0.0, sun_direction=(0.0, 1.0, 0.0),
-                 sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False, importance=False) -> Environment:
-    image = np.asarray(image, np.float32)
+def _environment(caller: str, image, *, scale=1.0, zenith=0.0, horizon=0.0, ground=0.0,
+                 sun_direction=(0.0, 1.0, 0.0), sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False,
+                 importance=False) -> Environment:
+    """The `Environment` of a checked image (times `scale`) and sky; errors name `caller`."""
+    try:
+        image = np.asarray(image, np.float32) * np.float32(scale)
+    except (TypeError, ValueError):
+        raise refuse(f"{caller} image", "must be an [H, W, 3] array of numbers", image) from None
     if image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
-        raise JaxvoxError(f"an environment image must be [H, W, 3], got shape {image.shape}")
-    if not np.isfinite(image).all() or (image < 0).any():
-        raise JaxvoxError("the environment image has negative, NaN or inf values")
-    s = np.asarray(sun_direction, np.float64).reshape(3)
-    if not np.isfinite(s).all() or np.linalg.norm(s) == 0:
-        raise JaxvoxError(f"sun_direction must be a finite non-zero vector, got {sun_direction!r}")
+        raise refuse(f"{caller} image", "must be [H, W, 3]", image.shape)
+    bad = ~(np.isfinite(image) & (image >= 0))
+    if bad.any():
+        raise refuse(f"{caller} image", "must hold finite non-negative radiance", image[bad][0])
+    s = check_vector(f"{caller} sun_direction", sun_direction, 3)
+    if not s.any():
+        raise refuse(f"{caller} sun_direction", "must be non-zero", sun_direction)
     env = Environment.__new__(Environment)
-    fields = dict(image=jnp.asarray(image), zenith=_rgb(zenith, "zenith"), horizon=_rgb(horizon, "horizon"),
-                  ground=_rgb(ground, "ground"), sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
-                  sun_irradiance=_rgb(sun_irradiance, "sun_irradiance"), sun_cos=np.float32(sun_cos),
+    fields = dict(image=jnp.asarray(image), zenith=_rgb(zenith, f"{caller} zenith"),
+                  horizon=_rgb(horizon, f"{caller} horizon"), ground=_rgb(ground, f"{caller} ground"),
+                  sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
+                  sun_irradiance=_rgb(sun_irradiance, f"{caller} sun_irradiance"), sun_cos=np.float32(sun_cos),
                   cdf=_image_cdf(image), sun=bool(sun))
     fields["sampled"] = bool(importance and image.shape[0] * image.shape[1] > 1 and fields["cdf"][-1] > 0)
     for name, value in fields.items():
@@ -208,8 +224,12 @@ def _environment(image, *, zenith=0.0, horizon=0.0, ground=0.0, sun_direction=(0
 
 
 def uniform_environment(rgb=(1.0, 1.0, 1.0)) -> Environment:
-    """The same radiance ``rgb`` ([3] or a scalar, linear) from every direction; no sun."""
-    return _environment(_rgb(rgb, "rgb").reshape(1, 1, 3))
+    """The same radiance ``rgb`` ([3] or a scalar, linear) from every direction; no sun.
+
+    Raises:
+      JaxvoxError: `rgb` not one or three finite non-negative numbers.
+    """
+    return _environment("uniform_environment", _rgb(rgb, "uniform_environment rgb").reshape(1, 1, 3))
 
 
 def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1, 1.9),
@@ -221,12 +241,17 @@ def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1
       sun_direction: [3] direction towards the sun (normalised here; y is up).
       sun_irradiance: [3] linear irradiance on a surface facing the sun (0 for no sun).
       zenith, horizon, ground: [3] linear radiance of the gradient (see `Environment`).
-      sun_radius_degrees: angular radius of the sun disc seen by camera rays.
+      sun_radius_degrees: angular radius of the sun disc seen by camera rays, in [0, 90].
+
+    Raises:
+      JaxvoxError: a sun direction that is not a finite non-zero [3] vector, radiances
+        that are not finite non-negative RGB, a sun radius outside [0, 90].
     """
-    irradiance = _rgb(sun_irradiance, "sun_irradiance")
-    return _environment(np.zeros((1, 1, 3), np.float32), zenith=zenith, horizon=horizon, ground=ground,
-                        sun_direction=sun_direction, sun_irradiance=irradiance,
-                        sun_cos=math.cos(math.radians(sun_radius_degrees)), sun=bool(irradiance.any()))
+    irradiance = _rgb(sun_irradiance, "sky_environment sun_irradiance")
+    radius = check_number("sky_environment sun_radius_degrees", sun_radius_degrees, minimum=0.0, maximum=90.0)
+    return _environment("sky_environment", np.zeros((1, 1, 3), np.float32), zenith=zenith, horizon=horizon,
+                        ground=ground, sun_direction=sun_direction, sun_irradiance=irradiance,
+                        sun_cos=math.cos(math.radians(radius)), sun=bool(irradiance.any()))
 
 
 def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance: bool = True) -> Environment:
@@ -239,13 +264,16 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance:
     regions for one more shadow ray per bounce; without it only bounce rays find it.
 
     Raises:
-      JaxvoxError: missing file, unsupported format, or bad contents.
+      JaxvoxError: missing file, unsupported format, bad contents, or a `scale` that is
+        not a finite number >= 0.
     """
     from jaxvox.image import read_exr, read_hdr
 
     path = os.fspath(path)
+    scale = check_number("load_environment scale", scale, minimum=0.0)
     if not os.path.isfile(path):
-        raise JaxvoxError(f"environment file not found: {path}")
+        raise refuse("load_environment path", "is a directory, expected a file" if os.path.isdir(path)
+                     else "file not found", path)
     ext = os.path.splitext(path)[1].lower()
     if ext == ".exr":
         channels = read_exr(path)
@@ -254,15 +282,18 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance:
         elif "Y" in channels:
             image = np.repeat(channels["Y"][..., None], 3, axis=-1)
         else:
-            raise JaxvoxError(f"{path}: an environment EXR needs channels R, G, B (or Y), has {sorted(channels)}")
+            raise refuse("load_environment path", f"an environment EXR needs channels R, G, B (or Y), has "
+                         f"{sorted(channels)}", path)
     elif ext == ".hdr":
         image = read_hdr(path)
     elif ext == ".npy":
-        image = np.load(path)
+        try:
+            image = np.load(path)
+        except (OSError, ValueError) as exc:
+            raise refuse("load_environment path", f"not a readable .npy array ({exc})", path) from None
     else:
-        raise JaxvoxError(f"{path}: environment maps are read from .exr, .hdr or .npy files, "
-                          f"not {ext or 'no extension'}")
-    return _environment(np.asarray(image, np.float32) * np.float32(scale), importance=importance)
+        raise refuse("load_environment path", "environment maps are read from .exr, .hdr or .npy files", path)
+    return _environment("load_environment", image, scale=scale, importance=importance)
 
 
 @pytree_dataclass
@@ -488,17 +519,22 @@ def _aovs(tree, camera, *, width, height, max_steps, lanes):
     return depth, jnp.where(is_hit, hit.normal, 0.0).reshape(height, width, 3)
 
 
-def _table(value, rows: int, name: str, default) -> jax.Array:
-    """A [1 or rows, 3] float32 table from None, an RGB triple or a per-voxel array."""
-    a = np.asarray(default if value is None else value, np.float32)
+def _table(what: str, value, rows: int, per: str, default) -> jax.Array:
+    """A [1 or rows, 3] float32 table from None, an RGB triple or an array with a row `per`
+    voxel or face; errors name `what`."""
+    expected = f"must be an RGB triple or a [{per}s, 3] array with at least {rows} rows"
+    try:
+        a = np.asarray(default if value is None else value, np.float32)
+    except (TypeError, ValueError):
+        raise refuse(what, expected, value) from None
     if a.ndim == 1:
         a = a[None]
     if a.ndim != 2 or a.shape[1] < 3 or not (a.shape[0] == 1 or a.shape[0] >= rows):
-        raise JaxvoxError(f"{name} must be an RGB triple or a [voxels, 3] array with at least {rows} rows, "
-                          f"got shape {np.shape(value)}")
+        raise refuse(what, expected, f"shape {np.shape(value)}")
     a = a[:, :3]
-    if not np.isfinite(a).all() or (a < 0).any():
-        raise JaxvoxError(f"{name} has negative, NaN or inf values")
+    bad = ~(np.isfinite(a) & (a >= 0))
+    if bad.any():
+        raise refuse(what, "must be finite and non-negative", a[bad][0])
     return jnp.asarray(a)
 
 
@@ -560,19 +596,22 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
       A `RenderResult` with [H, W] images.
 
     Raises:
-      JaxvoxError: bad settings, camera, albedo or emission, or a truncated tree.
+      JaxvoxError: not an `Octree` or `Environment`, bad settings, camera, albedo or
+        emission, `max_steps` or `lanes` not integers >= 1, or a truncated tree.
     """
+    check_type("render tree", tree, Octree)
     _check_settings("render", width, height, spp, bounces, batch_rays)
     if int(tree.overflow):
         raise JaxvoxError(f"cannot render a truncated tree (overflow flags {int(tree.overflow)})")
-    env = sky_environment() if env is None else env
-    if not isinstance(env, Environment):
-        raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
+    env = sky_environment() if env is None else check_type("render env", env, Environment)
     rows = int(tree.voxel_count)
-    albedo = _table(albedo, rows, "albedo", (0.7, 0.7, 0.7))
-    emission = _table(emission, rows, "emission", (0.0, 0.0, 0.0))
+    albedo = _table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7))
+    emission = _table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0))
     camera = _camera("render", eye, target, up, fov)
-    steps = int(max_steps) if max_steps is not None else 6 * tree.grid.resolution + 16 * tree.depth
+    steps = (check_int("render max_steps", max_steps, minimum=1) if max_steps is not None
+             else 6 * tree.grid.resolution + 16 * tree.depth)
+    if lanes is not None:
+        lanes = check_int("render lanes", lanes, minimum=1)
     key = _as_key(key)
     total = width * height * spp
     batch = min(int(batch_rays), total)
@@ -632,13 +671,14 @@ def _mesh_tables(mesh, albedo, emission):
     faces = mesh.num_faces
     if isinstance(albedo, str):
         if albedo != "mesh":
-            raise JaxvoxError(f"albedo must be an RGB triple, a [faces, 3] array or 'mesh', got {albedo!r}")
+            raise refuse("render_mesh albedo", "must be an RGB triple, a [faces, 3] array or 'mesh'", albedo)
         if mesh.colors is None and mesh.texture is None:
-            raise JaxvoxError("albedo='mesh' but the mesh has neither a texture nor vertex colours")
+            raise refuse("render_mesh albedo", "'mesh' needs a texture or vertex colours, but the mesh has "
+                         "neither a texture nor vertex colours", albedo)
         rho, per_vertex = None, True
     else:
-        rho, per_vertex = np.asarray(_table(albedo, faces, "albedo", (0.7, 0.7, 0.7))), False
-    return rho, per_vertex, np.asarray(_table(emission, faces, "emission", (0.0, 0.0, 0.0)))
+        rho, per_vertex = np.asarray(_table("render_mesh albedo", albedo, faces, "face", (0.7, 0.7, 0.7))), False
+    return rho, per_vertex, np.asarray(_table("render_mesh emission", emission, faces, "face", (0.0, 0.0, 0.0)))
 
 
 def _mesh_colour(mesh, face, weights):
@@ -678,11 +718,14 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
     Returns:
       A `RenderResult`; ``depth`` and ``normal`` are those of the triangles (normals face
       the camera).
+
+    Raises:
+      JaxvoxError: a malformed mesh, not an `Environment`, bad settings, camera, albedo
+        or emission, or no Embree.
     """
+    validate_mesh(mesh)
     _check_settings("render_mesh", width, height, spp, bounces, batch_rays)
-    env = sky_environment() if env is None else env
-    if not isinstance(env, Environment):
-        raise JaxvoxError(f"env must be an Environment, got {type(env).__name__}")
+    env = sky_environment() if env is None else check_type("render_mesh env", env, Environment)
     rho_table, per_vertex, emit_table = _mesh_tables(mesh, albedo, emission)
     vertices = np.asarray(mesh.vertices, np.float64)
     eps = 1e-4 * float(np.max(vertices.max(0) - vertices.min(0))) if len(vertices) else 1e-4
@@ -765,8 +808,14 @@ def box_emission(vox, lo, hi, rgb) -> jax.Array:
     Returns:
       [capacity, 3] float32 for `render`'s ``emission`` (zero outside the box and in
       unused slots); add several for several boxes.
+
+    Raises:
+      JaxvoxError: not `Voxels`, corners that are not three finite numbers, or `rgb` not
+        finite non-negative radiance.
     """
-    rgb = _rgb(rgb, "rgb")
+    check_type("box_emission vox", vox, Voxels)
+    lo, hi = check_vector("box_emission lo", lo, 3), check_vector("box_emission hi", hi, 3)
+    rgb = _rgb(rgb, "box_emission rgb")
     centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
     inside = jnp.all((centre >= jnp.asarray(lo, jnp.float32)) & (centre <= jnp.asarray(hi, jnp.float32)), axis=-1)
     inside = inside & (jnp.arange(vox.coords.shape[0]) < vox.count)
@@ -783,16 +832,28 @@ def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True
 
     Returns:
       [V, 3] float32 (or [1, 3] when there are no colours), for `render`'s ``albedo``.
+
+    Raises:
+      JaxvoxError: `attributes` not a dict, colours that are not [V, 3 or 4] numbers, or
+        a default outside [0, 1].
     """
     from jaxvox.image import srgb_to_linear
 
+    if attributes is not None and not isinstance(attributes, Mapping):
+        raise refuse("voxel_albedo attributes", "expected a dict of arrays", type(attributes))
     color = attributes.get("color") if attributes else None
     if color is None:
         rgb = _rgb(default, "voxel_albedo default")
         if (rgb > 1).any():
             raise refuse("voxel_albedo default", "an albedo must lie in [0, 1]", default)
         return jnp.asarray(rgb[None])
-    c = np.asarray(color, np.float32)[:, :3]
+    try:
+        c = np.asarray(color, np.float32)
+    except (TypeError, ValueError):
+        raise refuse("voxel_albedo attributes['color']", "must be a [V, 3] or [V, 4] array", color) from None
+    if c.ndim != 2 or c.shape[1] not in (3, 4):
+        raise refuse("voxel_albedo attributes['color']", "must be a [V, 3] or [V, 4] array", c.shape)
+    c = c[:, :3]
     return jnp.asarray((srgb_to_linear(c) if srgb else np.clip(c, 0.0, 1.0)).astype(np.float32))
 
 

@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import numbers
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import check_choice, check_number, check_type, refuse
+from jaxvox._checks import is_concrete as _is_concrete
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
@@ -54,31 +55,30 @@ def _axial(p, center):
     return _safe_norm(q[..., 0::2]), q[..., 1]
 
 
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 def _param(value, name: str, shape: tuple, *, minimum: float | None = None, strict: bool = False) -> jax.Array:
     """`value` as a float32 array of `shape` (a scalar broadcasts); checks NaN and sign when concrete."""
-    x = jnp.asarray(value, jnp.float32)
+    try:
+        x = jnp.asarray(value, jnp.float32)
+    except (TypeError, ValueError):
+        raise refuse(name, f"must be numbers of shape {shape}" if shape else "must be a number", value) from None
     if x.shape != shape:
         if x.ndim == 0 and shape:
             x = jnp.broadcast_to(x, shape)
         else:
-            raise JaxvoxError(f"{name} must have shape {shape}, got {x.shape}")
+            raise refuse(name, f"must have shape {shape}", x.shape)
     if _is_concrete(x):
         a = np.asarray(x)
         if not np.isfinite(a).all():
-            raise JaxvoxError(f"{name} must be finite, got {a.tolist()}")
+            raise refuse(name, "must be finite", a)
         if minimum is not None and ((a <= minimum).any() if strict else (a < minimum).any()):
             relation = ">" if strict else ">="
-            raise JaxvoxError(f"{name} must be {relation} {minimum}, got {a.tolist()}")
+            raise refuse(name, f"must be {relation} {minimum}", a)
     return x
 
 
-def _check_scene(scene, name: str = "scene") -> "SDF":
+def _check_scene(scene, name: str) -> "SDF":
     if not isinstance(scene, SDF):
-        raise JaxvoxError(f"{name} must be an SDF scene node, got {type(scene).__name__}")
+        raise refuse(name, "must be an SDF scene node (jaxvox.sdf)", type(scene))
     return scene
 
 
@@ -95,7 +95,7 @@ class SDF(abc.ABC):
         """Signed distance at `points` [..., 3] (float32, world units) -> [...] float32."""
         p = jnp.asarray(points, jnp.float32)
         if p.shape[-1:] != (3,):
-            raise JaxvoxError(f"points must have shape [..., 3], got {p.shape}")
+            raise refuse(f"{type(self).__name__} points", "must have shape [..., 3]", p.shape)
         return self._distance(p)
 
     @abc.abstractmethod
@@ -224,7 +224,7 @@ def rounded_box(half_extents, radius, center=(0.0, 0.0, 0.0)) -> RoundedBox:
     b = _param(half_extents, "rounded_box half_extents", (3,), minimum=0.0)
     r = _param(radius, "rounded_box radius", (), minimum=0.0)
     if _is_concrete(b) and _is_concrete(r) and float(r) > float(jnp.min(b)):
-        raise JaxvoxError(f"rounded_box radius {float(r)} exceeds the smallest half extent {float(jnp.min(b))}")
+        raise refuse("rounded_box radius", f"must be <= the smallest half extent {float(jnp.min(b))}", float(r))
     return RoundedBox(b, r, _param(center, "rounded_box center", (3,)))
 
 
@@ -255,7 +255,7 @@ def plane(normal, offset=0.0) -> Plane:
     """
     n = _param(normal, "plane normal", (3,))
     if _is_concrete(n) and not np.asarray(n).any():
-        raise JaxvoxError("plane normal must be nonzero")
+        raise refuse("plane normal", "must be nonzero", n)
     return Plane(n / _safe_norm(n), _param(offset, "plane offset", ()))
 
 
@@ -309,14 +309,14 @@ class Scale(SDF):
 
 def translate(scene: SDF, offset) -> Translate:
     """`scene` moved by `offset` [3]. Exact when `scene` is."""
-    return Translate(_check_scene(scene), _param(offset, "translate offset", (3,)))
+    return Translate(_check_scene(scene, "translate scene"), _param(offset, "translate offset", (3,)))
 
 
 def rotation(axis, angle) -> jax.Array:
     """Rotation matrix f32[3, 3] turning by `angle` (radians, right-handed) about `axis` [3] (Rodrigues)."""
     axis = _param(axis, "rotation axis", (3,))
     if _is_concrete(axis) and not np.asarray(axis).any():
-        raise JaxvoxError("rotation axis must be nonzero")
+        raise refuse("rotation axis", "must be nonzero", axis)
     x, y, z = axis / _safe_norm(axis)
     angle = _param(angle, "rotation angle", ())
     k = jnp.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
@@ -333,8 +333,8 @@ def rotate(scene: SDF, matrix) -> Rotate:
     if _is_concrete(m):
         a = np.asarray(m, np.float64)
         if np.abs(a.T @ a - np.eye(3)).max() > _ROTATION_TOLERANCE or abs(np.linalg.det(a) - 1) > _ROTATION_TOLERANCE:
-            raise JaxvoxError(f"rotate matrix is not a rotation (orthonormal with det +1): {a.tolist()}")
-    return Rotate(_check_scene(scene), m)
+            raise refuse("rotate matrix", "must be a rotation (orthonormal with det +1)", a)
+    return Rotate(_check_scene(scene, "rotate scene"), m)
 
 
 def scale(scene: SDF, factor, *, correct: bool = True) -> Scale:
@@ -344,9 +344,9 @@ def scale(scene: SDF, factor, *, correct: bool = True) -> Scale:
     ``f(p / s) * min(s)``, a bound, or with ``correct=False`` the uncorrected
     ``f(p / s)``, which is not a bound when ``min(s) < 1`` (see `Scale`).
     """
-    f = jnp.asarray(factor, jnp.float32)
-    f = _param(f, "scale factor", f.shape if f.ndim == 0 else (3,), minimum=0.0, strict=True)
-    return Scale(_check_scene(scene), f, bool(correct))
+    uniform = isinstance(factor, numbers.Real) or getattr(factor, "ndim", None) == 0
+    f = _param(factor, "scale factor", () if uniform else (3,), minimum=0.0, strict=True)
+    return Scale(_check_scene(scene, "scale scene"), f, bool(correct))
 
 
 # ----------------------------------------------------------------------------- CSG
@@ -441,8 +441,8 @@ class SmoothIntersection(SDF):
 
 def _scenes(scenes, name):
     if not scenes:
-        raise JaxvoxError(f"{name} needs at least one scene")
-    return tuple(_check_scene(s, f"{name} argument") for s in scenes)
+        raise refuse(f"{name} scenes", "needs at least one scene", scenes)
+    return tuple(_check_scene(s, f"{name} scenes[{i}]") for i, s in enumerate(scenes))
 
 
 def union(*scenes: SDF) -> Union:
@@ -462,7 +462,7 @@ def difference(a: SDF, b: SDF) -> Difference:
 
 def complement(scene: SDF) -> Complement:
     """Everything outside `scene`: ``-f``. Exact when `scene` is."""
-    return Complement(_check_scene(scene))
+    return Complement(_check_scene(scene, "complement scene"))
 
 
 def mix(a: SDF, b: SDF, k) -> Mix:
@@ -488,7 +488,7 @@ def smooth_intersection(a: SDF, b: SDF, k) -> SmoothIntersection:
 def is_exact(scene: SDF) -> bool:
     """True when `scene` is the exact signed distance: exact primitives under translations,
     rotations, uniform (corrected) scales and complements; False for any CSG node."""
-    _check_scene(scene)
+    _check_scene(scene, "is_exact scene")
     if isinstance(scene, Scale):
         return scene.correct and scene.factor.ndim == 0 and is_exact(scene.child)
     if isinstance(scene, (Translate, Rotate, Complement)):
@@ -503,7 +503,7 @@ def lipschitz_bound(scene: SDF) -> float:
     keep the largest of their children's; `mix` gives ``|k| L_a + |1 - k| L_b``; an
     uncorrected scale ``L / min(s)`` (uniform or not). Needs concrete `k` and scale factors.
     """
-    _check_scene(scene)
+    _check_scene(scene, "lipschitz_bound scene")
     if isinstance(scene, Mix):
         k = float(scene.k)
         return abs(k) * lipschitz_bound(scene.a) + abs(1.0 - k) * lipschitz_bound(scene.b)
@@ -520,14 +520,18 @@ def normal(scene: SDF, points, *, method: str = "grad", h: float = 1e-3) -> jax.
 
     ``method="grad"`` differentiates the scene with `jax.grad`; ``"central"`` uses central
     differences with step `h` (world units). Zero where the gradient vanishes.
+
+    Raises:
+      JaxvoxError: a bad method or scene, points not [..., 3], or (when concrete) a step
+        `h` that is not a finite number > 0.
     """
-    check_choice("normals method", method, NORMAL_METHODS)
-    _check_scene(scene)
+    check_choice("normal method", method, NORMAL_METHODS)
+    _check_scene(scene, "normal scene")
     p = jnp.asarray(points, jnp.float32)
     if p.shape[-1:] != (3,):
-        raise JaxvoxError(f"points must have shape [..., 3], got {p.shape}")
-    if _is_concrete(h) and not h > 0:
-        raise JaxvoxError(f"normal step h must be > 0, got {h}")
+        raise refuse("normal points", "must have shape [..., 3]", p.shape)
+    if _is_concrete(h):
+        check_number("normal h", h, above=0.0)
     if method == "grad":
         flat = p.reshape(-1, 3)
         g = jax.vmap(jax.grad(scene._distance))(flat).reshape(p.shape)
@@ -570,18 +574,21 @@ def to_mesh(scene: SDF, grid: Grid, *, level: float = 0.0) -> Mesh:
       A `Mesh`; it has 0 vertices and 0 faces when the field does not cross `level`.
 
     Raises:
-      JaxvoxError: resolution above `MAX_MESH_RESOLUTION`, or a NaN in the field.
+      JaxvoxError: not a scene or `Grid`, a resolution above `MAX_MESH_RESOLUTION`, a
+        level that is not a finite number, or a NaN in the field.
     """
     from skimage.measure import marching_cubes
 
-    _check_scene(scene)
+    _check_scene(scene, "to_mesh scene")
+    check_type("to_mesh grid", grid, Grid)
+    level = check_number("to_mesh level", level)
     if grid.resolution > MAX_MESH_RESOLUTION:
-        raise JaxvoxError(f"to_mesh: resolution {grid.resolution} exceeds {MAX_MESH_RESOLUTION} "
-                          f"(the field alone would take {grid.resolution ** 3 * 4 / 2 ** 30:.1f} GiB)")
+        raise refuse("to_mesh grid", f"resolution must be at most {MAX_MESH_RESOLUTION} "
+                     f"(the field alone would take {grid.resolution ** 3 * 4 / 2 ** 30:.1f} GiB)", grid.resolution)
     field = np.array(_sample(scene, grid))  # writable: marching_cubes needs it
     if np.isnan(field).any():
-        raise JaxvoxError("to_mesh: the scene evaluates to NaN at some voxel centres")
-    level = float(level)
+        raise refuse("to_mesh scene", f"must not be NaN at a voxel centre (NaN at {int(np.isnan(field).sum())} "
+                     f"of {field.size})", scene)
     if not field.min() < level < field.max():
         return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     verts, faces, _, _ = marching_cubes(field, level, gradient_direction="descent")

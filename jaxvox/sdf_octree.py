@@ -30,14 +30,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_type
-from jaxvox._errors import JaxvoxError
+from jaxvox._checks import check_choice, check_int, check_number, check_type, refuse
 from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, _check_scene, lipschitz_bound
-from jaxvox.sphere_tracing import _RUNNING, _checked, _refine, _surface_hit, _trace_one, _unit
-from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, trace
+from jaxvox.sphere_tracing import (
+    _RUNNING,
+    _checked,
+    _refine,
+    _surface_hit,
+    _trace_one,
+    _unit,
+)
+from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
 # Child offsets in slot order (slot = x | y << 1 | z << 2, as in `jaxvox.octree`).
@@ -74,13 +80,13 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
       `Voxels` in Morton order (mode "conservative", no triangle ids).
 
     Raises:
-      JaxvoxError: the scene is NaN at a cell centre, or `lipschitz` is not positive.
+      JaxvoxError: not a scene or `Grid`, the scene is NaN at a cell centre, or
+        `lipschitz` (given or computed) is not a finite number > 0.
     """
     check_type("voxelize_sdf grid", grid, Grid)
-    _check_scene(scene)
-    lip = float(lipschitz_bound(scene) if lipschitz is None else lipschitz)
-    if not lip > 0 or not math.isfinite(lip):
-        raise JaxvoxError(f"lipschitz must be a positive finite number, got {lip}")
+    _check_scene(scene, "voxelize_sdf scene")
+    lip = check_number("voxelize_sdf lipschitz", lipschitz_bound(scene) if lipschitz is None else lipschitz,
+                       above=0.0)
     extent = float(np.abs(np.asarray(grid.origin)).max()) + grid.resolution * float(grid.voxel_size)
     slack = np.float32(8 * np.finfo(np.float32).eps * extent)  # centre rounding in float32
     depth = grid.resolution.bit_length() - 1
@@ -95,7 +101,8 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
         padded[:n] = cells
         keep, nan = _crossed(scene, jnp.asarray(padded), grid, np.float32(lip), slack, np.int32(shift))
         if bool(nan):
-            raise JaxvoxError(f"the scene is NaN at some cell centres (level with cells of {2**shift} voxels)")
+            raise refuse("voxelize_sdf scene", f"must not be NaN at a cell centre (NaN at the level with cells "
+                         f"of {2**shift} voxels)", scene)
         cells = cells[np.asarray(keep)[:n]]
     n = len(cells)
     coords = np.full((bucket(n), 3), UNUSED, np.int32)
@@ -109,6 +116,9 @@ def build_octree_from_sdf(scene: SDF, grid: Grid, *, dag: bool = False,
 
     `voxelize_sdf` followed by `jaxvox.build_octree` (or `jaxvox.build_dag` when `dag`);
     host-side. Memory follows the surface: no array of the grid's volume is made.
+
+    Raises:
+      JaxvoxError: as `voxelize_sdf`.
     """
     check_type("build_octree_from_sdf grid", grid, Grid)
     vox = voxelize_sdf(scene, grid, lipschitz=lipschitz)
@@ -201,17 +211,20 @@ def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=
       A `jaxvox.Hit` with ``voxel`` and ``index`` of the leaf holding the hit (for
       attribute lookup), ``t`` differentiable as in `jaxvox.sphere_trace`; with
       `return_steps`, ``(hit, steps)``.
+
+    Raises:
+      JaxvoxError: not an `Octree`, `max_leaves` not an integer >= 1, a bad method, or
+        bad input to `jaxvox.sphere_trace`.
     """
-    if not isinstance(tree, Octree):
-        raise JaxvoxError(f"sphere_trace_octree needs an Octree, got {type(tree).__name__}")
-    if int(max_leaves) != max_leaves or max_leaves < 1:
-        raise JaxvoxError(f"max_leaves must be a positive integer, got {max_leaves!r}")
+    check_type("sphere_trace_octree tree", tree, Octree)
+    max_leaves = check_int("sphere_trace_octree max_leaves", max_leaves, minimum=1)
+    check_choice("sphere_trace_octree method", method, TRACE_METHODS)
     o, d, scalars = _checked(scene, origins, directions, t_max=t_max, epsilon=epsilon,
                              relaxation=relaxation, max_steps=max_steps)
     batch = o.shape[:-1]
     hit, steps = _sphere_trace_octree(scene, tree, o.reshape(-1, 3), d.reshape(-1, 3), scalars["t_max"],
                                       scalars["epsilon"], scalars["relaxation"], max_steps=int(max_steps),
-                                      max_leaves=int(max_leaves), method=method)
+                                      max_leaves=max_leaves, method=method)
     hit = jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), hit)
     return (hit, steps.reshape(batch)) if return_steps else hit
 

@@ -496,8 +496,9 @@ def _numeric(a) -> bool:
 
 
 def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
-    """Refuses rays that are not [..., 3] with broadcastable batch shapes, a NaN `t_max`
-    (checked when concrete) and a lane count below 1."""
+    """Refuses rays and `t_max` that are not numbers, rays that are not [..., 3], batch
+    shapes that do not broadcast and a lane count below 1. (NaN values are per-ray
+    `INVALID` statuses, as inside jit.)"""
     for name, a in (("origins", origins), ("directions", directions), ("t_max", t_max)):
         if is_concrete(a) and not _numeric(a):
             raise refuse(f"{caller} {name}", "must be numbers", a)
@@ -508,8 +509,6 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
     except ValueError:
         raise refuse(f"{caller} origins, directions, t_max", "batch shapes must broadcast",
                      (np.shape(origins), np.shape(directions), np.shape(t_max))) from None
-    if is_concrete(t_max) and np.isnan(np.asarray(t_max, np.float32)).any():
-        raise refuse(f"{caller} t_max", "must not be NaN", t_max)
     if lanes is not None:
         check_int(f"{caller} lanes", lanes, minimum=1)
 

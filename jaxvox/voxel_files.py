@@ -49,7 +49,7 @@ _NPZ_KEYS = ("ijk", "origin", "voxel_size", "resolution", "mode")
 
 def _read(what: str, path: str) -> bytes:
     """The bytes of the file at `path`; a `JaxvoxError` naming it when unreadable or empty."""
-    data = read_bytes(path)
+    data = read_bytes(what, path)
     if not data:
         raise refuse(what, "is an empty file", path)
     return data

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_choice, check_type
+from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
@@ -80,6 +80,21 @@ class Capacities(NamedTuple):
     candidates: int
     voxels: int
     row_chunk: int = ROW_CHUNK
+
+
+def check_capacities(what: str, capacities) -> Capacities:
+    """`capacities` as `Capacities` of Python ints: sizes >= 1, a power-of-two `row_chunk`
+    and `rows` a multiple of it; raises `JaxvoxError` naming `what` otherwise."""
+    try:
+        caps = Capacities(*capacities)
+    except TypeError:
+        raise refuse(what, "expected a jaxvox.Capacities (4 or 5 integers)", capacities) from None
+    caps = Capacities(*(check_int(f"{what} {name}", c, minimum=1) for name, c in zip(Capacities._fields, caps)))
+    if caps.row_chunk & (caps.row_chunk - 1):
+        raise refuse(f"{what} row_chunk", "must be a power of two", caps.row_chunk)
+    if caps.rows % caps.row_chunk:
+        raise refuse(f"{what} rows", f"must be a multiple of row_chunk = {caps.row_chunk}", caps.rows)
+    return caps
 
 
 @pytree_dataclass
@@ -124,27 +139,34 @@ class Voxels:
           mode: the mode to record (the set is taken as given).
 
         Raises:
-          JaxvoxError: wrong shape, non-integer values or indices outside the grid.
+          JaxvoxError: not a `Grid`, a bad mode, wrong shape, non-integer values or
+            indices outside the grid.
         """
-        a = np.asarray(ijk)
+        check_type("Voxels.from_coords grid", grid, Grid)
+        check_choice("Voxels.from_coords mode", mode, MODES)
+        try:
+            a = np.asarray(ijk)
+        except ValueError:  # ragged nested sequences
+            raise refuse("Voxels.from_coords ijk", "must have shape [N, 3]", ijk) from None
         if a.size == 0 and a.ndim == 1:  # e.g. []
             a = a.reshape(0, 3)
         if a.size == 0 and a.ndim == 2 and a.shape[1] == 3:
             a = a.astype(np.int32)
         if a.ndim != 2 or a.shape[1] != 3:
-            raise JaxvoxError(f"voxel indices must have shape [N, 3], got {a.shape}")
+            raise refuse("Voxels.from_coords ijk", "must have shape [N, 3]", a.shape)
         if not np.issubdtype(a.dtype, np.integer):
-            raise JaxvoxError(f"voxel indices must be integers, got dtype {a.dtype}")
-        if a.size and (a.min() < 0 or a.max() >= grid.resolution):
-            raise JaxvoxError(f"voxel indices outside [0, {grid.resolution}): "
-                              f"min {int(a.min())}, max {int(a.max())}")
+            raise refuse("Voxels.from_coords ijk", "must be integers", a.dtype)
+        outside = ((a < 0) | (a >= grid.resolution)).any(1)
+        if outside.any():
+            raise refuse("Voxels.from_coords ijk", f"holds voxel indices outside [0, {grid.resolution})",
+                         a[outside][0])
         a = a.astype(np.int32)
         hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(a))
         codes, first = np.unique((hi << 30) | lo, return_index=True)
         n = len(codes)
         coords = np.full((bucket(n), 3), UNUSED, np.int32)
         coords[:n] = a[first]
-        return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, check_choice("Voxels mode", mode, MODES))
+        return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, mode)
 
     def to_numpy(self) -> np.ndarray:
         """The valid voxels as a host int32 [count, 3] array in Morton order.
@@ -158,9 +180,14 @@ class Voxels:
         return np.asarray(self.coords[: int(self.count)])
 
     def triangle_ids(self) -> np.ndarray:
-        """Host int32 [count] triangle id per voxel (requires ``triangle_ids=True``)."""
+        """Host int32 [count] triangle id per voxel (requires ``triangle_ids=True``).
+
+        Raises:
+          JaxvoxError: when the voxels carry no triangle ids.
+        """
         if self.triangle is None:
-            raise JaxvoxError("these voxels carry no triangle ids; voxelize with triangle_ids=True")
+            raise refuse("Voxels.triangle_ids self.triangle", "must hold triangle ids (voxelize with "
+                         "triangle_ids=True)", self.triangle)
         return np.asarray(self.triangle[: int(self.count)])
 
 
@@ -584,12 +611,18 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
 
     Returns:
       `Voxels` with capacity ``capacities.voxels``.
+
+    Raises:
+      JaxvoxError: not a `Mesh` or `Grid`, a bad mode, or capacities that are not
+        integers >= 1 with a power-of-two ``row_chunk`` dividing ``rows``.
     """
+    check_type("voxelize_fixed mesh", mesh, Mesh)
     check_type("voxelize_fixed grid", grid, Grid)
-    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
+    capacities = check_capacities("voxelize_fixed capacities", capacities)
+    six_sep = check_choice("voxelize_fixed mode", mode, MODES) == SIX_SEPARATING
     tris = grid.to_grid_units(mesh.triangles())
     coords, triangle, count, overflow = _pipeline(
-        tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, Capacities(*capacities), triangle_ids)
+        tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, capacities, triangle_ids)
     return Voxels(coords, count, overflow, triangle, grid, mode)
 
 
@@ -830,13 +863,14 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
       `Voxels` with ``overflow == 0`` and capacity rounded up to a few buckets.
 
     Raises:
-      JaxvoxError: bad mode, region size or mesh.
+      JaxvoxError: not a `Grid`, a bad mode, region size or mesh.
     """
     check_type("voxelize grid", grid, Grid)
     six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
     validate_mesh(mesh)
-    if region_size < 1 or region_size & (region_size - 1) or region_size > REGION_SIZE:
-        raise JaxvoxError(f"region_size must be a power of two <= {REGION_SIZE}, got {region_size}")
+    region_size = check_int("voxelize region_size", region_size, minimum=1, maximum=REGION_SIZE)
+    if region_size & (region_size - 1):
+        raise refuse("voxelize region_size", f"must be a power of two <= {REGION_SIZE}", region_size)
     region_size = min(region_size, grid.resolution)
     tris = _grid_triangles(mesh, grid)
     regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
@@ -864,9 +898,12 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Cap
     Found by the host-side counting pass over the whole grid as one region (and the
     voxel count of `voxelize`), each rounded up on the shape ladder so that similar
     inputs share a compiled function.
+
+    Raises:
+      JaxvoxError: not a `Grid`, a bad mode or mesh.
     """
     check_type("voxel_capacities grid", grid, Grid)
-    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
+    six_sep = check_choice("voxel_capacities mode", mode, MODES) == SIX_SEPARATING
     validate_mesh(mesh)
     if mesh.num_faces == 0:
         return Capacities(*(bucket(0),) * 4, ROW_CHUNK)

@@ -319,10 +319,17 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
     for argv, match in ((["render", "--size", "64by48"], "WIDTHxHEIGHT"), (["render", "--camera", "1,2,3,4"], "camera"),
                         (["render", "--env", str(tmp_path / "nope.exr")], "not found"),
                         (["render", "--resolution", "100"], "power of two"),
-                        (["render", "--emit", "0,0,0,1,1,1"], "--emit takes"),
+                        (["render", "--emit", "0,0,0,1,1,1"], "--emit: takes"),
                         (["render", "--emit", "0,0,0,1,1:1"], "emit box"),
                         (["render", "nope.obj"], "not found")):
         assert main(argv + ["--out", str(tmp_path / "x.exr")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and match in err[0], (argv, err)
+    for argv, match in ((["render", "--out", str(tmp_path / "x.png")], "--out extension: expected one of '.exr'"),
+                        (["render", "--spp", "0", "--out", str(tmp_path / "x.exr")], "spp"),
+                        (["render", "--fov", "180", "--out", str(tmp_path / "x.exr")], "fov"),
+                        (["render", "--camera", "0,0,0,0,0,0", "--out", str(tmp_path / "x.exr")], "differ from the eye")):
+        assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)
     with pytest.raises(SystemExit) as exit_info:

@@ -385,7 +385,7 @@ def test_to_mesh_sphere_and_empty():
     assert (outward > 0).all()  # counter-clockwise seen from outside
     empty = sdf.to_mesh(sdf.sphere(0.3, center=(5.0, 5.0, 5.0)), grid)
     assert empty.num_faces == 0 and empty.num_vertices == 0
-    with pytest.raises(jv.JaxvoxError, match="exceeds"):
+    with pytest.raises(jv.JaxvoxError, match="resolution must be at most 512"):
         sdf.to_mesh(sdf.sphere(0.5), jv.Grid(origin=(0, 0, 0), voxel_size=0.01, resolution=1024))
 
 
@@ -393,19 +393,19 @@ def test_to_mesh_sphere_and_empty():
 
 
 @pytest.mark.parametrize("build, message", [
-    (lambda: sdf.sphere(-1.0), "radius must be >= 0"),
+    (lambda: sdf.sphere(-1.0), "sphere radius: must be >= 0"),
     (lambda: sdf.sphere(np.nan), "finite"),
     (lambda: sdf.sphere(1.0, center=(0, 0)), r"shape \(3,\)"),
     (lambda: sdf.box((1.0, 2.0)), r"shape \(3,\)"),
-    (lambda: sdf.rounded_box((0.5, 0.5, 0.1), 0.2), "exceeds"),
+    (lambda: sdf.rounded_box((0.5, 0.5, 0.1), 0.2), "must be <= the smallest half extent"),
     (lambda: sdf.torus(1.0, -0.1), "minor_radius"),
     (lambda: sdf.plane((0, 0, 0), 1.0), "nonzero"),
-    (lambda: sdf.rotate(sdf.sphere(1.0), np.diag([1.0, 1.0, -1.0])), "not a rotation"),
+    (lambda: sdf.rotate(sdf.sphere(1.0), np.diag([1.0, 1.0, -1.0])), "must be a rotation"),
     (lambda: sdf.scale(sdf.sphere(1.0), (1.0, 0.0, 1.0)), "must be > 0"),
     (lambda: sdf.union(), "at least one"),
     (lambda: sdf.union(sdf.sphere(1.0), 2.0), "SDF scene"),
-    (lambda: sdf.smooth_union(sdf.sphere(1.0), sdf.sphere(1.0), -0.1), "k must be >= 0"),
-    (lambda: sdf.normal(sdf.sphere(1.0), np.zeros((4, 3)), method="forward"), "unknown normal method"),
+    (lambda: sdf.smooth_union(sdf.sphere(1.0), sdf.sphere(1.0), -0.1), "smooth_union k: must be >= 0"),
+    (lambda: sdf.normal(sdf.sphere(1.0), np.zeros((4, 3)), method="forward"), "normal method: expected one of"),
     (lambda: sdf.sphere(1.0)(np.zeros((4, 2))), r"\[\.\.\., 3\]"),
     (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros((4, 3)), np.ones((5, 3))), "broadcast"),
     (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), relaxation=2.0), "relaxation"),
