@@ -33,7 +33,11 @@ def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25
     centre, extent = (lo + hi) / 2, float(np.max(hi - lo))
     a, e = np.radians(azimuth), np.radians(elevation)
     offset = np.array([np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)])
-    return (centre + distance * extent * offset).astype(np.float32), centre.astype(np.float32)
+    with np.errstate(over="ignore"):
+        eye, target = (centre + distance * extent * offset).astype(np.float32), centre.astype(np.float32)
+    if not (np.isfinite(eye).all() and np.isfinite(target).all()):
+        raise refuse("look_at_view distance", "puts the eye beyond float32 for these bounds", distance)
+    return eye, target
 
 
 def check_view(caller: str, eye, target, up, fov) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

@@ -84,12 +84,15 @@ def _numeric(what: str, value, dtype) -> jax.Array:
     return jnp.asarray(a, dtype)
 
 
+MAX_UV = 1e6  # texture coordinates beyond this repeat the texture more often than float32 can place a texel
+
+
 def validate_mesh(mesh: Mesh) -> None:
     """Raises `JaxvoxError` naming the problem when `mesh` is malformed (host-side check).
 
     Checks shapes, that every vertex coordinate is finite, that every face index lies
     in ``[0, V)``, that colours (if any) are [V, 3] or [V, 4] in [0, 1], and that
-    texture coordinates and a texture come together, [V, 2] finite and [H, W, 3 or 4]
+    texture coordinates and a texture come together, [V, 2] within +-`MAX_UV` and [H, W, 3 or 4]
     in [0, 1]. (`Mesh` itself refuses non-numeric arrays and fractional face indices.)
     """
     if not isinstance(mesh, Mesh):
@@ -119,8 +122,10 @@ def validate_mesh(mesh: Mesh) -> None:
         uv, tex = np.asarray(mesh.uvs), np.asarray(mesh.texture)
         if uv.shape != (len(v), 2):
             raise refuse("Mesh uvs", f"must have shape [V, 2] with V = {len(v)}", uv.shape)
-        if not np.isfinite(uv).all():
-            raise refuse("Mesh uvs", "must be finite", uv[~np.isfinite(uv).all(1)][0])
+        bad = ~(np.abs(uv) <= MAX_UV).all(1)
+        if bad.any():
+            raise refuse("Mesh uvs", f"must be finite and at most {MAX_UV:.0e} in magnitude (the texture repeats)",
+                         uv[bad][0])
         if tex.ndim != 3 or min(tex.shape[:2]) < 1 or tex.shape[2] not in (3, 4):
             raise refuse("Mesh texture", "must have shape [H, W, 3] or [H, W, 4]", tex.shape)
         _unit_range("Mesh texture", tex)

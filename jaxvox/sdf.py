@@ -55,6 +55,9 @@ def _axial(p, center):
     return _safe_norm(q[..., 0::2]), q[..., 1]
 
 
+_MAX_PARAM = 1e18  # largest scene parameter magnitude: its square stays finite in float32
+
+
 def _param(value, name: str, shape: tuple, *, minimum: float | None = None, strict: bool = False) -> jax.Array:
     """`value` as a float32 array of `shape` (a scalar broadcasts); checks NaN and sign when concrete."""
     try:
@@ -70,6 +73,9 @@ def _param(value, name: str, shape: tuple, *, minimum: float | None = None, stri
         a = np.asarray(x)
         if not np.isfinite(a).all():
             raise refuse(name, "must be finite", a)
+        if (np.abs(a) > _MAX_PARAM).any():
+            raise refuse(name, f"must be at most {_MAX_PARAM:.0e} in magnitude (squared distances must fit in "
+                         "float32)", a)
         if minimum is not None and ((a <= minimum).any() if strict else (a < minimum).any()):
             relation = ">" if strict else ">="
             raise refuse(name, f"must be {relation} {minimum}", a)

@@ -194,15 +194,17 @@ def _surface_hit(scene, o, u, t, status, on_surface) -> Hit:
     (`on_surface`; not rays that start inside). `voxel` and `index` are -1.
     """
     frozen_scene = jax.lax.stop_gradient(scene)
-    is_hit = status == HIT
-    t_star = jnp.where(is_hit, jax.lax.stop_gradient(t), 0.0)  # a finite point for misses ("safe where")
+    t_star = jnp.where(status == HIT, jax.lax.stop_gradient(t), 0.0)  # a finite point for misses ("safe where")
     x_star = jax.lax.stop_gradient(o + t_star[:, None] * u)
+    f = scene._distance(o + t_star[:, None] * u)
+    # A scene that overflows float32 at the hit (NaN or inf there) gives no usable hit.
+    status = jnp.where((status == HIT) & ~jnp.isfinite(jax.lax.stop_gradient(f)), INVALID, status)
+    is_hit = status == HIT
     g = jax.vmap(jax.grad(frozen_scene._distance))(x_star)  # [n, 3]
     g_norm = _safe_norm(g)
     n = jnp.where((is_hit & (g_norm > 0))[:, None], g / jnp.where(g_norm > 0, g_norm, 1.0)[:, None], 0.0)
     den = jnp.sum(g * jax.lax.stop_gradient(u), axis=-1)
     den_ok = is_hit & on_surface & (den != 0)
-    f = scene._distance(o + t_star[:, None] * u)
     correction = jnp.where(den_ok, (f - jax.lax.stop_gradient(f)) / jnp.where(den_ok, den, 1.0), 0.0)
     return Hit(t=jnp.where(is_hit, t_star - correction, jnp.inf), voxel=jnp.full(t.shape + (3,), -1, jnp.int32),
                normal=n, index=jnp.full(t.shape, -1, jnp.int32), status=status)
