@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
@@ -239,16 +240,41 @@ def test_save_render_writes_exr_and_png(scene, tmp_path):
 
 
 def test_bounce_origins_never_start_inside_a_voxel():
-    """Rays through voxel edges used to bounce from inside the voxel across the reported
-    face (6 of 1.3 M paths in the CLI's default render); the bounce now leaves into the
-    voxel the ray crossed, so no path of the default scene stops early."""
+    """A ray through a voxel edge comes in diagonally; the voxel across the entry face the
+    traversal reports can be occupied. The bounce used to start inside it (the path then
+    stopped: 6 of 1.3 M paths in `make run`'s render); it now leaves into the voxel the ray
+    crossed. Here: voxel (1, 1, 0) hit through its edge with (1, 0, 0) occupied below it
+    and a reported normal of -y."""
+    import importlib
+
+    surface = importlib.import_module("jaxvox.render")._voxel_surface
+    grid = jv.Grid(np.zeros(3), 1.0, 4)
+    tree = jv.build_octree(jv.Voxels.from_coords([[1, 1, 0], [1, 0, 0]], grid))
+    direction = np.array([[1.0, 1.0, 0.2]], np.float32) / np.float32(np.sqrt(2.04))
+    t = np.float32(np.sqrt(2.04) / 2)  # from (0.5, 0.5, 0.4) to the edge point (1, 1, 0.5)
+    origin = np.array([[0.5, 0.5, 0.4]], np.float32)
+    hit = jv.Hit(t=jnp.full(1, t), voxel=jnp.array([[1, 1, 0]], jnp.int32), normal=jnp.array([[0.0, -1.0, 0.0]]),
+                 index=jnp.zeros(1, jnp.int32), status=jnp.full(1, jv.HIT))
+    point = np.asarray(surface(tree, jnp.asarray(origin), jnp.asarray(direction), hit).point)[0]
+    cell = np.floor(point).astype(int)
+    assert int(jv.voxel_index(tree, cell)) == jv.MISSING, (point, cell)
+    np.testing.assert_array_equal(cell, [0, 0, 0])  # the voxel the ray came from
+    # Away from edges nothing changes: the point is just across the reported face.
+    hit = jv.Hit(t=jnp.full(1, t), voxel=jnp.array([[1, 1, 0]], jnp.int32), normal=jnp.array([[-1.0, 0.0, 0.0]]),
+                 index=jnp.zeros(1, jnp.int32), status=jnp.full(1, jv.HIT))
+    point = np.asarray(surface(tree, jnp.asarray(origin), jnp.asarray(direction), hit).point)[0]
+    np.testing.assert_array_equal(np.floor(point).astype(int), [0, 1, 0])
+
+
+def test_default_render_has_no_stopped_paths():
+    """The smallest render of `make run`'s scene that stopped a path before the fix (1 path)."""
     from jaxvox.cli import _upright_default_scene
 
     mesh = _upright_default_scene()
-    tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=256)))
+    tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=64)))
     bounds = tuple(np.asarray(b) for b in (mesh.vertices.min(0), mesh.vertices.max(0)))
     eye, target = jv.look_at_view(bounds)
-    result = jv.render(tree, eye, target, env=jv.sky_environment(), width=384, height=216, spp=16, bounces=8, key=0)
+    result = jv.render(tree, eye, target, env=jv.sky_environment(), width=192, height=108, spp=16, bounces=8, key=0)
     assert int(result.stopped) == 0
 
 
