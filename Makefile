@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench bench-smoke clean
+.PHONY: run test check docs bench bench-smoke clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -15,6 +15,15 @@ $(STAMP): pyproject.toml
 run: $(STAMP)  ## voxelize the built-in default scene, report, write out/voxels.png; path-trace it to out/image.exr + .png
 	$(PY) -m jaxvox run --out out
 	$(PY) -m jaxvox render --resolution 256 --size 384x216 --spp 16 --bounces 8 --env sky --out out/image.exr
+
+check: $(STAMP)  ## lint and format check (ruff), type check (mypy)
+	$(VENV)/bin/ruff check jaxvox tests experiments
+	$(VENV)/bin/ruff format --check jaxvox tests experiments
+	$(VENV)/bin/mypy
+
+docs: $(STAMP)  ## the documentation site (mkdocs, API reference from the docstrings) into site/
+	$(PY) -m pip install --quiet -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 test: $(STAMP)  ## the whole test suite (slow checks run at a small size unless JAXVOX_SLOW_SCALE=full)
 	$(PY) -m pytest -q
@@ -36,4 +45,4 @@ bench-smoke: $(VENV)/.bench-installed  ## the same at R=64,128 (a few minutes)
 	$(PY) experiments/bench_trace.py --smoke
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out .pytest_cache site

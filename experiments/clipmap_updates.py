@@ -56,6 +56,7 @@ def worker(spec: dict) -> dict:
 
     sys.path.insert(0, str(_common.REPO_ROOT))
     import jaxvox as jv
+    from jaxvox.distance.clipmap import _exposed_boxes
 
     mesh = jv.load_mesh(spec["path"])
     v = np.asarray(mesh.vertices, np.float64)
@@ -88,7 +89,7 @@ def worker(spec: dict) -> dict:
             new = jv.clipmap_corners(camera, (0.0, 0.0, 0.0), h0, r, n).astype(np.int64)
             for c in range(n):
                 h = h0 * 2.0**c
-                for lo, hi in jv.distance._exposed_boxes(corner[c], new[c], r):
+                for lo, hi in _exposed_boxes(corner[c], new[c], r):
                     g = np.stack(np.meshgrid(*(np.arange(a, b) for a, b in zip(lo, hi)), indexing="ij"), -1)
                     d = scene.compute_signed_distance(((g + 0.5) * h).reshape(-1, 3).astype(np.float32)).numpy()
                     fields[(c,) + np.ix_(*(np.mod(np.arange(a, b), r) for a, b in zip(lo, hi)))] = np.clip(
@@ -146,13 +147,14 @@ def _reference(scene, corner, h0, r, trunc):
 
 def _exposed_per_frame(path, start, h0, r, n) -> float:
     import jaxvox as jv
+    from jaxvox.distance.clipmap import _exposed_boxes
 
     corner = jv.clipmap_corners(start, (0.0, 0.0, 0.0), h0, r, n)
     total = 0
     for camera in path:
         new = jv.clipmap_corners(camera, (0.0, 0.0, 0.0), h0, r, n)
         for c in range(n):
-            total += sum(int(np.prod(hi - lo)) for lo, hi in jv.distance._exposed_boxes(corner[c], new[c], r))
+            total += sum(int(np.prod(hi - lo)) for lo, hi in _exposed_boxes(corner[c], new[c], r))
         corner = new
     return total / len(path)
 

@@ -104,7 +104,7 @@ def worker(spec: dict) -> dict:
     import jaxvox as jv
 
     if spec.get("cache"):
-        jv.enable_compilation_cache(spec["cache"])
+        jv.enable_compilation_cache(path=spec["cache"])
 
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(

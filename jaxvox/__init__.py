@@ -30,16 +30,14 @@ from jaxvox.distance import (
     clipmap_corners,
     distance_field,
     distance_field_bytes,
-    open_edges,
     quantize_field,
-    solid_voxelize,
     time_sliced_cascades,
     trace_clipmap,
     union_clipmaps,
     update_clipmap,
 )
 from jaxvox.grid import Grid
-from jaxvox.image import read_exr, read_hdr, tonemap, write_exr, write_png
+from jaxvox.image import read_exr, read_hdr, save_render, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
 from jaxvox.mesh import Mesh, load_mesh, pad_mesh, sample_texture, save_mesh
 from jaxvox.octree import (
@@ -51,9 +49,11 @@ from jaxvox.octree import (
     build_octree,
     compact,
     expand,
+    octree_capacities,
     voxel_attributes,
     voxel_index,
 )
+from jaxvox.overflow import Overflow
 from jaxvox.render import (
     Environment,
     RenderResult,
@@ -61,13 +61,13 @@ from jaxvox.render import (
     load_environment,
     render,
     render_mesh,
-    save_render,
     sky_environment,
     uniform_environment,
     voxel_albedo,
 )
 from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
+from jaxvox.solid import open_edges, solid_voxelize
 from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import (
     HIT,
@@ -120,6 +120,7 @@ __all__ = [
     "OVERFLOW_ROWS",
     "OVERFLOW_VOXELS",
     "Octree",
+    "Overflow",
     "QuantizedField",
     "RenderResult",
     "SIX_SEPARATING",
@@ -148,6 +149,7 @@ __all__ = [
     "load_voxels",
     "look_at_view",
     "morton",
+    "octree_capacities",
     "open_edges",
     "pad_mesh",
     "pinhole_rays",

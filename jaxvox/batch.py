@@ -43,6 +43,7 @@ from jaxvox.octree import (
     check_level_capacities,
     compact,
 )
+from jaxvox.overflow import describe
 from jaxvox.trace import TRACE_METHODS, Hit, trace
 from jaxvox.voxelize import (
     CONSERVATIVE,
@@ -135,7 +136,7 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
         vertices, faces = np.array(p.vertices), np.array(p.faces)
         vertices[mesh.num_vertices:] = np.nan
         faces[mesh.num_faces:] = mesh.num_vertices
-        padded.append(Mesh(vertices, faces, p.colors, p.uvs, p.texture))
+        padded.append(Mesh(vertices, faces, colors=p.colors, uvs=p.uvs, texture=p.texture))
     return _stack(padded)
 
 
@@ -436,8 +437,8 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
             capacities, tree_capacities = _grow(capacities, tree_capacities,
                                                 int(np.bitwise_or.reduce(flags[flags != 0])))
     else:
-        raise JaxvoxError(f"items {tuple(int(i) for i in pending)} still overflow (flags "
-                          f"{sorted(set(flags[flags != 0].tolist()))}) after {max_tries} runs; last capacities "
+        raise JaxvoxError(f"run_batch: items {tuple(int(i) for i in pending)} still overflow "
+                          f"({describe(np.bitwise_or.reduce(flags))}) after {max_tries} runs; last capacities "
                           f"{tuple(capacities)}, tree capacities {tree_capacities}")
     hits = jax.tree.map(lambda *rows: np.stack(rows), *hit_rows)
     return BatchResult(voxels, trees, hits, tuple(retried), capacities, tree_capacities)

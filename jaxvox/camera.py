@@ -87,14 +87,44 @@ def pinhole_rays(eye, target, *, width: int, height: int, fov: float = 40.0, up=
     if all(is_concrete(x) for x in (eye, target, up)):
         check_view("pinhole_rays", eye, target, up, fov)
     eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
+    px = (jnp.arange(width) + 0.5)[None, :]
+    py = (jnp.arange(height) + 0.5)[:, None]
+    d = pixel_directions(eye, target, jnp.asarray(up, jnp.float32), px, py, width=width, height=height,
+                         tan_half_fov=np.tan(np.radians(fov) / 2))
+    return jnp.broadcast_to(eye, d.shape), d
+
+
+def camera_basis(eye, target, up):
+    """The orthonormal basis of a pinhole camera: ``(forward, right, true_up)``, [3] float32 each.
+
+    ``forward`` is the unit vector from `eye` to `target`, ``right`` the unit
+    ``forward x up`` and ``true_up = right x forward``. Jittable, unchecked: `eye`,
+    `target` and `up` are [3] float32 arrays that `check_view` accepts.
+    """
     forward = target - eye
     forward = forward / jnp.linalg.norm(forward)
-    right = jnp.cross(forward, jnp.asarray(up, jnp.float32))
+    right = jnp.cross(forward, up)
     right = right / jnp.linalg.norm(right)
-    true_up = jnp.cross(right, forward)
-    scale = np.tan(np.radians(fov) / 2)
-    ys = (1 - 2 * (jnp.arange(height) + 0.5) / height) * scale
-    xs = (2 * (jnp.arange(width) + 0.5) / width - 1) * scale * width / height
-    d = forward + xs[None, :, None] * right + ys[:, None, None] * true_up
-    d = d / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    return jnp.broadcast_to(eye, d.shape), d
+    return forward, right, jnp.cross(right, forward)
+
+
+def pixel_directions(eye, target, up, px, py, *, width: int, height: int, tan_half_fov):
+    """Unit ray directions [..., 3] float32 through continuous pixel positions (jittable).
+
+    Args:
+      eye, target, up: [3] float32 camera, as in `camera_basis`.
+      px, py: float32 arrays that broadcast together: positions in pixels, ``px`` to the
+        right from the image's left edge, ``py`` down from its top edge; pixel centres
+        are ``j + 0.5`` and ``i + 0.5``.
+      width, height: image size in pixels.
+      tan_half_fov: tangent of half the vertical field of view.
+
+    Returns:
+      [*broadcast(px, py), 3] float32 unit directions. `pinhole_rays` is this at pixel
+      centres; the renderer jitters ``px`` and ``py`` within each pixel.
+    """
+    forward, right, true_up = camera_basis(eye, target, up)
+    ys = (1 - 2 * py / height) * tan_half_fov
+    xs = (2 * px / width - 1) * tan_half_fov * width / height
+    d = forward + xs[..., None] * right + ys[..., None] * true_up
+    return d / jnp.linalg.norm(d, axis=-1, keepdims=True)

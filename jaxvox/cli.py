@@ -182,9 +182,9 @@ def _environment(spec: str):
     if spec == "sky":
         return jv.sky_environment()
     if spec in ("white", "black"):
-        return jv.uniform_environment(1.0 if spec == "white" else 0.0)
+        return jv.uniform_environment(rgb=1.0 if spec == "white" else 0.0)
     if spec.startswith("uniform:"):
-        return jv.uniform_environment(_numbers(spec[len("uniform:"):], "env uniform:", (1, 3)))
+        return jv.uniform_environment(rgb=_numbers(spec[len("uniform:"):], "env uniform:", (1, 3)))
     return jv.load_environment(spec)
 
 
@@ -194,7 +194,7 @@ def _upright_default_scene():
 
     mesh = jv.default_scene()
     v = np.asarray(mesh.vertices)
-    return jv.Mesh(np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1), mesh.faces, mesh.colors)
+    return jv.Mesh(np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1), mesh.faces, colors=mesh.colors)
 
 
 def _render_scene(args):

@@ -7,7 +7,7 @@ import os
 DEFAULT_DIR = os.path.join("~", ".cache", "jaxvox", "xla")
 
 
-def enable_compilation_cache(path: str | os.PathLike | None = None) -> str | None:
+def enable_compilation_cache(*, path: str | os.PathLike | None = None) -> str | None:
     """Keeps every program jaxvox (and the rest of the process) compiles in a folder on disk.
 
     A later process that compiles the same program (same shapes, same JAX and jaxlib)

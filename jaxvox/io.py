@@ -40,6 +40,7 @@ from jaxvox._errors import JaxvoxError
 from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.octree import EMPTY, Octree, compact, padded, stored_sizes
+from jaxvox.overflow import check_overflow
 from jaxvox.voxelize import MODES
 
 MAGIC = b"\x89JVX\r\n\x1a\n"
@@ -69,8 +70,7 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     check_type("save tree", tree, Octree)
     if attributes is not None and not isinstance(attributes, Mapping):
         raise refuse("save attributes", "expected a dict of arrays", type(attributes))
-    if int(tree.overflow):
-        raise JaxvoxError(f"refusing to save a truncated tree (overflow flags {int(tree.overflow)})")
+    check_overflow("save tree", tree.overflow, "refusing to save a truncated tree")
     tree = compact(tree)
     n = int(tree.voxel_count)
     arrays = {"mask": tree.mask, "child": tree.child, "prefix": tree.prefix}

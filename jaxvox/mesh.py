@@ -40,7 +40,7 @@ class Mesh:
     uvs: jax.Array | None = None  # [V, 2] float32
     texture: jax.Array | None = None  # [H, W, C] float32
 
-    def __init__(self, vertices, faces, colors=None, uvs=None, texture=None):
+    def __init__(self, vertices, faces, *, colors=None, uvs=None, texture=None):
         optional = lambda name, a: None if a is None else _numeric(f"Mesh {name}", a, jnp.float32)
         object.__setattr__(self, "vertices", _numeric("Mesh vertices", vertices, jnp.float32))
         object.__setattr__(self, "faces", _numeric("Mesh faces", faces, jnp.int32))
@@ -201,7 +201,8 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
         if image is not None:
             uvs = np.asarray(loaded.visual.uv, np.float32)
             texture = np.asarray(image.convert("RGBA"), np.float32) / 255.0
-    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors, uvs, texture)
+    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors=colors, uvs=uvs,
+                texture=texture)
     validate_mesh(mesh)
     return mesh
 
@@ -259,4 +260,4 @@ def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
     repeat_first = lambda a: np.concatenate([a, np.repeat(a[:1], num_vertices - len(a), axis=0)])
     f_pad = np.concatenate([f, np.zeros((num_faces - len(f), 3), np.int32)])
     colors, uvs = (None if a is None else repeat_first(np.asarray(a)) for a in (mesh.colors, mesh.uvs))
-    return Mesh(repeat_first(v), f_pad, colors, uvs, mesh.texture)
+    return Mesh(repeat_first(v), f_pad, colors=colors, uvs=uvs, texture=mesh.texture)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from jaxvox.mesh import Mesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 def default_scene() -> Mesh:
@@ -15,6 +19,8 @@ def default_scene() -> Mesh:
     CLI need no mesh file. Units: roughly the cube [-1.5, 1.5]^3. Vertex colours: a
     hue gradient along the knot, a grey box and an orange sphere.
     """
+    import trimesh
+
     t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
     p, q = 2, 3
     r = np.cos(q * t) + 2.0
@@ -33,11 +39,13 @@ def default_scene() -> Mesh:
         np.tile([0.95, 0.55, 0.15], (len(ball.vertices), 1)),
     ])
     return Mesh(np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32),
-                colors.astype(np.float32))
+                colors=colors.astype(np.float32))
 
 
 def _tube(path: np.ndarray, radius: float, sides: int) -> trimesh.Trimesh:
     """A closed tube of circular cross-section along a closed polyline [n, 3]."""
+    import trimesh
+
     n = len(path)
     tangent = np.roll(path, -1, axis=0) - np.roll(path, 1, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)

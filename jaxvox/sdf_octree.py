@@ -34,14 +34,15 @@ from jaxvox._checks import check_choice, check_int, check_number, check_type, re
 from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
-from jaxvox.sdf import SDF, _check_scene, lipschitz_bound
+from jaxvox.sdf import SDF, lipschitz_bound
+from jaxvox.sdf.base import check_scene
 from jaxvox.sphere_tracing import (
-    _RUNNING,
-    _checked,
-    _refine,
-    _surface_hit,
-    _trace_one,
-    _unit,
+    RUNNING,
+    checked_rays,
+    refine_hits,
+    surface_hit,
+    trace_ray,
+    unit_directions,
 )
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
@@ -84,7 +85,7 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
         `lipschitz` (given or computed) is not a finite number > 0.
     """
     check_type("voxelize_sdf grid", grid, Grid)
-    _check_scene(scene, "voxelize_sdf scene")
+    check_scene(scene, "voxelize_sdf scene")
     lip = check_number("voxelize_sdf lipschitz", lipschitz_bound(scene) if lipschitz is None else lipschitz,
                        above=0.0)
     extent = float(np.abs(np.asarray(grid.origin)).max()) + grid.resolution * float(grid.voxel_size)
@@ -129,7 +130,7 @@ class _Round(NamedTuple):
     """Per-ray state between rounds (flat [n])."""
 
     t: jax.Array  # float32 distance along the unit direction where the next round starts
-    status: jax.Array  # int32 _RUNNING, HIT, MISS, STEP_CAP or INVALID
+    status: jax.Array  # int32 RUNNING, HIT, MISS, STEP_CAP or INVALID
     steps: jax.Array  # int32 scene evaluations so far
     leaves: jax.Array  # int32 leaves entered so far
     voxel: jax.Array  # [n, 3] int32 leaf of the last round
@@ -150,10 +151,10 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
     n = o.shape[0]
     nudge = 1e-4 * tree.grid.voxel_size  # past a leaf's exit face, so the next round leaves it
     bad = jnp.any(jnp.isnan(o), -1) | jnp.any(jnp.isnan(u), -1) | jnp.all(u == 0, -1)
-    march = jax.vmap(lambda oo, uu, t0, t1, cap: _trace_one(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
+    march = jax.vmap(lambda oo, uu, t0, t1, cap: trace_ray(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
 
     def body(s: _Round) -> _Round:
-        running = s.status == _RUNNING
+        running = s.status == RUNNING
         start = o + s.t[:, None] * u
         leaf = trace(tree, start, u, t_max=jnp.where(running, t_max - s.t, -jnp.inf), method=method, shard=False)
         entered = running & (leaf.status == HIT)
@@ -164,8 +165,8 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         left = final.status == MISS  # left the leaf (or passed t_max) without a hit
         steps = s.steps + jnp.where(entered, final.steps, 0)
         leaves = s.leaves + entered
-        status = jnp.where(left, _RUNNING, final.status)
-        status = jnp.where((status == _RUNNING) & ((leaves >= max_leaves) | (steps >= max_steps)), STEP_CAP, status)
+        status = jnp.where(left, RUNNING, final.status)
+        status = jnp.where((status == RUNNING) & ((leaves >= max_leaves) | (steps >= max_steps)), STEP_CAP, status)
         status = jnp.where(entered, status, jnp.where(running, leaf.status, s.status))
         t_next = jnp.where(left, jnp.maximum(final.t, t_out + nudge), final.t)
         return _Round(t=jnp.where(entered, t_next, s.t), status=status.astype(jnp.int32), steps=steps,
@@ -176,10 +177,10 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
 
     inside = scene._distance(o) < 0  # starts inside the surface: a hit at t = 0, as sphere_trace
     init = _Round(t=jnp.zeros(n, jnp.float32),
-                  status=jnp.where(bad, INVALID, jnp.where(inside, HIT, _RUNNING)).astype(jnp.int32),
+                  status=jnp.where(bad, INVALID, jnp.where(inside, HIT, RUNNING)).astype(jnp.int32),
                   steps=jnp.ones(n, jnp.int32), leaves=jnp.zeros(n, jnp.int32),
                   voxel=jnp.full((n, 3), -1, jnp.int32), on_surface=jnp.zeros(n, bool), d=jnp.zeros(n, jnp.float32))
-    final = jax.lax.while_loop(lambda s: jnp.any(s.status == _RUNNING), body, init)
+    final = jax.lax.while_loop(lambda s: jnp.any(s.status == RUNNING), body, init)
     return final
 
 
@@ -219,8 +220,8 @@ def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=
     check_type("sphere_trace_octree tree", tree, Octree)
     max_leaves = check_int("sphere_trace_octree max_leaves", max_leaves, minimum=1)
     check_choice("sphere_trace_octree method", method, TRACE_METHODS)
-    o, d, scalars = _checked(scene, origins, directions, t_max=t_max, epsilon=epsilon,
-                             relaxation=relaxation, max_steps=max_steps)
+    o, d, scalars = checked_rays(scene, origins, directions, t_max=t_max, epsilon=epsilon,
+                                 relaxation=relaxation, max_steps=max_steps)
     batch = o.shape[:-1]
     hit, steps = _sphere_trace_octree(scene, tree, o.reshape(-1, 3), d.reshape(-1, 3), scalars["t_max"],
                                       scalars["epsilon"], scalars["relaxation"], max_steps=int(max_steps),
@@ -233,13 +234,13 @@ def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=
 def _sphere_trace_octree(scene, tree, o, directions, t_max, epsilon, relaxation, *, max_steps, max_leaves,
                          method):
     """Flat [n] rays (any batch shape of the same size shares this compiled program)."""
-    u = _unit(directions)
+    u = unit_directions(directions)
     frozen = jax.lax.stop_gradient((scene, tree, o, u))
     final = _octree_trace(*frozen, t_max, epsilon, relaxation, max_steps=max_steps, max_leaves=max_leaves,
                           method=method)
     is_hit = final.status == HIT
-    t, extra = _refine(frozen[0], frozen[2], frozen[3], final.t, final.d, is_hit & final.on_surface, 0.0, t_max)
-    hit = _surface_hit(scene, o, u, t, final.status, final.on_surface)
+    t, extra = refine_hits(frozen[0], frozen[2], frozen[3], final.t, final.d, is_hit & final.on_surface, 0.0, t_max)
+    hit = surface_hit(scene, o, u, t, final.status, final.on_surface)
     voxel = jnp.where(is_hit[:, None], final.voxel, -1)
     index = jnp.where(is_hit, voxel_index(frozen[1], jnp.maximum(voxel, 0)), -1)
     return dataclasses.replace(hit, voxel=voxel, index=index), final.steps + extra

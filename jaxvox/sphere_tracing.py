@@ -13,7 +13,7 @@ miss.
 
 **Hit refinement.** The loop stops where ``|f| < epsilon * max(t, 1)``, which at an
 incidence ``a`` (from the tangent plane) lies up to ``epsilon * max(t, 1) / sin(a)`` short
-of the surface. `_refine` then moves ``t`` onto the crossing: probes march away from the
+of the surface. `refine_hits` then moves ``t`` onto the crossing: probes march away from the
 hit point (forward when ``f > 0``, backward when an over-relaxed step ended inside),
 each 1.5 times the secant extrapolation of the last two outside values past the last
 (at least the unbounding step ``|f|`` there; twice the last step where ``f`` does not
@@ -24,7 +24,7 @@ shrunk by Anderson-Bjorck regula falsi (bisection when an iterate would not move
 degrees, or a loose distance bound) keeps the loop's ``t``: the status is never changed.
 A feature thinner than the probe spacing can be stepped over, as the hit test itself
 reports hits within epsilon of features a ray misses. The cost is one scene evaluation
-per iteration, at most `_REFINE_STEPS` per hit (one `jax.lax.while_loop` per ray, so
+per iteration, at most `REFINE_STEPS` per hit (one `jax.lax.while_loop` per ray, so
 under vmap a batch pays its slowest ray); on spheres and boxes at incidences of 1 to 90
 degrees the mean is 3-4 (about 6 below 2 degrees). What remains is float32 rounding of
 the scene near the hit: a few ulps of ``|x|`` over ``sin(a)``.
@@ -39,9 +39,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._checks import is_concrete
 from jaxvox._errors import JaxvoxError
-from jaxvox.sdf import SDF, _is_concrete, _safe_norm
-from jaxvox.trace import _RUNNING, HIT, INVALID, MISS, STEP_CAP, Hit
+from jaxvox._geometry import safe_norm
+from jaxvox.sdf import SDF
+from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
+
+RUNNING = -1  # `Hit.status` while a ray is being traced, never returned
 
 
 class _State(NamedTuple):
@@ -52,10 +56,10 @@ class _State(NamedTuple):
     d_prev: jax.Array  # [] float32 signed distance at t_prev (0 before the first step)
     omega: jax.Array  # [] float32 relaxation, drops to 1 after a failed over-relaxed step
     steps: jax.Array  # [] int32 scene evaluations so far
-    status: jax.Array  # [] int32 _RUNNING, HIT, MISS, STEP_CAP or INVALID
+    status: jax.Array  # [] int32 RUNNING, HIT, MISS, STEP_CAP or INVALID
 
 
-def _trace_one(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
+def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
     """Sphere traces one ray (origin o, unit direction u); returns the final `_State`."""
 
     def body(s: _State) -> _State:
@@ -64,20 +68,20 @@ def _trace_one(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
         hit = (jnp.abs(d) < epsilon * jnp.maximum(s.t, 1.0)) | ((s.steps == 0) & (d < 0))
         t_next = jnp.maximum(s.t + s.omega * d, t_min)
         status = jnp.where(jnp.isnan(d), INVALID,
-                           jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, _RUNNING)))
+                           jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, RUNNING)))
         steps = s.steps + 1
         accepted = _State(jnp.where(hit, s.t, t_next), s.t, d, s.omega, steps, status)
         fallback = _State(s.t_prev + s.d_prev, s.t_prev, s.d_prev, jnp.ones_like(s.omega), steps,
-                          jnp.asarray(_RUNNING, jnp.int32))
+                          jnp.asarray(RUNNING, jnp.int32))
         new = jax.tree.map(lambda a, b: jnp.where(overlap_fails, a, b), fallback, accepted)
-        return new._replace(status=jnp.where((new.status == _RUNNING) & (steps >= max_steps), STEP_CAP,
+        return new._replace(status=jnp.where((new.status == RUNNING) & (steps >= max_steps), STEP_CAP,
                                              new.status).astype(jnp.int32))
 
     bad = jnp.any(jnp.isnan(o)) | jnp.any(jnp.isnan(u)) | jnp.all(u == 0)
-    start = jnp.where(t_min > t_max, MISS, _RUNNING)
+    start = jnp.where(t_min > t_max, MISS, RUNNING)
     init = _State(t_min, t_min, jnp.zeros_like(t_min), relaxation, jnp.int32(0),
                   jnp.where(bad, INVALID, start).astype(jnp.int32))
-    return jax.lax.while_loop(lambda s: s.status == _RUNNING, body, init)
+    return jax.lax.while_loop(lambda s: s.status == RUNNING, body, init)
 
 
 # Hit refinement, in units of |f| at the hit (see the module docstring).
@@ -85,7 +89,7 @@ _FIRST = 2.0  # first probe: a surface met head-on lies |f| away, so this one is
 _OVERSHOOT = 1.5  # later probes: 1.5 times the secant's estimate of the remaining distance, ...
 _GROWTH = 8.0  # ... at least |f| there (a safe step), at most _GROWTH times the last probe's s
 _REACH = 128.0  # probes stop 128 |f| from the hit: crossings at incidence above ~0.45 degrees
-_REFINE_STEPS = 32  # cap on scene evaluations per refined hit (probes and bracket steps together)
+REFINE_STEPS = 32  # cap on scene evaluations per refined hit (probes and bracket steps together)
 
 
 class _Refine(NamedTuple):
@@ -163,7 +167,7 @@ def _refine_one(scene, o, u, t0, f0, active, t_lo, t_hi):
         shrink = jnp.where(strictly_inside(falsi, r), falsi, mid)
         converged = r.bracketed & (settled | ~strictly_inside(shrink, r))
         stuck = ~r.bracketed & (planned >= reach)
-        done = jnp.isnan(g) | (g == 0) | converged | stuck | (r.steps >= _REFINE_STEPS)
+        done = jnp.isnan(g) | (g == 0) | converged | stuck | (r.steps >= REFINE_STEPS)
         return r._replace(s_next=jnp.where(r.bracketed, shrink, probe), done=done)
 
     r = jax.lax.while_loop(lambda r: ~r.done, body, init)
@@ -171,7 +175,7 @@ def _refine_one(scene, o, u, t0, f0, active, t_lo, t_hi):
     return at(s), r.steps
 
 
-def _refine(scene, o, u, t, f, active, t_lo, t_hi):
+def refine_hits(scene, o, u, t, f, active, t_lo, t_hi):
     """`_refine_one` over flat hits: o, u [n, 3], t, f [n] float32, active [n] bool,
     t_lo, t_hi [] or [n] float32 -> (t [n] float32, steps [n] int32)."""
     n = t.shape[0]
@@ -179,14 +183,14 @@ def _refine(scene, o, u, t, f, active, t_lo, t_hi):
     return jax.vmap(_refine_one, in_axes=(None, 0, 0, 0, 0, 0, 0, 0))(scene, o, u, t, f, active, t_lo, t_hi)
 
 
-def _unit(directions):
+def unit_directions(directions):
     """Unit directions [n, 3] (zero where the direction has zero length)."""
-    length = _safe_norm(directions)
+    length = safe_norm(directions)
     u = directions / jnp.where(length > 0, length, 1.0)[:, None]
     return jnp.where((length > 0)[:, None], u, 0.0)
 
 
-def _surface_hit(scene, o, u, t, status, on_surface) -> Hit:
+def surface_hit(scene, o, u, t, status, on_surface) -> Hit:
     """A flat `Hit` [n] from traced distances, with implicit gradients for ``t``.
 
     The loops are not differentiated: the hit t gets its gradient from the implicit
@@ -201,7 +205,7 @@ def _surface_hit(scene, o, u, t, status, on_surface) -> Hit:
     status = jnp.where((status == HIT) & ~jnp.isfinite(jax.lax.stop_gradient(f)), INVALID, status)
     is_hit = status == HIT
     g = jax.vmap(jax.grad(frozen_scene._distance))(x_star)  # [n, 3]
-    g_norm = _safe_norm(g)
+    g_norm = safe_norm(g)
     n = jnp.where((is_hit & (g_norm > 0))[:, None], g / jnp.where(g_norm > 0, g_norm, 1.0)[:, None], 0.0)
     den = jnp.sum(g * jax.lax.stop_gradient(u), axis=-1)
     den_ok = is_hit & on_surface & (den != 0)
@@ -213,13 +217,13 @@ def _surface_hit(scene, o, u, t, status, on_surface) -> Hit:
 @functools.partial(jax.jit, static_argnames=("max_steps", "return_steps"))
 def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation, max_steps, return_steps):
     batch = origins.shape[:-1]
-    o, u = origins.reshape(-1, 3), _unit(directions.reshape(-1, 3))
+    o, u = origins.reshape(-1, 3), unit_directions(directions.reshape(-1, 3))
     frozen = jax.lax.stop_gradient((scene, o, u))
-    trace = lambda s, oo, uu: _trace_one(s, oo, uu, t_min, t_max, epsilon, relaxation, max_steps)
+    trace = lambda s, oo, uu: trace_ray(s, oo, uu, t_min, t_max, epsilon, relaxation, max_steps)
     final = jax.vmap(trace, in_axes=(None, 0, 0))(*frozen)
     on_surface = jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)
-    t, extra = _refine(*frozen, final.t, final.d_prev, (final.status == HIT) & on_surface, t_min, t_max)
-    hit = _surface_hit(scene, o, u, t, final.status, on_surface)
+    t, extra = refine_hits(*frozen, final.t, final.d_prev, (final.status == HIT) & on_surface, t_min, t_max)
+    hit = surface_hit(scene, o, u, t, final.status, on_surface)
     hit = jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), hit)
     return (hit, (final.steps + extra).reshape(batch)) if return_steps else hit
 
@@ -267,13 +271,13 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
       JaxvoxError: bad shapes, ``max_steps < 1``, or (when concrete) ``epsilon <= 0``,
         relaxation outside (0, 2), NaN ``t_min`` / ``t_max``.
     """
-    o, d, scalars = _checked(scene, origins, directions, t_min=t_min, t_max=t_max, epsilon=epsilon,
-                             relaxation=relaxation, max_steps=max_steps)
+    o, d, scalars = checked_rays(scene, origins, directions, t_min=t_min, t_max=t_max, epsilon=epsilon,
+                                 relaxation=relaxation, max_steps=max_steps)
     return _sphere_trace(scene, o, d, scalars["t_min"], scalars["t_max"], scalars["epsilon"],
                          scalars["relaxation"], int(max_steps), bool(return_steps))
 
 
-def _checked(scene, origins, directions, *, max_steps, **scalars):
+def checked_rays(scene, origins, directions, *, max_steps, **scalars):
     """Validated (origins, directions) float32 [..., 3] broadcast, and float32 scalars."""
     if not isinstance(scene, SDF):
         raise JaxvoxError(f"sphere tracing needs a jaxvox.sdf scene, got {type(scene).__name__}")
@@ -291,10 +295,10 @@ def _checked(scene, origins, directions, *, max_steps, **scalars):
     for name, v in scalars.items():
         if v.shape != ():
             raise JaxvoxError(f"{name} must be a scalar, got shape {v.shape}")
-        if _is_concrete(v) and np.isnan(float(v)):
+        if is_concrete(v) and np.isnan(float(v)):
             raise JaxvoxError(f"{name} is NaN")
-    if _is_concrete(scalars["epsilon"]) and not float(scalars["epsilon"]) > 0:
+    if is_concrete(scalars["epsilon"]) and not float(scalars["epsilon"]) > 0:
         raise JaxvoxError(f"epsilon must be > 0, got {float(scalars['epsilon'])}")
-    if _is_concrete(scalars["relaxation"]) and not 0.0 < float(scalars["relaxation"]) < 2.0:
+    if is_concrete(scalars["relaxation"]) and not 0.0 < float(scalars["relaxation"]) < 2.0:
         raise JaxvoxError(f"relaxation must lie in (0, 2), got {float(scalars['relaxation'])}")
     return o, d, scalars

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -40,20 +40,23 @@ import numpy as np
 from jaxvox import morton
 from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
+from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.overflow import Overflow, check_overflow, raise_if_overflow
 
 CONSERVATIVE = "conservative"
 SIX_SEPARATING = "6-separating"
 MODES = (CONSERVATIVE, SIX_SEPARATING)
+Mode = Literal["conservative", "6-separating"]
 
-# Overflow bits of `Voxels.overflow`: which fixed capacity was too small.
-OVERFLOW_COLUMNS = 1
-OVERFLOW_ROWS = 2
-OVERFLOW_CANDIDATES = 4
-OVERFLOW_VOXELS = 8
+# Overflow bits of `Voxels.overflow` (names kept for `jaxvox.overflow.Overflow`'s members).
+OVERFLOW_COLUMNS = Overflow.COLUMNS
+OVERFLOW_ROWS = Overflow.ROWS
+OVERFLOW_CANDIDATES = Overflow.CANDIDATES
+OVERFLOW_VOXELS = Overflow.VOXELS
 
 UNUSED = -1  # value of coordinate and triangle slots past `count`
 REGION_SIZE = 1 << morton.WORD_BITS  # largest region sorted with one 32-bit key
@@ -174,9 +177,7 @@ class Voxels:
         Raises:
           JaxvoxError: when the overflow flag is set (the set would be truncated).
         """
-        if int(self.overflow):
-            raise JaxvoxError(f"voxel buffer overflowed (flags {int(self.overflow)}); "
-                              "use jaxvox.voxelize, which sizes capacities itself")
+        check_overflow("Voxels", self.overflow, "use jaxvox.voxelize, which sizes capacities itself")
         return np.asarray(self.coords[: int(self.count)])
 
     def triangle_ids(self) -> np.ndarray:
@@ -466,39 +467,6 @@ def _rows(columns: _Columns, row_cap: int, chunk: int, start=0) -> _Rows:
     return _Rows(place.reshape(-1, 5), n_depth.reshape(-1), total * chunk)
 
 
-def _point_triangle_dist2(p, a, b, c):
-    """Squared distance from points p [..., 3] to triangles (a, b, c) [..., 3] (Ericson's regions).
-
-    Leading axes broadcast. Works on the x, y, z components as separate arrays: no
-    reductions over a length-3 axis, so XLA fuses it all into one elementwise loop.
-    """
-    p, a, b, c = (tuple(x[..., i] for i in range(3)) for x in (p, a, b, c))
-    sub = lambda x, y: tuple(xi - yi for xi, yi in zip(x, y))
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp, cp = sub(p, b), sub(p, c)
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-
-    def seg(x0, x1):
-        e, q = sub(x1, x0), sub(p, x0)
-        ee = dot(e, e)
-        s = jnp.clip(dot(q, e) / jnp.where(ee > 0, ee, 1.0), 0.0, 1.0)
-        r = tuple(qi - s * ei for qi, ei in zip(q, e))
-        return dot(r, r)
-
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    inside = (va >= 0) & (vb >= 0) & (vc >= 0)
-    den = va + vb + vc
-    safe = jnp.where(den > 0, den, 1.0)
-    v, w = vb / safe, vc / safe
-    r = tuple(api - v * abi - w * aci for api, abi, aci in zip(ap, ab, ac))
-    face = dot(r, r)
-    edges = jnp.minimum(jnp.minimum(seg(a, b), seg(b, c)), seg(c, a))
-    return jnp.where(inside & (den > 0), jnp.minimum(face, edges), edges)
-
-
 def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: bool, start=0, ids=None):
     """Expands rows into candidate voxels (the window of `cand_cap` from `start` on) and
     their sort operands.
@@ -522,7 +490,7 @@ def _candidates(tris_grid, rows: _Rows, cand_cap: int, words: int, with_ids: boo
     if with_ids:
         tri = p[:, 4]
         corners = tris_grid[tri]
-        dist2 = _point_triangle_dist2(ijk.astype(jnp.float32) + 0.5, corners[:, 0], corners[:, 1], corners[:, 2])
+        dist2 = point_triangle_dist2(ijk.astype(jnp.float32) + 0.5, corners[:, 0], corners[:, 1], corners[:, 2])
         payload = (jax.lax.bitcast_convert_type(dist2, jnp.uint32),
                    (tri if ids is None else ids[tri]).astype(jnp.uint32))
     return keys, payload, total
@@ -592,13 +560,14 @@ def _pipeline(tris_grid, region_lo, region_size: int, six_sep: bool, caps: Capac
     return coords, triangle, count, overflow
 
 
-def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
-                   mode: str = CONSERVATIVE, triangle_ids: bool = False) -> Voxels:
+def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *, mode: Mode = CONSERVATIVE,
+                   triangle_ids: bool = False, checked: bool = False) -> Voxels:
     """Jittable voxelization with static capacities; usable inside a user's `jax.jit`.
 
     Never resizes: what does not fit is dropped and flagged in ``Voxels.overflow``
-    (``OVERFLOW_*`` bits). Get capacities that fit from `voxel_capacities`, or use the
-    host-side `voxelize`, which sizes them and never returns a truncated result.
+    (`jaxvox.Overflow` bits COLUMNS, ROWS, CANDIDATES, VOXELS). Get capacities that fit
+    from `voxel_capacities`, or use the host-side `voxelize`, which sizes them and never
+    returns a truncated result (see `jaxvox.overflow` for the protocol).
     Input validation (NaN vertices, face indices) is the caller's job here: non-finite
     triangles are skipped and out-of-range indices are clamped by JAX's gather.
 
@@ -608,6 +577,8 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
       capacities: `Capacities` (static).
       mode: "conservative" or "6-separating" (static).
       triangle_ids: also return the closest triangle id per voxel (static).
+      checked: raise (as an error of the running computation) instead of returning a
+        flagged result when a capacity is too small (static).
 
     Returns:
       `Voxels` with capacity ``capacities.voxels``.
@@ -623,6 +594,8 @@ def voxelize_fixed(mesh: Mesh, grid: Grid, capacities: Capacities, *,
     tris = grid.to_grid_units(mesh.triangles())
     coords, triangle, count, overflow = _pipeline(
         tris, jnp.zeros(3, jnp.int32), grid.resolution, six_sep, capacities, triangle_ids)
+    if checked:
+        raise_if_overflow("voxelize_fixed result", overflow)
     return Voxels(coords, count, overflow, triangle, grid, mode)
 
 
@@ -834,7 +807,7 @@ def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     return out
 
 
-def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: bool = False,
+def voxelize(mesh: Mesh, grid: Grid, *, mode: Mode = CONSERVATIVE, triangle_ids: bool = False,
              region_size: int = REGION_SIZE, progress: bool | None = None) -> Voxels:
     """Voxelizes a triangle mesh exactly; capacities are sized by counting passes.
 
@@ -892,7 +865,7 @@ def voxelize(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE, triangle_ids: 
                   None if triangle is None else to_device(triangle), grid, mode)
 
 
-def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: str = CONSERVATIVE) -> Capacities:
+def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: Mode = CONSERVATIVE) -> Capacities:
     """Capacities with which `voxelize_fixed` does not overflow for this mesh and grid.
 
     Found by the host-side counting pass over the whole grid as one region (and the

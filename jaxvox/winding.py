@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._checks import check_int, check_number, check_type, refuse
+from jaxvox._geometry import solid_angle
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
@@ -109,21 +110,6 @@ def _build_tree(tris: np.ndarray) -> _Tree:
                  count=jnp.asarray(np.concatenate(count).astype(np.int32)),
                  triangles=jnp.asarray(tris.astype(np.float32)),
                  levels=tuple(zip(offsets.tolist(), sizes)))
-
-
-def solid_angle(p, t):
-    """Signed solid angle / (4 pi) of triangles t [..., 3, 3] seen from points p [..., 3].
-
-    Positive from the side the counter-clockwise normal points away from (inside a
-    closed, outward-oriented mesh). Van Oosterom & Strackee, on separate components.
-    """
-    a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-    la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
-    det = (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
-           + a[2] * (b[0] * c[1] - b[1] * c[0]))
-    den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
-    return jnp.arctan2(det, den) / (2 * jnp.pi)
 
 
 def _block_offsets(block: int) -> np.ndarray:
@@ -211,12 +197,12 @@ def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4
     if block & (block - 1):
         raise refuse("winding_numbers block", "must be a power of two", block)
     r = grid.resolution
-    return _box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r),
-                               beta=beta, block=block)
+    return box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r),
+                              beta=beta, block=block)
 
 
-def _box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int, int, int], *,
-                        beta: float = 2.0, block: int = 4) -> jax.Array:
+def box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int, int, int], *,
+                       beta: float = 2.0, block: int = 4) -> jax.Array:
     """`winding_numbers` at the centres of a box of voxels of any shape.
 
     Voxel (i, j, k) has its centre at ``origin + (i + 1/2, j + 1/2, k + 1/2) * voxel_size``.

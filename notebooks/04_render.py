@@ -45,7 +45,7 @@ SPP, BOUNCES = (2, 2) if SMOKE else (32, 8)
 # %%
 scene = jv.default_scene()
 v = np.asarray(scene.vertices)
-scene = jv.Mesh(np.stack([v[:, 0], v[:, 2], -v[:, 1]], 1), scene.faces, scene.colors)
+scene = jv.Mesh(np.stack([v[:, 0], v[:, 2], -v[:, 1]], 1), scene.faces, colors=scene.colors)
 vox = jv.voxelize(scene, jv.Grid.fit(scene, resolution=RESOLUTION), triangle_ids=True)
 dag = jv.build_dag(vox)
 albedo = jv.voxel_albedo(jv.voxel_attributes(scene, vox))
@@ -88,7 +88,7 @@ with tempfile.TemporaryDirectory() as folder:
 # absorbed, so every pixel is 1, object or not (up to paths cut by the bounce cap).
 
 # %%
-furnace = jv.render(dag, eye, target, env=jv.uniform_environment(1.0), albedo=(1.0, 1.0, 1.0), width=WIDTH,
+furnace = jv.render(dag, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0), width=WIDTH,
                     height=HEIGHT, spp=SPP, bounces=32, key=1)
 rgb = np.asarray(furnace.radiance)
 print(f"furnace: mean {rgb.mean():.6f}, min {rgb.min():.4f}, max {rgb.max():.6f}")
@@ -100,7 +100,7 @@ print(f"furnace: mean {rgb.mean():.6f}, min {rgb.min():.4f}, max {rgb.max():.6f}
 # %%
 emission = np.zeros((int(dag.voxel_count), 3), np.float32)
 emission[:: 40] = (6.0, 3.0, 1.0)
-glow = jv.render(dag, eye, target, env=jv.uniform_environment(0.0), albedo=albedo, emission=emission,
+glow = jv.render(dag, eye, target, env=jv.uniform_environment(rgb=0.0), albedo=albedo, emission=emission,
                  width=WIDTH, height=HEIGHT, spp=SPP, bounces=BOUNCES, key=2)
 plt.imshow(jv.tonemap(glow.radiance, exposure=1.0))
 plt.axis("off")

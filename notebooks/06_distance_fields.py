@@ -123,11 +123,13 @@ right = np.cross(forward, [0, 0, 1.0]); right /= np.linalg.norm(right)
 up = np.cross(right, forward)
 u, v = np.meshgrid(np.linspace(-0.5, 0.5, pixels), np.linspace(-0.5, 0.5, pixels))
 dirs = forward + u.reshape(-1, 1) * right + v.reshape(-1, 1) * up
-t, status, cascade = jax.jit(jv.trace_clipmap)(clip, np.repeat(camera[None], len(dirs), 0), dirs)
-depth = np.where(np.asarray(status) == jv.HIT, np.asarray(t), np.nan).reshape(pixels, pixels)
+hit = jax.jit(jv.trace_clipmap)(clip, np.repeat(camera[None], len(dirs), 0), dirs)  # a jv.Hit
+status = np.asarray(hit.status)
+depth = np.where(status == jv.HIT, np.asarray(hit.t), np.nan).reshape(pixels, pixels)
 fig, axes = plt.subplots(1, 2, figsize=(9, 4))
 axes[0].imshow(depth, origin="lower", cmap="viridis_r")
 axes[0].set_title("hit distance")
-axes[1].imshow(np.asarray(cascade).reshape(pixels, pixels), origin="lower")
-axes[1].set_title("cascade where each ray stopped")
-print("hits:", int((np.asarray(status) == jv.HIT).sum()), "of", len(dirs))
+cascade = np.where(status == jv.HIT, np.asarray(hit.index), np.nan)  # Hit.index: the cascade hit
+axes[1].imshow(cascade.reshape(pixels, pixels), origin="lower")
+axes[1].set_title("cascade where each ray hit")
+print("hits:", int((status == jv.HIT).sum()), "of", len(dirs))

@@ -1,4 +1,4 @@
-"""Distance fields, solid voxelization and 16-bit storage against float64 and scipy references.
+"""Distance fields and 16-bit storage against float64 and scipy references.
 
 Error bounds per method (voxel units, on the closed spot mesh at 32^3, measured there
 as jfa 0.22, jfa-separable 0.38, sweep 1.28 / -0.53, jfa+sweep 0.97 / -0.43):
@@ -29,9 +29,10 @@ import pytest
 from scipy import ndimage
 
 import jaxvox as jv
-from jaxvox import distance
-
-from tests.reference import first_hit, mesh_distance, ray_parity, winding_number
+from jaxvox.distance.field import box_distance, box_grid
+from jaxvox.distance.sweep import fast_sweep
+from jaxvox.solid import grid_triangles, padded_mesh, solid_inside
+from tests.reference import mesh_distance, ray_parity
 
 BOUNDS = {  # method: (max above exact, max below exact), voxels
     "exact": (2e-4, 2e-4),
@@ -49,13 +50,13 @@ HALF_DIAGONAL = math.sqrt(3) / 2
 SLOW = os.environ.get("JAXVOX_SLOW_SCALE", "").strip().lower()
 
 
-def _centres(grid) -> np.ndarray:
+def voxel_centres(grid) -> np.ndarray:
     r = grid.resolution
     ijk = np.indices((r, r, r)).reshape(3, -1).T
     return (ijk + 0.5) * float(grid.voxel_size) + np.asarray(grid.origin, np.float64)
 
 
-def _icosphere(subdivisions=1, radius=1.0, shift=(0.0, 0.0, 0.0)) -> jv.Mesh:
+def icosphere(subdivisions=1, radius=1.0, shift=(0.0, 0.0, 0.0)) -> jv.Mesh:
     import trimesh
 
     s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
@@ -73,12 +74,12 @@ def spot(meshes_dir):
 def test_exact_matches_float64_on_hard_cases():
     """Brute force against the float64 reference: a closed sphere, an open fan with a
     degenerate (zero-area) triangle and a point, and a mesh half outside the grid."""
-    sphere = _icosphere(1, 0.6, (0.5, 0.5, 0.5))
+    sphere = icosphere(1, 0.6, (0.5, 0.5, 0.5))
     v = np.array([[0.2, 0.2, 0.5], [0.8, 0.3, 0.5], [0.4, 0.9, 0.6], [0.6, 0.6, 0.6], [0.3, 0.3, 0.3]], np.float32)
     fan = jv.Mesh(v, np.array([[0, 1, 2], [1, 3, 3], [4, 4, 4]], np.int32))  # triangle, segment, point
-    outside = _icosphere(0, 0.5, (1.6, 0.5, -0.4))  # mostly outside the unit box
+    outside = icosphere(0, 0.5, (1.6, 0.5, -0.4))  # mostly outside the unit box
     grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1 / 16, resolution=16)
-    points = _centres(grid)
+    points = voxel_centres(grid)
     for mesh in (sphere, fan, outside):
         ref = mesh_distance(mesh.vertices, mesh.faces, points).reshape((16,) * 3)
         got = np.asarray(jv.distance_field(mesh, grid, method="exact", signed=False))
@@ -128,7 +129,7 @@ def test_methods_on_spot_within_bounds(spot, method):
 def test_exact_against_float64_on_spot_sample(spot):
     mesh, grid, exact = spot
     idx = np.random.default_rng(0).choice(exact.size, 300, replace=False)
-    ref = mesh_distance(mesh.vertices, mesh.faces, _centres(grid)[idx])
+    ref = mesh_distance(mesh.vertices, mesh.faces, voxel_centres(grid)[idx])
     np.testing.assert_allclose(exact.reshape(-1)[idx] / float(grid.voxel_size),
                                ref / float(grid.voxel_size), atol=BOUNDS["exact"][0])
 
@@ -153,49 +154,9 @@ def test_more_band_and_sweeps_options(spot):
     np.testing.assert_array_equal(np.sign(band), np.sign(signed))
 
 
-def test_sign_parity_on_watertight_meshes(meshes_dir):
-    for name in ("spot", "cow"):
-        mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
-        assert jv.open_edges(mesh) == 0
-        grid = jv.Grid.fit(mesh, resolution=32, padding=0.05)
-        solid = np.asarray(jv.solid_voxelize(mesh, grid, method="parity"))
-        points = _centres(grid)
-        idx = np.random.default_rng(1).choice(len(points), 250, replace=False)
-        ref = ray_parity(mesh.vertices, mesh.faces, points[idx])
-        assert 0 < solid.sum() < solid.size
-        np.testing.assert_array_equal(solid.reshape(-1)[idx], ref)
-        field = np.asarray(jv.distance_field(mesh, grid, method="jfa+sweep"))  # sign="auto": parity
-        np.testing.assert_array_equal(field < 0, solid)
-
-
-def test_sign_winding_on_open_mesh_and_parity_refuses(meshes_dir):
-    mesh = jv.load_mesh(meshes_dir / "suzanne.obj")
-    assert jv.open_edges(mesh) > 0
-    grid = jv.Grid.fit(mesh, resolution=16, padding=0.05)
-    with pytest.raises(jv.JaxvoxError, match="watertight"):
-        jv.solid_voxelize(mesh, grid, method="parity")
-    with pytest.raises(jv.JaxvoxError, match="watertight"):
-        jv.distance_field(mesh, grid, sign="parity")
-    idx = np.random.default_rng(4).choice(16**3, 400, replace=False)
-    w = winding_number(mesh.vertices, mesh.faces, _centres(grid)[idx])
-    solid = np.asarray(jv.solid_voxelize(mesh, grid)).reshape(-1)[idx]  # auto: winding
-    firm = np.abs(w - 0.5) > 1e-3
-    assert firm.sum() > 390 and solid.any()
-    np.testing.assert_array_equal(solid[firm], (w > 0.5)[firm])
-
-
-def test_winding_and_parity_agree_on_closed_sphere():
-    mesh = _icosphere(2, 0.7, (0.0, 0.0, 0.0))
-    grid = jv.Grid(origin=(-1.0, -1.0, -1.0), voxel_size=2 / 16, resolution=16)
-    parity = np.asarray(jv.solid_voxelize(mesh, grid, method="parity"))
-    winding = np.asarray(jv.solid_voxelize(mesh, grid, method="winding"))
-    np.testing.assert_array_equal(parity, winding)
-    r = np.linalg.norm(_centres(grid), axis=1).reshape((16,) * 3)
-    assert parity[r < 0.6].all() and not parity[r > 0.71].any()
-
 
 def test_bad_input_and_memory_limit():
-    mesh = _icosphere(0)
+    mesh = icosphere(0)
     grid = jv.Grid(origin=(-1.0, -1.0, -1.0), voxel_size=0.25, resolution=8)
     bad = jv.Mesh(np.asarray(mesh.vertices).copy(), mesh.faces)
     bad = jv.Mesh(np.where(np.arange(len(bad.vertices))[:, None] == 2, np.nan, bad.vertices), bad.faces)
@@ -238,7 +199,7 @@ def _triangles_jfa_error(corners) -> np.ndarray:
     v = np.array(corners, np.float32).reshape(-1, 3)
     mesh = jv.Mesh(v, np.arange(len(v), dtype=np.int32).reshape(-1, 3))
     grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1 / 8, resolution=8)
-    ref = mesh_distance(v, np.asarray(mesh.faces), _centres(grid)).reshape((8,) * 3) * 8
+    ref = mesh_distance(v, np.asarray(mesh.faces), voxel_centres(grid)).reshape((8,) * 3) * 8
     return np.asarray(jv.distance_field(mesh, grid, method="jfa", signed=False)) * 8 - ref
 
 
@@ -278,69 +239,10 @@ def test_bunny_unsigned_bounds(meshes_dir, method):
     grid = jv.Grid.fit(mesh, resolution=r, padding=0.1)
     got = np.asarray(jv.distance_field(mesh, grid, method=method, signed=False)).reshape(-1)
     idx = np.random.default_rng(2).choice(got.size, 60, replace=False)
-    ref = mesh_distance(mesh.vertices, mesh.faces, _centres(grid)[idx])
+    ref = mesh_distance(mesh.vertices, mesh.faces, voxel_centres(grid)[idx])
     err = (got[idx] - ref) / float(grid.voxel_size)
     above, below = BOUNDS[method]
     assert err.max() <= above and err.min() >= -below
-
-
-# ------------------------------------------------------------------------------ clipmaps
-
-
-@pytest.mark.parametrize("method", ["exact", "band"])
-def test_clipmap_incremental_equals_scratch_after_moves(method):
-    """After time-sliced moves (small, large, random), the incremental clipmap equals a
-    build from scratch: exactly for "exact" (a function of position), and to float32
-    rounding for "band" (a function of the seeds near each voxel; see `Clipmap`)."""
-    mesh = _icosphere(1, 0.5, (0.1, 0.0, 0.0))
-    kw = dict(resolution=16, num_cascades=3, voxel_size=0.05, method=method)
-    rng = np.random.default_rng(5)
-    moves = [(-0.9, 0.2, 0.1), (-0.85, 0.2, 0.1), (2.0, 1.0, -1.0)] + list(rng.uniform(-1, 1, (3, 3)))
-    clip = jv.build_clipmap(mesh, (-1.0, 0.2, 0.1), **kw)
-    for frame, camera in enumerate(moves):  # time-sliced: at most one cascade per frame
-        clip = jv.update_clipmap(clip, mesh, camera, cascades=jv.time_sliced_cascades(frame, 3))
-        assert len(jv.time_sliced_cascades(frame, 3)) == 1
-    clip = jv.update_clipmap(clip, mesh, moves[-1])  # catch up every cascade
-    scratch = jv.build_clipmap(mesh, moves[-1], **kw)
-    np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(scratch.corner))
-    np.testing.assert_allclose(np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6 if method == "exact" else 1e-5)
-    # stored values are the signed distance at each voxel centre, clamped (exact, or within
-    # the separable jump flooding's bound, never below)
-    above = BOUNDS["exact"][0] if method == "exact" else BOUNDS["jfa-separable"][0]
-    c, r = 1, 16
-    h = 0.05 * 2**c
-    g = np.asarray(scratch.corner[c]) + np.argwhere(np.ones((r, r, r), bool))
-    centres = (g + 0.5) * h
-    slots = np.mod(g, r)
-    ref = np.minimum(mesh_distance(mesh.vertices, mesh.faces, centres), 8 * h) / h
-    inside = winding_number(mesh.vertices, mesh.faces, centres[::97]) > 0.5
-    got = np.asarray(scratch.fields[c])[tuple(slots.T)] / h
-    err = np.abs(got) - ref
-    assert err.max() <= above + 1e-4 and err.min() >= -2e-4, (err.min(), err.max())
-    np.testing.assert_array_equal(got[::97] < 0, inside)
-    # union with a dynamic object: pointwise min
-    if method == "band":
-        return
-    ball = jv.build_clipmap(_icosphere(0, 0.2, (-0.6, 0.0, 0.0)), moves[-1], **kw)
-    union = jv.union_clipmaps(scratch, ball)
-    np.testing.assert_array_equal(np.asarray(union.fields), np.minimum(scratch.fields, ball.fields))
-
-
-@hypothesis.settings(max_examples=60, deadline=None)
-@hypothesis.given(st.sampled_from([4, 8]), st.lists(st.integers(-9, 9), min_size=6, max_size=6))
-def test_exposed_boxes_cover_the_new_window_once(r, moves):
-    """The scissor volumes of a move: disjoint boxes inside the new window whose union is
-    exactly the voxels the old window lacks (nothing computed twice, nothing missed)."""
-    old, new = np.array(moves[:3]), np.array(moves[3:])
-    count = {}
-    for lo, hi in distance._exposed_boxes(old, new, r):
-        assert np.all(lo >= new) and np.all(hi <= new + r) and np.all(hi > lo)
-        for g in np.ndindex(*(hi - lo)):
-            key = tuple(lo + g)
-            count[key] = count.get(key, 0) + 1
-    want = {g for g in (tuple(new + np.array(i)) for i in np.ndindex(r, r, r))
-            if np.any((np.array(g) < old) | (np.array(g) >= old + r))}
-    assert set(count) == want and all(c == 1 for c in count.values())
 
 
 @pytest.mark.parametrize("method", [m for m in BOUNDS if m != "sweep"] + ["band"])
@@ -348,22 +250,22 @@ def test_box_pipeline_on_a_non_cubic_box(method):
     """The pipeline on a box of 5 x 12 x 7 voxels (what a scissor volume runs on), with
     the mesh partly outside it: within the method's bounds of the float64 distance, and
     the parity and winding signs of the box equal the references at its centres."""
-    mesh = _icosphere(1, 0.5, (0.35, 0.3, 0.2))
+    mesh = icosphere(1, 0.5, (0.35, 0.3, 0.2))
     shape = (5, 12, 7)
     h = 0.1
-    grid = distance._box_grid((0.0, 0.0, 0.0), h, shape)
+    grid = box_grid((0.0, 0.0, 0.0), h, shape)
     points = (np.indices(shape).reshape(3, -1).T + 0.5) * h
     ref = mesh_distance(mesh.vertices, mesh.faces, points).reshape(shape) / h
     band = {"jfa+sweep": 1, "band": 12}.get(method, 0)  # 12 passes cover the box
-    got = np.asarray(distance._box_distance(mesh, grid, shape, method=method, band=band, sweeps=3))
+    got = np.asarray(box_distance(mesh, grid, shape, method=method, band=band, sweeps=3))
     assert got.shape == shape
     above = ISOLATED_SWEEP_BOUND if "sweep" in method else OUTSIDE_JFA_BOUND if method != "exact" else 2e-4
     err = got - ref
     assert err.max() <= above and err.min() >= -BOUNDS.get(method, (0, 2e-4))[1], (err.min(), err.max())
     inside = ray_parity(mesh.vertices, mesh.faces, points).reshape(shape)
-    tris = distance._grid_triangles(distance._padded(mesh), grid)
+    tris = grid_triangles(padded_mesh(mesh), grid)
     for sign in ("parity", "winding"):
-        solid = np.asarray(distance._solid(mesh, tris, grid, shape, sign, 2.0))
+        solid = np.asarray(solid_inside(mesh, tris, grid, shape, sign, 2.0))
         np.testing.assert_array_equal(solid, inside)
 
 
@@ -373,65 +275,11 @@ def test_sweep_on_non_cubic_boxes_matches_a_cube():
     rng = np.random.default_rng(2)
     shape = (3, 6, 5)
     u = np.where(rng.random(shape) < 0.1, 3 * rng.random(shape), np.inf).astype(np.float32)
-    got = np.asarray(distance._sweep(jnp.asarray(u), jnp.isinf(jnp.asarray(u)), 1))
+    got = np.asarray(fast_sweep(jnp.asarray(u), jnp.isinf(jnp.asarray(u)), 1))
     assert np.isfinite(got).all()
     cube = np.full((8, 8, 8), np.inf, np.float32)
     cube[:3, :6, :5] = u
     box = np.zeros((8, 8, 8), bool)
     box[:3, :6, :5] = True
-    ref = np.asarray(distance._sweep(jnp.asarray(cube), jnp.asarray(np.isinf(cube) & box), 1))
+    ref = np.asarray(fast_sweep(jnp.asarray(cube), jnp.asarray(np.isinf(cube) & box), 1))
     np.testing.assert_allclose(got, ref[:3, :6, :5], rtol=1e-6)  # compiled per shape: rounding may differ
-
-
-@pytest.mark.parametrize("method", ["jfa", "jfa+sweep"])
-def test_clipmap_pipeline_within_method_bounds(method):
-    """Distance-field methods: after moves, the incremental clipmap and a scratch build
-    are each within the method's bounds of the exact clipmap (so within the sum of both
-    bounds of each other); signs agree away from the surface."""
-    mesh = _icosphere(1, 0.5, (0.1, 0.0, 0.0))
-    kw = dict(resolution=16, num_cascades=2, voxel_size=0.05)
-    clip = jv.build_clipmap(mesh, (-1.0, 0.2, 0.1), method=method, **kw)
-    assert clip.method == method
-    for frame, camera in enumerate([(-0.9, 0.2, 0.1), (0.4, -0.3, 0.2), (0.45, -0.2, 0.1)]):
-        clip = jv.update_clipmap(clip, mesh, camera, cascades=jv.time_sliced_cascades(frame, 2))
-    clip = jv.update_clipmap(clip, mesh, (0.45, -0.2, 0.1))
-    scratch = jv.build_clipmap(mesh, (0.45, -0.2, 0.1), method=method, **kw)
-    exact = jv.build_clipmap(mesh, (0.45, -0.2, 0.1), method="exact", **kw)
-    np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(exact.corner))
-    above, below = BOUNDS[method]
-    above = ISOLATED_SWEEP_BOUND if "sweep" in method else above  # the mesh crosses the windows
-    for c in range(2):
-        h = 0.05 * 2**c
-        ref = np.asarray(exact.fields[c]) / h
-        firm = np.abs(ref) > 0.5  # the sign may differ within half a voxel of the surface
-        for built in (clip, scratch):
-            got = np.asarray(built.fields[c]) / h
-            np.testing.assert_array_equal(np.sign(got[firm]), np.sign(ref[firm]))
-            err = np.abs(got) - np.abs(ref)
-            assert err.max() <= above + 1e-4 and err.min() >= -below - 1e-4, (c, err.min(), err.max())
-    # Kept slots hold values from older windows: incremental and scratch differ, within both bounds.
-    gap = np.abs(np.asarray(clip.fields) - np.asarray(scratch.fields)) / (0.05 * 2.0 ** np.arange(2))[:, None, None, None]
-    assert gap.max() <= above + below + 1e-4
-
-
-def test_clipmap_tracing_matches_exact_hits():
-    mesh = _icosphere(2, 0.5, (0.1, 0.0, 0.0))
-    camera = np.array([-1.0, 0.2, 0.1])
-    clip = jv.build_clipmap(mesh, camera, resolution=16, num_cascades=3, voxel_size=0.05)
-    rng = np.random.default_rng(6)
-    towards = np.array([0.1, 0.0, 0.0]) + rng.uniform(-0.3, 0.3, (24, 3)) - camera  # well inside the silhouette
-    away = rng.normal(size=(8, 3)) * 0.2 + [-1.0, 0.0, 0.0]
-    dirs = np.concatenate([towards, away])
-    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    origins = np.repeat(camera[None], len(dirs), 0)
-    t, status, cascade = jax.jit(jv.trace_clipmap)(clip, origins, dirs)
-    ref = first_hit(mesh.vertices, mesh.faces, origins, dirs)
-    status, t, cascade = np.asarray(status), np.asarray(t), np.asarray(cascade)
-    np.testing.assert_array_equal(status == jv.HIT, np.isfinite(ref))
-    assert (status[np.isinf(ref)] == jv.MISS).all()
-    hit = np.isfinite(ref)
-    assert hit.sum() == 24
-    h = 0.05 * 2.0 ** cascade[hit]
-    assert (np.abs(t[hit] - ref[hit]) <= h).all()
-    capped = jv.trace_clipmap(clip, origins[:4], dirs[:4], max_steps=1)[1]
-    assert (np.asarray(capped) == jv.STEP_CAP).all()

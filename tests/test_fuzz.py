@@ -148,7 +148,8 @@ def test_mesh_voxelize_and_fit(vertices, faces, mode, scale):
                          arrays([(2, 2, 3), (2, 2, 5), (0, 2, 3)])))
 def test_mesh_attributes(colors, uvs, texture):
     base = _tetra()
-    mesh = attempt("Mesh with attributes", lambda: jv.Mesh(base.vertices, base.faces, colors, uvs, texture))
+    mesh = attempt("Mesh with attributes", lambda: jv.Mesh(base.vertices, base.faces, colors=colors, uvs=uvs,
+                                                                   texture=texture))
     if mesh is not None:
         vox = attempt("voxelize with attributes", lambda: jv.voxelize(mesh, GRID, triangle_ids=True), _valid_voxels)
         if vox is not None:
@@ -251,7 +252,7 @@ def test_look_at_view(bounds, azimuth, distance):
 def test_sdf_primitives_and_sphere_trace(kind, a, b):
     build = {"sphere": lambda: sdf.sphere(a), "box": lambda: sdf.box(a), "torus": lambda: sdf.torus(a, b),
              "capsule": lambda: sdf.capsule(a, b, 0.1), "cylinder": lambda: sdf.cylinder(a, b),
-             "plane": lambda: sdf.plane(a, b), "rounded_box": lambda: sdf.rounded_box(a, b)}[kind]
+             "plane": lambda: sdf.plane(a, offset=b), "rounded_box": lambda: sdf.rounded_box(a, b)}[kind]
     scene = attempt(f"sdf.{kind}", build)
     if scene is None:
         return

@@ -64,7 +64,7 @@ def test_same_seed_same_image_and_finite(scene):
 
 def test_aovs_match_primary_trace(scene):
     tree, eye, target, _ = scene
-    result = jv.render(tree, eye, target, env=jv.uniform_environment(0.0), bounces=0, key=0, **SETTINGS)
+    result = jv.render(tree, eye, target, env=jv.uniform_environment(rgb=0.0), bounces=0, key=0, **SETTINGS)
     origins, directions = jv.pinhole_rays(eye, target, width=W, height=H)
     hit = jv.trace(tree, origins, directions)
     hits = np.asarray(hit.status) == jv.HIT
@@ -79,7 +79,7 @@ def test_aovs_match_primary_trace(scene):
 def test_white_furnace(scene):
     """Albedo 1 under a uniform environment of radiance 1: every path carries exactly 1 out."""
     tree, eye, target, _ = scene
-    result = jv.render(tree, eye, target, env=jv.uniform_environment(1.0), albedo=(1.0, 1.0, 1.0), bounces=48,
+    result = jv.render(tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0), bounces=48,
                        key=1, **SETTINGS)
     rgb = np.asarray(result.radiance)
     hits = np.isfinite(np.asarray(result.depth))
@@ -87,7 +87,7 @@ def test_white_furnace(scene):
     assert rgb.max() <= 1.0 + 1e-6
     assert abs(rgb.mean() - 1.0) < 1e-3
     # Grey albedo: energy is lost at every bounce, nothing gains any.
-    grey = jv.render(tree, eye, target, env=jv.uniform_environment(1.0), albedo=(0.5, 0.5, 0.5), bounces=48,
+    grey = jv.render(tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(0.5, 0.5, 0.5), bounces=48,
                      key=1, **SETTINGS)
     g = np.asarray(grey.radiance)
     assert g.max() <= 1.0 + 1e-6 and (g[_interior(hits)] < 1.0).all()
@@ -96,7 +96,7 @@ def test_white_furnace(scene):
 
 def test_black_environment_and_emission(scene):
     tree, eye, target, _ = scene
-    black = jv.uniform_environment(0.0)
+    black = jv.uniform_environment(rgb=0.0)
     dark = jv.render(tree, eye, target, env=black, bounces=4, key=2, **SETTINGS)
     np.testing.assert_array_equal(np.asarray(dark.radiance), 0.0)
     # Every voxel emits, nothing reflects: surface pixels show exactly the emission.
@@ -131,22 +131,6 @@ def test_sun_on_upward_faces(scene):
     assert up.sum() > 20 and side.sum() > 5
     assert np.mean(np.isclose(rgb[up], expected, rtol=1e-5).all(-1)) > 0.9  # the rest lies in the ball's shadow
     assert np.mean((rgb[side] == 0).all(-1)) > 0.95  # no sun on side and bottom faces (a pixel may straddle)
-
-
-def test_environment_lookup(tmp_path):
-    image = np.zeros((4, 8, 3), np.float32)
-    image[0] = 1.0  # the row looking up
-    image[2, 4] = [0.0, 5.0, 0.0]  # below the horizon, just right of -z
-    np.save(tmp_path / "env.npy", image)
-    env = jv.load_environment(tmp_path / "env.npy")
-    out = np.asarray(env.radiance(np.array([[0, 1, 0], [0.01, -0.2, -1.0], [0, -1, 0]], np.float32)))
-    np.testing.assert_array_equal(out, [[1, 1, 1], [0, 5, 0], [0, 0, 0]])
-    uniform = jv.uniform_environment((0.1, 0.2, 0.3))
-    np.testing.assert_allclose(np.asarray(uniform.radiance(np.eye(3, dtype=np.float32))),
-                               np.tile([0.1, 0.2, 0.3], (3, 1)), rtol=1e-7)
-    sky = jv.sky_environment(sun_direction=(0, 1, 0))
-    assert np.asarray(sky.camera_radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] > 1e3  # the sun disc
-    assert np.asarray(sky.radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] < 1.0
 
 
 def test_exr_round_trip_is_exact(tmp_path):
@@ -247,7 +231,7 @@ def test_bounce_origins_never_start_inside_a_voxel():
     and a reported normal of -y."""
     import importlib
 
-    surface = importlib.import_module("jaxvox.render")._voxel_surface
+    surface = importlib.import_module("jaxvox.render.integrator")._voxel_surface
     grid = jv.Grid(np.zeros(3), 1.0, 4)
     tree = jv.build_octree(jv.Voxels.from_coords([[1, 1, 0], [1, 0, 0]], grid))
     direction = np.array([[1.0, 1.0, 0.2]], np.float32) / np.float32(np.sqrt(2.04))
@@ -298,7 +282,7 @@ def test_voxel_albedo():
 
 def test_bad_inputs(scene, tmp_path):
     tree, eye, target, _ = scene
-    env = jv.uniform_environment(1.0)
+    env = jv.uniform_environment(rgb=1.0)
     for bad, match in ((dict(width=0), "width"), (dict(spp=0), "spp"), (dict(bounces=-1), "bounces"),
                        (dict(fov=180.0), "fov"), (dict(albedo=np.ones((3, 3))), "albedo"),
                        (dict(emission=(1.0, -1.0, 0.0)), "emission"), (dict(env="sky"), "Environment")):
@@ -317,7 +301,7 @@ def test_bad_inputs(scene, tmp_path):
     with pytest.raises(jv.JaxvoxError, match="truncated"):
         jv.load_environment(tmp_path / "sky.hdr")
     with pytest.raises(jv.JaxvoxError, match="negative"):
-        jv.uniform_environment((1.0, -1.0, 0.0))
+        jv.uniform_environment(rgb=(1.0, -1.0, 0.0))
 
 
 def test_cli_info_and_errors(scene, tmp_path, capsys):
@@ -381,7 +365,7 @@ def test_cli_render_subprocess(tmp_path):
 def test_mesh_renderer_furnace_and_agreement_with_voxels(scene):
     pytest.importorskip("embreex")
     tree, eye, target, mesh = scene
-    furnace = jv.render_mesh(mesh, eye, target, env=jv.uniform_environment(1.0), albedo=(1.0, 1.0, 1.0),
+    furnace = jv.render_mesh(mesh, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0),
                              bounces=48, key=1, **SETTINGS)
     rgb = np.asarray(furnace.radiance)
     assert rgb.max() <= 1.0 + 1e-6 and abs(rgb.mean() - 1.0) < 1e-3
@@ -424,47 +408,11 @@ def test_mesh_renderer_samples_the_texture(textured_quad):
                        **SETTINGS)
 
 
-def test_environment_importance_sampling(tmp_path):
-    """A small bright patch in a black environment over a slab, one bounce: the patch's
-    irradiance is exact (sum of L * integral of cos over each pixel), both estimators
-    are unbiased, importance sampling with MIS is far less noisy, and sampling's pdf is
-    a density (E[1 / pdf] = 4 pi) that `Environment.pdf` reproduces."""
-    import jax
-
-    h, w = 16, 32
-    image = np.zeros((h, w, 3), np.float32)
-    image[4:6, 10:12] = 500.0
-    np.save(tmp_path / "patch.npy", image)
-    slab = trimesh.creation.box(extents=[2.0, 0.2, 2.0])
-    mesh = jv.Mesh(np.asarray(slab.vertices, np.float32), np.asarray(slab.faces, np.int32))
-    tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=16)))
-    edges = np.cos(np.pi * np.arange(h + 1) / h)
-    irradiance = 2 * 500.0 * 2 * np.pi / w * sum((edges[r] ** 2 - edges[r + 1] ** 2) / 2 for r in (4, 5))
-    expected = 0.5 / np.pi * irradiance
-    spread = {}
-    for importance in (False, True):
-        env = jv.load_environment(tmp_path / "patch.npy", importance=importance)
-        assert env.sampled == importance
-        result = jv.render(tree, (0.0, 3.0, 0.01), (0.0, 0.0, 0.0), env=env, albedo=(0.5, 0.5, 0.5), bounces=1,
-                           key=1, width=48, height=48, spp=4, batch_rays=48 * 48 * 4, fov=30.0)
-        top = np.asarray(result.radiance)[..., 0][(np.asarray(result.normal) == [0, 1, 0]).all(-1)]
-        assert len(top) > 2000
-        spread[importance] = top.std()
-        assert abs(top.mean() - expected) < 4 * top.std() / np.sqrt(len(top)), (importance, top.mean(), expected)
-    assert spread[True] < 0.1 * spread[False]
-    np.save(tmp_path / "random.npy", np.random.default_rng(0).random((8, 16, 3)).astype(np.float32) ** 4)
-    env = jv.load_environment(tmp_path / "random.npy")
-    d, pdf = env.sample(jax.random.uniform(jax.random.key(0), (200_000, 3)))
-    np.testing.assert_allclose(np.linalg.norm(np.asarray(d), axis=-1), 1.0, atol=1e-5)
-    np.testing.assert_allclose(np.asarray(env.pdf(d)), np.asarray(pdf), rtol=1e-5)
-    assert abs(np.mean(1 / np.asarray(pdf)) / (4 * np.pi) - 1) < 0.02
-
-
 def test_cosine_sampling_moments():
     """Cosine-weighted directions: unit, in the hemisphere, E[cos] = 2/3, E[cos^2] = 1/2, no preferred azimuth."""
     import jax
 
-    from jaxvox.render import _cosine_direction
+    from jaxvox.render.integrator import _cosine_direction
 
     rng = np.random.default_rng(3)
     normals = rng.standard_normal((6, 3))
@@ -483,7 +431,7 @@ def test_cosine_sampling_moments():
 def test_empty_tree_shows_the_environment():
     mesh = jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     tree = jv.build_dag(jv.voxelize(mesh, jv.Grid(origin=(-1, -1, -1), voxel_size=2 / 16, resolution=16)))
-    result = jv.render(tree, (0, 0, 3), (0, 0, 0), env=jv.uniform_environment((0.25, 0.5, 1.0)), bounces=2, key=0,
+    result = jv.render(tree, (0, 0, 3), (0, 0, 0), env=jv.uniform_environment(rgb=(0.25, 0.5, 1.0)), bounces=2, key=0,
                        **SETTINGS)
     np.testing.assert_array_equal(np.asarray(result.radiance), np.broadcast_to(np.float32([0.25, 0.5, 1.0]), (H, W, 3)))
     assert np.isinf(np.asarray(result.depth)).all() and (np.asarray(result.normal) == 0).all()

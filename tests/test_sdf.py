@@ -121,8 +121,8 @@ def test_primitives_match_analytic_distances():
     check(sdf.capsule(a, e, 0.3), lambda q: ref_capsule(q, a, e, 0.3), p)
     check(sdf.cylinder(0.5, 0.7, center=c), lambda q: ref_cylinder(q, 0.5, 0.7, c), p)
     n = np.array([1.0, 2.0, -2.0])
-    check(sdf.plane(n, 0.3), lambda q: ref_plane(q, n, 0.3), p)
-    assert float(sdf.plane(n, 0.3)(-0.3 * n / 3.0)) == pytest.approx(0.0, abs=1e-6)  # passes through -offset n
+    check(sdf.plane(n, offset=0.3), lambda q: ref_plane(q, n, 0.3), p)
+    assert float(sdf.plane(n, offset=0.3)(-0.3 * n / 3.0)) == pytest.approx(0.0, abs=1e-6)  # passes through -offset n
 
 
 # ----------------------------------------------------------------------------- transforms
@@ -309,7 +309,7 @@ def test_sphere_trace_edge_cases():
 
 def test_relaxation_batch_shapes_and_jit():
     scene = sdf.union(sdf.sphere(0.6, center=(-0.5, 0.0, 0.0)), sdf.box((0.4, 0.3, 0.5), center=(0.6, 0.2, 0.0)),
-                      sdf.plane((0.0, 1.0, 0.0), 1.0))
+                      sdf.plane((0.0, 1.0, 0.0), offset=1.0))
     s, v = np.meshgrid(np.linspace(-1.2, 1.2, 16), np.linspace(-1.2, 1.2, 12))
     d = np.stack([s, v, np.full_like(s, 3.0)], -1).astype(np.float32)  # [12, 16, 3]
     origin = np.array([0.0, 0.5, -4.0], np.float32)  # broadcast against directions
@@ -399,7 +399,7 @@ def test_to_mesh_sphere_and_empty():
     (lambda: sdf.box((1.0, 2.0)), r"shape \(3,\)"),
     (lambda: sdf.rounded_box((0.5, 0.5, 0.1), 0.2), "must be <= the smallest half extent"),
     (lambda: sdf.torus(1.0, -0.1), "minor_radius"),
-    (lambda: sdf.plane((0, 0, 0), 1.0), "nonzero"),
+    (lambda: sdf.plane((0, 0, 0), offset=1.0), "nonzero"),
     (lambda: sdf.rotate(sdf.sphere(1.0), np.diag([1.0, 1.0, -1.0])), "must be a rotation"),
     (lambda: sdf.scale(sdf.sphere(1.0), (1.0, 0.0, 1.0)), "must be > 0"),
     (lambda: sdf.union(), "at least one"),

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox.sphere_tracing import _REFINE_STEPS, _refine
+from jaxvox.sphere_tracing import REFINE_STEPS, refine_hits
 
 sdf = jv.sdf
 REL = 1e-5  # target: relative error of t at incidence >= 1 degree, float32 tracing
@@ -194,18 +194,18 @@ def test_refinement_brackets_both_ways_keeps_unbracketed_hits():
     t0 = jnp.array([root - 2e-4, root + 2e-4, 1.0, root, root - 2e-4], jnp.float32)  # ray 3: |f| ~ rounding
     f0 = jax.vmap(plane._distance)(o + t0[:, None] * u)
     active = jnp.array([True, True, True, True, False])
-    t, steps = _refine(plane, o, u, t0, f0, active, 0.0, jnp.inf)
+    t, steps = refine_hits(plane, o, u, t0, f0, active, 0.0, jnp.inf)
     t, steps = np.asarray(t), np.asarray(steps)
     for i in (0, 1, 3):  # from outside, from inside, from within float32 rounding of the root
         assert t[i] == pytest.approx(root, rel=1e-6)
     assert t[2] == np.float32(1.0) and steps[2] > 0  # parallel to the plane: no sign change, kept
     assert t[4] == t0[4] and steps[4] == 0  # not active
-    assert (steps <= _REFINE_STEPS).all()
+    assert (steps <= REFINE_STEPS).all()
     # The search stays within t_lo / t_hi, and NaN distances stop it with a finite t.
-    t_cut, _ = _refine(plane, o[:2], u[:2], t0[:2], f0[:2], active[:2], root + 1e-4, root - 1e-4)
+    t_cut, _ = refine_hits(plane, o[:2], u[:2], t0[:2], f0[:2], active[:2], root + 1e-4, root - 1e-4)
     np.testing.assert_array_equal(np.asarray(t_cut), np.asarray(t0[:2]))
     nan_plane = _Plane(n, -1.0, nan_beyond=float(t0[0] * u[0, 0]) + 1e-5)
-    t_nan, _ = _refine(nan_plane, o[:1], u[:1], t0[:1], f0[:1], active[:1], 0.0, jnp.inf)
+    t_nan, _ = refine_hits(nan_plane, o[:1], u[:1], t0[:1], f0[:1], active[:1], 0.0, jnp.inf)
     assert np.asarray(t_nan)[0] == t0[0]
 
 
@@ -257,7 +257,7 @@ def test_eager_jit_and_vmap_agree():
 def _measure():  # pragma: no cover - run by hand
     """Mean extra scene evaluations per hit, and unrefined (the loop's t, as before) vs refined
     maximum relative and absolute errors of t, by incidence band."""
-    from jaxvox.sphere_tracing import _trace_one, _unit
+    from jaxvox.sphere_tracing import trace_ray, unit_directions
 
     rng = np.random.default_rng(0)
     degrees = np.geomspace(1.0, 90.0, 4000)
@@ -268,11 +268,11 @@ def _measure():  # pragma: no cover - run by hand
     cases["rotated box"] = box_scene_and_rays(rng, degrees)
     for name, (scene, o, u, t_ref) in cases.items():
         hit, steps = jv.sphere_trace(scene, o, u, t_max=20.0, max_steps=4096, return_steps=True)
-        loop = jax.vmap(lambda sc, oo, uu: _trace_one(sc, oo, uu, 0.0, 20.0, 1e-4, 1.0, 4096), in_axes=(None, 0, 0))(
-            scene, jnp.asarray(o), _unit(jnp.asarray(u)))
+        loop = jax.vmap(lambda sc, oo, uu: trace_ray(sc, oo, uu, 0.0, 20.0, 1e-4, 1.0, 4096), in_axes=(None, 0, 0))(
+            scene, jnp.asarray(o), unit_directions(jnp.asarray(u)))
         extra = np.asarray(steps) - np.asarray(loop.steps)
         print(f"{name}: {len(o)} rays, incidence 1-90 degrees, epsilon 1e-4; extra evaluations per hit: "
-              f"mean {extra.mean():.2f}, max {extra.max()} (cap {_REFINE_STEPS})")
+              f"mean {extra.mean():.2f}, max {extra.max()} (cap {REFINE_STEPS})")
         for lo, hi in [(1, 2), (2, 10), (10, 90)]:
             band = (degrees >= lo) & (degrees <= hi)
             old, new = np.abs(np.asarray(loop.t) - t_ref)[band], np.abs(np.asarray(hit.t) - t_ref)[band]

@@ -231,7 +231,7 @@ def test_jit_vmap_and_batch_shapes(scene, trees):
     jitted = jax.jit(lambda t, a, b: jv.trace(t, a, b))(tree, o[:120].reshape(10, 12, 3), d[:120].reshape(10, 12, 3))
     assert jitted.t.shape == (10, 12) and jitted.voxel.shape == (10, 12, 3)
     assert_same(jax.tree.map(lambda x: x.reshape((120,) + x.shape[2:]), jitted), eager)
-    mapped = jax.vmap(lambda a, b: jv.trace(tree, a, b, shard=False))(o[:120].reshape(4, 30, 3), d[:120].reshape(4, 30, 3))
+    mapped = jax.vmap(lambda a, b: jv.trace(tree, a, b))(o[:120].reshape(4, 30, 3), d[:120].reshape(4, 30, 3))
     assert_same(jax.tree.map(lambda x: x.reshape((120,) + x.shape[2:]), mapped), eager)
     one = jv.trace(tree, o[0], d[0])  # a single ray
     assert one.t.shape == () and int(one.status) == int(eager.status[0])

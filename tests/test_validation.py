@@ -72,7 +72,7 @@ def test_output_paths_are_checked_before_writing(tmp_path):
             write(tmp_path)
     with pytest.raises(jv.JaxvoxError, match="enable_compilation_cache path: cannot create the folder"):
         (tmp_path / "file").write_text("")
-        jv.enable_compilation_cache(tmp_path / "file")
+        jv.enable_compilation_cache(path=tmp_path / "file")
 
 
 def test_traced_values_pass_and_report_by_status():
@@ -82,7 +82,7 @@ def test_traced_values_pass_and_report_by_status():
     tree = jv.build_dag(jv.voxelize(jv.Mesh(V, F), GRID))
     origins = np.array([[0.05, 0.05, -1.0], [np.nan, 0.0, 0.0]], np.float32)
     directions = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32)
-    hit = jax.jit(lambda o, d: jv.trace(tree, o, d, shard=False))(origins, directions)
+    hit = jax.jit(lambda o, d: jv.trace(tree, o, d))(origins, directions)
     assert list(np.asarray(hit.status)) == [jv.HIT, jv.INVALID]
     grid = jax.jit(lambda h: jv.Grid(np.zeros(3), h, 16).voxel_size)(0.0)  # traced: no check
     assert float(grid) == 0.0

@@ -1,0 +1,108 @@
+"""Per-voxel and per-face materials for the renderers: albedo and emission tables.
+
+`render` and `render_mesh` take an albedo and an emission as a [1 or V, 3] float32 table,
+indexed by primitive (a voxel in Morton order, or a triangle); a single row is a
+constant. `voxel_albedo` makes the albedo table from voxel colours, `box_emission` an
+emission table that lights the voxels inside a box. `check_rgb` and `rgb_table` are the
+checks the renderers and environments share.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox._checks import check_type, check_vector, refuse
+from jaxvox.image import srgb_to_linear
+from jaxvox.voxelize import Voxels
+
+
+def check_rgb(name: str, value) -> np.ndarray:
+    """[3] float32 from an RGB triple or one number; refuses other shapes, negatives, NaN, inf."""
+    try:
+        v = np.broadcast_to(np.asarray(value, np.float32), (3,)).copy()
+    except (TypeError, ValueError):
+        raise refuse(name, "must be three finite non-negative numbers", value) from None
+    if not np.isfinite(v).all() or (v < 0).any():
+        raise refuse(name, "must be three finite non-negative numbers", value)
+    return v
+
+
+def rgb_table(what: str, value, rows: int, per: str, default) -> jax.Array:
+    """A [1 or rows, 3] float32 table from None, an RGB triple or an array with a row `per`
+    voxel or face; errors name `what`."""
+    expected = f"must be an RGB triple or a [{per}s, 3] array with at least {rows} rows"
+    try:
+        a = np.asarray(default if value is None else value, np.float32)
+    except (TypeError, ValueError):
+        raise refuse(what, expected, value) from None
+    if a.ndim == 1:
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] < 3 or not (a.shape[0] == 1 or a.shape[0] >= rows):
+        raise refuse(what, expected, f"shape {np.shape(value)}")
+    a = a[:, :3]
+    bad = ~(np.isfinite(a) & (a >= 0))
+    if bad.any():
+        raise refuse(what, "must be finite and non-negative", a[bad][0])
+    return jnp.asarray(a)
+
+
+def box_emission(vox, lo, hi, rgb) -> jax.Array:
+    """Per-voxel emission: `rgb` for the voxels whose centres lie in a world-space box.
+
+    Args:
+      vox: `Voxels` in Morton order (from `jaxvox.voxelize`, or `jaxvox.expand` of a tree).
+      lo, hi: [3] box corners in world units (inclusive).
+      rgb: [3] (or a scalar) linear emitted radiance.
+
+    Returns:
+      [capacity, 3] float32 for `render`'s ``emission`` (zero outside the box and in
+      unused slots); add several for several boxes.
+
+    Raises:
+      JaxvoxError: not `Voxels`, corners that are not three finite numbers, or `rgb` not
+        finite non-negative radiance.
+    """
+    check_type("box_emission vox", vox, Voxels)
+    lo, hi = check_vector("box_emission lo", lo, 3), check_vector("box_emission hi", hi, 3)
+    rgb = check_rgb("box_emission rgb", rgb)
+    centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
+    inside = jnp.all((centre >= jnp.asarray(lo, jnp.float32)) & (centre <= jnp.asarray(hi, jnp.float32)), axis=-1)
+    inside = inside & (jnp.arange(vox.coords.shape[0]) < vox.count)
+    return jnp.where(inside[:, None], jnp.asarray(rgb), 0.0)
+
+
+def voxel_albedo(attributes: dict, *, default=(0.7, 0.7, 0.7), srgb: bool = True) -> jax.Array:
+    """Per-voxel linear albedo from `voxel_attributes` (or `load_attributes`) output.
+
+    Args:
+      attributes: dict with an optional ``"color"`` [V, 3 or 4] array in [0, 1].
+      default: RGB in [0, 1] used when there are no colours (a material colour).
+      srgb: the colours are sRGB-encoded (vertex colours usually are): decode to linear.
+
+    Returns:
+      [V, 3] float32 (or [1, 3] when there are no colours), for `render`'s ``albedo``.
+
+    Raises:
+      JaxvoxError: `attributes` not a dict, colours that are not [V, 3 or 4] numbers, or
+        a default outside [0, 1].
+    """
+    if attributes is not None and not isinstance(attributes, Mapping):
+        raise refuse("voxel_albedo attributes", "expected a dict of arrays", type(attributes))
+    color = attributes.get("color") if attributes else None
+    if color is None:
+        rgb = check_rgb("voxel_albedo default", default)
+        if (rgb > 1).any():
+            raise refuse("voxel_albedo default", "an albedo must lie in [0, 1]", default)
+        return jnp.asarray(rgb[None])
+    try:
+        c = np.asarray(color, np.float32)
+    except (TypeError, ValueError):
+        raise refuse("voxel_albedo attributes['color']", "must be a [V, 3] or [V, 4] array", color) from None
+    if c.ndim != 2 or c.shape[1] not in (3, 4):
+        raise refuse("voxel_albedo attributes['color']", "must be a [V, 3] or [V, 4] array", c.shape)
+    c = c[:, :3]
+    return jnp.asarray((srgb_to_linear(c) if srgb else np.clip(c, 0.0, 1.0)).astype(np.float32))

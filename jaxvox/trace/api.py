@@ -1,0 +1,156 @@
+"""The public traversals `trace` (octrees and DAGs) and `trace_dense` (dense grids): argument
+checks, padding of concrete rays to the shape ladder, and the jitted entry points."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
+from jaxvox._shapes import bucket
+from jaxvox.grid import Grid
+from jaxvox.octree import MISSING, Octree, voxel_index
+from jaxvox.trace.dda import DenseGrid
+from jaxvox.trace.driver import trace_rays
+from jaxvox.trace.hit import HIT, Hit, default_max_steps
+
+TRACE_METHODS = ("esvo", "stack")  # `trace` methods
+
+
+def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None) -> Hit:
+    """``call(origins, directions, t_max, shard=...)`` with the rays flattened and padded to
+    the shape ladder when they are concrete arrays (host-side use), so that ray batches of
+    similar counts (image sizes) share one compiled program; inside a caller's `jax.jit`
+    the rays pass through unchanged. Padding rays have a zero direction (status `INVALID`,
+    no work) and are sliced off on the host. ``shard=None`` shards concrete rays only.
+    """
+    traced = any(isinstance(x, jax.core.Tracer) for x in (origins, directions, t_max))
+    shard = (not traced) if shard is None else shard
+    if traced:
+        return call(origins, directions, t_max, shard=shard)
+    o, d, t = (np.asarray(x, np.float32) for x in (origins, directions, t_max))
+    shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], t.shape)
+    n = int(np.prod(shape, dtype=np.int64))
+    pad = bucket(n) - n
+    flat = lambda a, tail: np.concatenate([np.broadcast_to(a, shape + tail).reshape((n,) + tail),
+                                           np.zeros((pad,) + tail, np.float32)])
+    hit = call(flat(o, (3,)), flat(d, (3,)), flat(t, ()), shard=shard)
+    return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n].reshape(shape + x.shape[1:])), hit)
+
+
+def _numeric(a) -> bool:
+    """Whether `a` converts to a float array (numbers, not strings or objects)."""
+    try:
+        return np.asarray(a).dtype.kind in "biuf"
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
+    """Refuses rays and `t_max` that are not numbers, rays that are not [..., 3], batch
+    shapes that do not broadcast and a lane count below 1. (NaN values are per-ray
+    `INVALID` statuses, as inside jit.)"""
+    for name, a in (("origins", origins), ("directions", directions), ("t_max", t_max)):
+        if is_concrete(a) and not _numeric(a):
+            raise refuse(f"{caller} {name}", "must be numbers", a)
+        if name != "t_max" and (np.ndim(a) < 1 or np.shape(a)[-1] != 3):
+            raise refuse(f"{caller} {name}", "must have shape [..., 3]", np.shape(a))
+    try:
+        np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
+    except ValueError:
+        raise refuse(f"{caller} origins, directions, t_max", "batch shapes must broadcast",
+                     (np.shape(origins), np.shape(directions), np.shape(t_max))) from None
+    if lanes is not None:
+        check_int(f"{caller} lanes", lanes, minimum=1)
+
+
+@functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
+def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
+    hit = trace_rays(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
+               shard=shard)
+    index = voxel_index(tree, jnp.maximum(hit.voxel, 0))
+    return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
+
+
+def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=float("inf"),
+          method: str = "esvo", max_steps: int | None = None, lanes: int | None = 16384,
+          shard: bool | None = None) -> Hit:
+    """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
+
+    Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
+    `shard` are static. Called on concrete rays, it pads the flattened rays to the shape
+    ladder first, so that similar ray counts (image sizes) share one compiled program.
+
+    Args:
+      tree: an `Octree` from `build_octree` or `build_dag`.
+      origins, directions: [..., 3] float32 in world coordinates, any batch shape;
+        directions need not be unit length (``t`` is the parameter of
+        ``origin + t * direction``).
+      t_max: float or [...] float32; voxels entered beyond it are not hits.
+      method: ``"esvo"`` (PUSH/ADVANCE/POP, pops any number of levels per step) or
+        ``"stack"`` (the talk's save-state-and-go-down loop, one level per pop). Both
+        give identical hits.
+      max_steps: cap on loop steps per ray (default ``6 R + 16 D``); rays that reach it
+        get status `STEP_CAP`, never a silent miss.
+      lanes: number of persistent lanes (per device) fed from the ray queue (see the
+        module docstring); None for one vmapped loop per ray.
+      shard: split the rays across all JAX devices (`jax.shard_map` over a one-axis
+        mesh; the tree is replicated) when there are several. The default None shards
+        only a call on concrete rays (outside any `jax.jit`): inside a caller's own jit,
+        sharded or vmapped program the rays stay where the caller put them, unless
+        ``shard=True``.
+
+    Returns:
+      A `Hit` with the batch shape of the rays.
+    """
+    check_type("trace tree", tree, Octree)
+    check_choice("trace method", method, TRACE_METHODS)
+    _check_rays("trace", origins, directions, t_max, lanes)
+    steps = (check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None
+             else default_max_steps(tree))
+    return _rays_on_ladder(functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes),
+                           origins, directions, t_max, shard)
+
+
+@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
+def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
+    hit = trace_rays(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes,
+               shard=shard)
+    res = dense.grid.resolution
+    v = jnp.maximum(hit.voxel, 0)
+    index = (v[..., 0] * res + v[..., 1]) * res + v[..., 2]
+    return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
+
+
+def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions: jax.Array, *,
+                t_max=float("inf"), max_steps: int | None = None, lanes: int | None = 16384,
+                shard: bool | None = None) -> Hit:
+    """First voxel hit along each ray in a dense occupancy grid (Amanatides-Woo DDA).
+
+    Same conventions and driver as `trace`; meant for small grids and as a reference.
+
+    Args:
+      occupancy: [R, R, R] bool, indexed ``[i, j, k]``.
+      grid: the `Grid` the occupancy lives on (its resolution must be R).
+      origins, directions, t_max, max_steps, lanes, shard: as in `trace` (default
+        ``max_steps`` is ``3 R + 8``, enough for any ray).
+
+    Returns:
+      A `Hit`; ``index`` is the flat C-order index ``(i R + j) R + k``.
+    """
+    check_type("trace_dense grid", grid, Grid)
+    occupancy = jnp.asarray(occupancy)
+    res = grid.resolution
+    if res > 1024:
+        raise refuse("trace_dense grid", "resolutions up to 1024 only (flat int32 index)", res)
+    if occupancy.shape != (res, res, res):
+        raise refuse("trace_dense occupancy", f"must have shape {(res,) * 3} for the grid", occupancy.shape)
+    _check_rays("trace_dense", origins, directions, t_max, lanes)
+    steps = check_int("trace_dense max_steps", max_steps, minimum=1) if max_steps is not None else 3 * res + 8
+    dense = DenseGrid(occupancy.astype(bool).reshape(-1), grid)
+    return _rays_on_ladder(functools.partial(_trace_dense, dense, max_steps=steps, lanes=lanes),
+                           origins, directions, t_max, shard)

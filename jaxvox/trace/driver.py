@@ -1,0 +1,146 @@
+"""The driver shared by the traversals: a vmapped while loop per ray or persistent lanes fed
+from a ray queue, the conversion of cells to `Hit`s, and the front end (grid units,
+flattening, sharding over devices); see `jaxvox.trace`."""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
+from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
+from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
+from jaxvox.trace.ray import AXES, Ray, setup_ray
+from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
+
+_METHODS = {
+    "esvo": (esvo_init, esvo_step, esvo_voxel),
+    "stack": (stacked_init, stacked_step, stacked_voxel),
+    "dda": (dda_init, dda_step, dda_voxel),
+}
+
+
+def _vmapped(structure, rays: Ray, t_start, status, method: str, max_steps: int):
+    """One lane per ray: a vmapped while loop. Returns (status [N], voxel [N, 3])."""
+    init, step, voxel = _METHODS[method]
+
+    def one(ray, t0, st):
+        def cond(c):
+            return (c[0].status == RUNNING) & (c[1] < max_steps)
+
+        s, _ = jax.lax.while_loop(cond, lambda c: (step(structure, ray, c[0]), c[1] + 1),
+                                  (init(structure, ray, t0, st), jnp.int32(0)))
+        return jnp.where(s.status == RUNNING, STEP_CAP, s.status), jnp.stack(voxel(structure, s))
+
+    return jax.vmap(one)(rays, t_start, status)
+
+
+def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, lanes: int,
+           steps_per_refill: int = 4):
+    """Persistent lanes fed from a queue of the rays that enter the grid box.
+
+    Returns (status [N], voxel [N, 3] mirrored).
+    """
+    init, step, voxel = _METHODS[method]
+    n = status.shape[0]
+    running = status == RUNNING
+    queue = jnp.zeros(n + 1, jnp.int32).at[jnp.where(running, jnp.cumsum(running) - 1, n)].set(
+        jnp.arange(n, dtype=jnp.int32))[:n]
+    queued = jnp.sum(running)
+    lane_init = jax.vmap(lambda ray, t0, st: init(structure, ray, t0, st))
+    lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
+    take = lambda ids: jax.tree.map(lambda a: a[ids], (rays, t_start, status))
+
+    def fetch(ids, valid):
+        ray, t0, st = take(jnp.where(valid, ids, 0))
+        return ray, lane_init(ray, t0, jnp.where(valid, st, MISS))
+
+    class Carry(NamedTuple):
+        ids: jax.Array  # [W] int32 ray of each lane, n when idle
+        ray: Ray  # [W]
+        state: NamedTuple  # [W]
+        steps: jax.Array  # [W] int32
+        next: jax.Array  # [] int32 queue position of the next ray
+        out_status: jax.Array  # [N] int32
+        out_voxel: jax.Array  # [N, 3] int32
+
+    first = jnp.arange(lanes, dtype=jnp.int32)
+    valid = first < queued
+    ids0 = queue[jnp.minimum(first, n - 1)]
+    ray0, state0 = fetch(ids0, valid)
+    carry = Carry(jnp.where(valid, ids0, n), ray0, state0,
+                  jnp.zeros(lanes, jnp.int32), jnp.minimum(queued, lanes),
+                  jnp.where(running, RUNNING, status), jnp.full((n, 3), -1, jnp.int32))
+
+    def body(c: Carry) -> Carry:
+        # a loop, not unrolled: XLA would fuse consecutive steps and recompute each one
+        state = jax.lax.fori_loop(0, steps_per_refill, lambda _, s: lane_step(c.ray, s), c.state)
+        steps = c.steps + steps_per_refill
+        capped = steps >= max_steps
+        done = (state.status != RUNNING) | capped
+        final = jnp.where(state.status == RUNNING, STEP_CAP, state.status)
+        slot = jnp.where(done, c.ids, n)
+        out_status = c.out_status.at[slot].set(final, mode="drop")
+        out_voxel = c.out_voxel.at[slot].set(jax.vmap(lambda s: jnp.stack(voxel(structure, s)))(state), mode="drop")
+        ended = done & (c.ids < n)
+        pos = c.next + jnp.cumsum(ended) - 1
+        fresh = ended & (pos < queued)
+        new_ids = queue[jnp.clip(pos, 0, n - 1)]
+        new_ray, new_state = fetch(new_ids, fresh)
+        refill = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
+        return Carry(jnp.where(fresh, new_ids, jnp.where(done, n, c.ids)),
+                     jax.tree.map(refill, new_ray, c.ray), jax.tree.map(refill, new_state, state),
+                     jnp.where(done, 0, steps), c.next + jnp.sum(ended), out_status, out_voxel)
+
+    c = jax.lax.while_loop(lambda c: jnp.any(c.ids < n), body, carry)
+    return c.out_status, c.out_voxel
+
+
+def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes):
+    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0)."""
+    res = structure.grid.resolution
+    rays, t_start, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
+    if lanes is None or o.shape[0] == 0:
+        status, cell = _vmapped(structure, rays, t_start, status, method, max_steps)
+    else:
+        status, cell = _lanes(structure, rays, t_start, status, method, max_steps,
+                              min(lanes, o.shape[0]))
+    hit = status == HIT
+    t0 = (cell - jnp.stack(rays.o, -1)) * jnp.stack(rays.inv, -1)
+    t_in = jnp.max(t0, axis=-1)
+    flip = ((rays.flip[:, None] >> AXES) & 1) == 1
+    entry = jnp.where(t_in > 0, jnp.argmax(t0, axis=-1), -1)
+    normal = jnp.where(AXES == entry[:, None], jnp.where(flip, 1.0, -1.0), 0.0)
+    return Hit(t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
+               voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
+               normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
+               index=jnp.zeros_like(status), status=status)
+
+
+def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard):
+    """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`."""
+    grid = structure.grid
+    o = grid.to_grid_units(origins)
+    d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
+    shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
+    o, d = jnp.broadcast_to(o, shape + (3,)).reshape(-1, 3), jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape).reshape(-1)
+    run = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes)
+    devices = jax.devices()
+    n = o.shape[0]
+    if shard and len(devices) > 1 and n >= len(devices):
+        # Each device traces its own slice of the rays with its own lanes and queue.
+        pad = -n % len(devices)
+        o, d, t_max = (jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) for x in (o, d, t_max))
+        mesh = jax.sharding.Mesh(np.array(devices), ("rays",))
+        spec = jax.sharding.PartitionSpec("rays")
+        hits = jax.shard_map(lambda a, b, c: run(structure, a, b, c), mesh=mesh,
+                             in_specs=(spec, spec, spec), out_specs=spec, check_vma=False)(o, d, t_max)
+        hits = jax.tree.map(lambda x: x[:n], hits)
+    else:
+        hits = run(structure, o, d, t_max)
+    return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), hits)

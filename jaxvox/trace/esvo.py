@@ -1,0 +1,79 @@
+"""The ``"esvo"`` traversal (Laine and Karras): a cell state with PUSH / ADVANCE / POP,
+popping any number of levels per step (see `jaxvox.trace`)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxvox.octree import Octree
+from jaxvox.trace.hit import RUNNING
+from jaxvox.trace.ray import (
+    Ray,
+    argmin3,
+    child_row,
+    first_cell,
+    mask_bit,
+    max3,
+    min3,
+    pick,
+    select,
+    slot_bits,
+    stack_set,
+    step_status,
+    times,
+    vec,
+)
+
+
+class _Esvo(NamedTuple):
+    level: jax.Array  # [] int32 level of the current cell, 1..D (its size is 2^(D - level))
+    corner: tuple  # 3 x [] int32 mirrored corner of the current cell
+    parent: jax.Array  # [] int32 row of the node the cell belongs to
+    stack: tuple  # D x [] int32 stack[l]: row of the level-l node on the current path
+    status: jax.Array  # [] int32
+
+
+def esvo_init(tree: Octree, ray: Ray, t_start, status) -> _Esvo:
+    res = tree.grid.resolution
+    corner = first_cell(ray, (jnp.int32(0),) * 3, res // 2, t_start)
+    return _Esvo(jnp.int32(1), corner, jnp.int32(0), (jnp.int32(0),) * tree.depth, status)
+
+
+def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
+    depth, res = tree.depth, tree.grid.resolution
+    shift = depth - s.level
+    size = jnp.left_shift(1, shift)
+    t0 = times(ray, s.corner)
+    t1 = times(ray, vec(lambda c: c + size, s.corner))
+    t_in, t_out = max3(t0), min3(t1)
+    slot = slot_bits(s.corner, shift) ^ ray.flip
+    live = mask_bit(tree, s.parent, slot) & (t_out > 0) & (t_in < t_out)
+    push = live & (s.level < depth)
+    axis = argmin3(t1)
+    before = pick(s.corner, axis)
+    status = step_status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
+    row = child_row(tree, s.parent, slot)
+    # XLA would otherwise recompute these in the fusion of every output.
+    t_in, axis, before, push, status, row = jax.lax.optimization_barrier(
+        (t_in, axis, before, push, status, row))
+    # PUSH: the cell is an occupied node; enter its child the ray is in at entry.
+    pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, 0.0))
+    # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
+    high = 31 - jax.lax.clz(before ^ (before + size))  # the new cell has size 2^high
+    moved = tuple(jnp.where(axis == a, before + size, c) for a, c in enumerate(s.corner))
+    popped = vec(lambda c: c & -jnp.left_shift(1, high), moved)
+    pop_level = depth - high
+    stepped = _Esvo(
+        level=jnp.where(push, s.level + 1, pop_level),
+        corner=vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
+        parent=jnp.where(push, row, pick(s.stack, pop_level - 1)),
+        stack=stack_set(s.stack, s.level, row, push),
+        status=status)
+    return select(status == RUNNING, stepped, s._replace(status=status))
+
+
+def esvo_voxel(tree: Octree, s: _Esvo):
+    return s.corner

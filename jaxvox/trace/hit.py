@@ -1,0 +1,67 @@
+"""The `Hit` result of the traversals, its statuses (`HIT`, `MISS`, `STEP_CAP`, `INVALID`)
+and the ray checks and step cap shared with the renderer."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from jaxvox._pytree import pytree_dataclass
+from jaxvox.octree import Octree
+
+# `Hit.status` values.
+HIT = 0
+"""The ray entered an occupied voxel (or a surface) within ``t_max``."""
+MISS = 1
+"""The ray left the grid (or passed ``t_max``) without a hit."""
+STEP_CAP = 2
+"""The traversal gave up after ``max_steps`` steps: neither a hit nor a miss."""
+INVALID = 3
+"""The ray has a NaN origin or direction, a zero direction, or a NaN ``t_max``."""
+RUNNING = -1  # status while a ray is being traced
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class Hit:
+    """First voxel hit per ray.
+
+    Attributes:
+      t: [...] float32 ray parameter where the ray enters the voxel (0 when it starts
+        inside it), inf unless the status is `HIT`.
+      voxel: [..., 3] int32 voxel index, -1 unless hit.
+      normal: [..., 3] float32 outward normal of the voxel face the ray entered (zero
+        when it starts inside the voxel or unless hit).
+      index: [...] int32 Morton-order voxel index for attribute arrays (`trace`), or
+        the C-order flat index into the occupancy grid (`trace_dense`); -1 unless hit.
+      status: [...] int32 `HIT`, `MISS`, `STEP_CAP` (gave up after ``max_steps``) or
+        `INVALID` (NaN origin or direction, zero direction, NaN ``t_max``).
+
+    `jaxvox.sphere_trace` returns the same type: there ``t`` is the distance along the
+    unit direction, ``normal`` the unit SDF gradient, and ``voxel`` and ``index`` are -1.
+    """
+
+    t: jax.Array  # [...] float32
+    voxel: jax.Array  # [..., 3] int32
+    normal: jax.Array  # [..., 3] float32
+    index: jax.Array  # [...] int32
+    status: jax.Array  # [...] int32
+
+
+def valid_rays(origins: jax.Array, directions: jax.Array) -> jax.Array:
+    """Which rays can be traced: [...] bool, for origins and directions [..., 3] (jittable).
+
+    A ray is valid when neither its origin nor its direction holds a NaN and its direction
+    is not zero. `trace` and `trace_dense` give the others status `INVALID` (as they do
+    rays with a NaN ``t_max``); the renderer ends a path by zeroing its direction.
+    """
+    return ~(jnp.any(jnp.isnan(origins), axis=-1) | jnp.any(jnp.isnan(directions), axis=-1)
+             | jnp.all(directions == 0, axis=-1))
+
+
+def default_max_steps(tree: Octree) -> int:
+    """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
+    ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
+    return 6 * tree.grid.resolution + 16 * tree.depth

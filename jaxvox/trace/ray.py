@@ -1,0 +1,105 @@
+"""Ray set-up in mirrored grid units and the per-axis scalar helpers shared by the loops
+of `jaxvox.trace` (esvo, stack, dda)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox.octree import Octree
+from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING, valid_rays
+
+_TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
+AXES = np.arange(3, dtype=np.int32)
+
+
+class Ray(NamedTuple):
+    """One ray in mirrored grid units (all direction components positive), per axis."""
+
+    o: tuple  # 3 x [] float32 mirrored origin
+    inv: tuple  # 3 x [] float32 1 / |d|, at most 2^100
+    flip: jax.Array  # [] int32 bit a set when direction a is negative
+    t_max: jax.Array  # [] float32
+
+
+def vec(f, *vectors):
+    """Applies `f` per axis to 3-tuples (the loops work on scalars: no [3] reductions)."""
+    return tuple(f(*c) for c in zip(*vectors))
+
+
+def max3(v):
+    return jnp.maximum(jnp.maximum(v[0], v[1]), v[2])
+
+
+def min3(v):
+    return jnp.minimum(jnp.minimum(v[0], v[1]), v[2])
+
+
+def argmin3(v):
+    """Axis of the smallest entry, ties to the lower axis (as `jnp.argmin`)."""
+    return jnp.where((v[0] <= v[1]) & (v[0] <= v[2]), 0, jnp.where(v[1] <= v[2], 1, 2)).astype(jnp.int32)
+
+
+def setup_ray(o, d, t_max, res: int):
+    """Mirrors one ray ([3] origin and direction); returns (ray, entry t, initial status)."""
+    bad = ~valid_rays(o, d) | jnp.isnan(t_max)
+    neg = d < 0
+    o = jnp.where(bad, 0.0, jnp.where(neg, res - o, o))
+    inv = 1.0 / jnp.maximum(jnp.where(bad, 1.0, jnp.abs(d)), _TINY)
+    t_in, t_out = jnp.max(-o * inv), jnp.min((res - o) * inv)
+    enters = (t_in < t_out) & (t_out > 0) & (t_in <= t_max) & ~bad
+    status = jnp.where(enters, RUNNING, jnp.where(bad, INVALID, MISS)).astype(jnp.int32)
+    flip = jnp.sum(jnp.where(neg, 1 << AXES, 0)).astype(jnp.int32)
+    ray = Ray(tuple(o[a] for a in range(3)), tuple(inv[a] for a in range(3)), flip, t_max)
+    return ray, jnp.maximum(t_in, 0.0), status
+
+
+def times(ray: Ray, planes):
+    """Times at which the ray crosses the per-axis integer `planes`."""
+    return vec(lambda p, o, i: (p.astype(jnp.float32) - o) * i, planes, ray.o, ray.inv)
+
+
+def first_cell(ray: Ray, corner, half, t_now):
+    """Corner of the child (size `half`) of the box at `corner` the ray is in at `t_now`."""
+    tm = times(ray, vec(lambda c: c + half, corner))
+    return vec(lambda c, t: c + jnp.where(t <= t_now, half, 0), corner, tm)
+
+
+def slot_bits(corner, shift):
+    """Slot bits ``x | y << 1 | z << 2`` of the cell at `corner` whose size is ``2^shift``."""
+    x, y, z = vec(lambda c: (c >> shift) & 1, corner)
+    return x | y << 1 | z << 2
+
+
+def mask_bit(tree: Octree, row, slot):
+    return ((tree.mask[row].astype(jnp.int32) >> slot) & 1) == 1
+
+
+def child_row(tree: Octree, row, slot):
+    if tree.child.shape[0] == 0:  # depth 1: the root's children are voxels
+        return jnp.int32(0)
+    flat = tree.child.reshape(-1)
+    return flat[jnp.minimum(row, tree.child.shape[0] - 1) * 8 + slot].astype(jnp.int32)
+
+
+def pick(values, index):
+    """``values[index]`` for a tuple of scalars and a traced index, as a chain of selects."""
+    value = values[0]
+    for k in range(1, len(values)):
+        value = jnp.where(index == k, values[k], value)
+    return value
+
+
+def stack_set(stack, level, value, when):
+    return tuple(jnp.where(when & (level == k), value, s) for k, s in enumerate(stack))
+
+
+def select(keep, new, old):
+    return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
+
+
+def step_status(miss, hit):
+    return jnp.where(miss, MISS, jnp.where(hit, HIT, RUNNING)).astype(jnp.int32)
