@@ -18,8 +18,9 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
@@ -47,8 +48,7 @@ def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[dict, Any]:
         result = fn()
         times.append(time.perf_counter() - start)
     median = statistics.median(times) if times else first
-    timing = dict(first_s=first, times_s=times, median_s=median,
-                  compile_s=max(first - median, 0.0))
+    timing = dict(first_s=first, times_s=times, median_s=median, compile_s=max(first - median, 0.0))
     return timing, result
 
 
@@ -112,8 +112,7 @@ def machine_info(packages: Iterable[str] = ()) -> dict:
     cpu_model = platform.processor()
     try:
         with open("/proc/cpuinfo") as f:
-            cpu_model = next(line.split(":", 1)[1].strip() for line in f
-                             if line.startswith("model name"))
+            cpu_model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
     except (OSError, StopIteration):
         pass
     return dict(
@@ -137,8 +136,7 @@ def markdown_table(rows: Sequence[dict], columns: Sequence[tuple[str, str]]) -> 
     """A GitHub markdown table; `columns` lists (key in each row, header), missing keys print '-'."""
     header = "| " + " | ".join(title for _, title in columns) + " |"
     rule = "|" + "|".join("---" for _ in columns) + "|"
-    body = ["| " + " | ".join(str(row.get(key, "-")) for key, _ in columns) + " |"
-            for row in rows]
+    body = ["| " + " | ".join(str(row.get(key, "-")) for key, _ in columns) + " |" for row in rows]
     return "\n".join([header, rule, *body]) + "\n"
 
 

@@ -36,9 +36,8 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import _common
+import numpy as np
 
 DEFAULT_MESHES = ("stanford-bunny", "spot")
 
@@ -72,11 +71,16 @@ def worker(spec: dict) -> dict:
     trees = {"dag": jv.build_dag(vox)}
     if R <= spec["svo_max"]:  # the SVO at 8192^3 (74 M nodes) and its build do not fit beside the DAG's
         trees["svo"] = jv.build_octree(vox)
-    result = dict(spec, voxels=int(vox.count), rays=width * height, voxel_size_world=h,
-                  extent_world=float(np.ptp(np.asarray(mesh.vertices), 0).max()),
-                  nodes={k: t.num_nodes for k, t in trees.items()},
-                  bytes={k: t.compact_nbytes for k, t in trees.items()},
-                  mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes))
+    result = dict(
+        spec,
+        voxels=int(vox.count),
+        rays=width * height,
+        voxel_size_world=h,
+        extent_world=float(np.ptp(np.asarray(mesh.vertices), 0).max()),
+        nodes={k: t.num_nodes for k, t in trees.items()},
+        bytes={k: t.compact_nbytes for k, t in trees.items()},
+        mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes),
+    )
     eye, target = jv.look_at_view(mesh)
     o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=width, height=height))
     rng = np.random.default_rng(0)
@@ -99,9 +103,10 @@ def worker(spec: dict) -> dict:
         return out
 
     cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
-    for name, kind, method in cases[:len(trees) + 1]:
-        hits[name] = timed(f"primary/{name}", lambda: jax.block_until_ready(
-            jv.trace(trees[kind], o, d, method=method)), width * height)
+    for name, kind, method in cases[: len(trees) + 1]:
+        hits[name] = timed(
+            f"primary/{name}", lambda: jax.block_until_ready(jv.trace(trees[kind], o, d, method=method)), width * height
+        )
     hit = hits["dag-esvo"]
     o_np, d_np = np.asarray(o), np.asarray(d)
     t_mesh = timed("primary/embree", lambda: embree(o_np, d_np), width * height)
@@ -110,16 +115,26 @@ def worker(spec: dict) -> dict:
     both = vox_hit & mesh_hit
     gap = (t_mesh[both] - t_vox[both]) / h
     result["agreement"] = dict(
-        pixels_agree=float((vox_hit == mesh_hit).mean()), mesh_hits=int(mesh_hit.sum()),
-        voxel_hits=int(vox_hit.sum()), voxel_only=int((vox_hit & ~mesh_hit).sum()),
+        pixels_agree=float((vox_hit == mesh_hit).mean()),
+        mesh_hits=int(mesh_hit.sum()),
+        voxel_hits=int(vox_hit.sum()),
+        voxel_only=int((vox_hit & ~mesh_hit).sum()),
         mesh_only=int((mesh_hit & ~vox_hit).sum()),
-        depth_voxels={q: float(np.quantile(gap, p)) for q, p in
-                      (("min", 0), ("median", 0.5), ("p90", 0.9), ("p99", 0.99), ("max", 1))} if both.any() else None,
-        within_diagonal=float((np.abs(gap) <= np.sqrt(3)).mean()) if both.any() else None)
+        depth_voxels={
+            q: float(np.quantile(gap, p))
+            for q, p in (("min", 0), ("median", 0.5), ("p90", 0.9), ("p99", 0.99), ("max", 1))
+        }
+        if both.any()
+        else None,
+        within_diagonal=float((np.abs(gap) <= np.sqrt(3)).mean()) if both.any() else None,
+    )
     # incoherent and shadow rays
     for name, kind, method in cases[:2]:
-        timed(f"incoherent/{name}", lambda: jax.block_until_ready(
-            jv.trace(trees[kind], o_inc, d_inc, method=method)), n_inc)
+        timed(
+            f"incoherent/{name}",
+            lambda: jax.block_until_ready(jv.trace(trees[kind], o_inc, d_inc, method=method)),
+            n_inc,
+        )
     timed("incoherent/embree", lambda: embree(o_inc, d_inc), n_inc)
     p = o_np[vox_hit] + t_vox[vox_hit, None] * d_np[vox_hit] + np.asarray(hit.normal)[vox_hit] * h
     s_dir = np.broadcast_to(light, p.shape).astype(np.float32)
@@ -134,8 +149,11 @@ def worker(spec: dict) -> dict:
         o_sub = o_np.reshape(height, width, 3)[sub].reshape(-1, 3)
         d_sub = d_np.reshape(height, width, 3)[sub].reshape(-1, 3)
         for name, lanes in (("naive-dda", None), ("dda-lanes", 16384)):
-            timed(f"primary/{name}", lambda: jax.block_until_ready(
-                jv.trace_dense(occupancy, grid, o_sub, d_sub, lanes=lanes)), len(o_sub))
+            timed(
+                f"primary/{name}",
+                lambda: jax.block_until_ready(jv.trace_dense(occupancy, grid, o_sub, d_sub, lanes=lanes)),
+                len(o_sub),
+            )
     result["timings"] = timings
     result["peak_rss_mib"] = _common.peak_rss_mib()
     return result
@@ -147,30 +165,49 @@ def chart(rows, path):
     fig, (left, right) = _common.new_figure(2)
     for mesh in sorted({r["mesh"] for r in rows}):
         mine = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
-        res = [r["resolution"] for r in mine]
         for case, style in (("dag-esvo", "o-"), ("dag-stack", "s--"), ("svo-esvo", "^:"), ("embree", "k-")):
-            points = [(r["resolution"], r["timings"][f"primary/{case}"]["mrays_s"]) for r in mine
-                      if f"primary/{case}" in r["timings"]]
+            points = [
+                (r["resolution"], r["timings"][f"primary/{case}"]["mrays_s"])
+                for r in mine
+                if f"primary/{case}" in r["timings"]
+            ]
             left.plot(*zip(*points), style, label=f"{mesh} {case}")
-        naive = [(r["resolution"], r["timings"]["primary/naive-dda"]["mrays_s"]) for r in mine
-                 if "primary/naive-dda" in r["timings"]]
+        naive = [
+            (r["resolution"], r["timings"]["primary/naive-dda"]["mrays_s"])
+            for r in mine
+            if "primary/naive-dda" in r["timings"]
+        ]
         if naive:
             left.plot(*zip(*naive), "x", label=f"{mesh} naive vmapped DDA")
         err = [r["agreement"]["depth_voxels"]["median"] * r["voxel_size_world"] / r["extent_world"] for r in mine]
         right.plot(err, [r["timings"]["primary/dag-esvo"]["mrays_s"] for r in mine], "o-", label=f"{mesh} DAG (esvo)")
         for r, e in zip(mine, err):
             right.annotate(f"{r['resolution']}", (e, r["timings"]["primary/dag-esvo"]["mrays_s"]), fontsize=7)
-        right.axhline(np.median([r["timings"]["primary/embree"]["mrays_s"] for r in mine]),
-                      color=right.lines[-1].get_color(), ls="--", label=f"{mesh} Embree (triangles, exact)")
+        right.axhline(
+            np.median([r["timings"]["primary/embree"]["mrays_s"] for r in mine]),
+            color=right.lines[-1].get_color(),
+            ls="--",
+            label=f"{mesh} Embree (triangles, exact)",
+        )
     resolutions = sorted({r["resolution"] for r in rows})
-    left.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="Mrays/s (1920x1080 primary)",
-             title="traversal speed (2-core CPU)")
+    left.set(
+        xscale="log",
+        yscale="log",
+        xlabel="resolution R",
+        ylabel="Mrays/s (1920x1080 primary)",
+        title="traversal speed (2-core CPU)",
+    )
     left.set_xticks(resolutions, [str(x) for x in resolutions])
     left.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
     right.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     right.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    right.set(xscale="log", xlabel="median depth error (mesh t - voxel t) / mesh extent", ylabel="Mrays/s",
-              yscale="log", title="speed vs depth error (primary rays)")
+    right.set(
+        xscale="log",
+        xlabel="median depth error (mesh t - voxel t) / mesh extent",
+        ylabel="Mrays/s",
+        yscale="log",
+        title="speed vs depth error (primary rays)",
+    )
     for ax in (left, right):
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3)
@@ -199,39 +236,70 @@ def main():
     rows = json.loads(path.read_text())["rows"] if (args.update or args.plot_only) and path.exists() else []
     for mesh in _common.progress(args.meshes if not args.plot_only else [], desc="meshes"):
         for R in resolutions:
-            spec = dict(mesh=mesh, resolution=R, width=width, height=height, incoherent=n_inc,
-                        repeats=args.repeats, naive_max=args.naive_max, svo_max=args.svo_max)
+            spec = dict(
+                mesh=mesh,
+                resolution=R,
+                width=width,
+                height=height,
+                incoherent=n_inc,
+                repeats=args.repeats,
+                naive_max=args.naive_max,
+                svo_max=args.svo_max,
+            )
             row = _common.run_worker(__file__, spec, timeout=3600)
             if "error" in row:
                 print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
                 continue
             rows = [r for r in rows if (r["mesh"], r["resolution"]) != (mesh, R)] + [row]
             t = row["timings"]
-            print(f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
-                  f"{t['primary/dag-stack']['mrays_s']:.2f}, SVO esvo {t.get('primary/svo-esvo', {}).get('mrays_s', 0):.2f}, "
-                  f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
-                  f"{row['agreement']['pixels_agree']:.4f}", flush=True)
+            print(
+                f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
+                f"{t['primary/dag-stack']['mrays_s']:.2f}, "
+                f"SVO esvo {t.get('primary/svo-esvo', {}).get('mrays_s', 0):.2f}, "
+                f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
+                f"{row['agreement']['pixels_agree']:.4f}",
+                flush=True,
+            )
             _common.write_json(path, dict(machine=_common.machine_info(["jax", "embreex", "numpy"]), rows=rows))
     rows.sort(key=lambda r: (r["mesh"], r["resolution"]))
-    columns = [("mesh", "mesh"), ("resolution", "R"), ("dag_esvo", "DAG esvo Mrays/s"), ("dag_stack", "DAG stack"),
-               ("svo_esvo", "SVO esvo"), ("embree", "Embree"), ("ratio", "Embree / DAG esvo"),
-               ("naive", "naive vmapped DDA"), ("incoherent", "incoherent DAG / Embree"),
-               ("shadow", "shadow DAG / Embree"), ("compile", "compile s"), ("agree", "pixels agree"),
-               ("depth", "depth diff (voxels) median / p99"), ("dag_mib", "DAG MiB")]
+    columns = [
+        ("mesh", "mesh"),
+        ("resolution", "R"),
+        ("dag_esvo", "DAG esvo Mrays/s"),
+        ("dag_stack", "DAG stack"),
+        ("svo_esvo", "SVO esvo"),
+        ("embree", "Embree"),
+        ("ratio", "Embree / DAG esvo"),
+        ("naive", "naive vmapped DDA"),
+        ("incoherent", "incoherent DAG / Embree"),
+        ("shadow", "shadow DAG / Embree"),
+        ("compile", "compile s"),
+        ("agree", "pixels agree"),
+        ("depth", "depth diff (voxels) median / p99"),
+        ("dag_mib", "DAG MiB"),
+    ]
     table = []
     for r in rows:
         t = r["timings"]
         rate = lambda k: t[k]["mrays_s"]
-        table.append(dict(
-            mesh=r["mesh"], resolution=r["resolution"], dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
-            dag_stack=f"{rate('primary/dag-stack'):.2f}", svo_esvo=f"{rate('primary/svo-esvo'):.2f}" if "primary/svo-esvo" in t else "-",
-            embree=f"{rate('primary/embree'):.2f}", ratio=f"{rate('primary/embree') / rate('primary/dag-esvo'):.1f}x",
-            naive=f"{rate('primary/naive-dda'):.3f}" if "primary/naive-dda" in t else "-",
-            incoherent=f"{rate('incoherent/dag-esvo'):.2f} / {rate('incoherent/embree'):.2f}",
-            shadow=f"{rate('shadow/dag-esvo'):.2f} / {rate('shadow/embree'):.2f}",
-            compile=f"{t['primary/dag-esvo']['compile_s']:.1f}", agree=f"{r['agreement']['pixels_agree']:.4f}",
-            depth=f"{r['agreement']['depth_voxels']['median']:.2f} / {r['agreement']['depth_voxels']['p99']:.2f}",
-            dag_mib=f"{r['bytes']['dag'] / 2**20:.1f}"))
+        table.append(
+            dict(
+                mesh=r["mesh"],
+                resolution=r["resolution"],
+                dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
+                dag_stack=f"{rate('primary/dag-stack'):.2f}",
+                svo_esvo=f"{rate('primary/svo-esvo'):.2f}" if "primary/svo-esvo" in t else "-",
+                embree=f"{rate('primary/embree'):.2f}",
+                ratio=f"{rate('primary/embree') / rate('primary/dag-esvo'):.1f}x",
+                naive=f"{rate('primary/naive-dda'):.3f}" if "primary/naive-dda" in t else "-",
+                incoherent=f"{rate('incoherent/dag-esvo'):.2f} / {rate('incoherent/embree'):.2f}",
+                shadow=f"{rate('shadow/dag-esvo'):.2f} / {rate('shadow/embree'):.2f}",
+                compile=f"{t['primary/dag-esvo']['compile_s']:.1f}",
+                agree=f"{r['agreement']['pixels_agree']:.4f}",
+                depth=f"{r['agreement']['depth_voxels']['median']:.2f} / {r['agreement']['depth_voxels']['p99']:.2f}",
+                dag_mib=f"{r['bytes']['dag'] / 2**20:.1f}",
+            )
+        )
     md = _common.markdown_table(table, columns)
     (args.out / f"{stem}.md").write_text(md + "\n")
     print(md)

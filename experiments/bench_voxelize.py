@@ -44,9 +44,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 import _common
+import numpy as np
 
 METHODS = ("jaxvox-conservative", "jaxvox-6-separating", "open3d", "trimesh")
 REFERENCE = "jaxvox-conservative"
@@ -58,6 +57,7 @@ DEFAULT_MAX_RESOLUTION = {"trimesh": 512}
 
 
 # --------------------------------------------------------------------------- worker side
+
 
 def linear_indices(ijk: np.ndarray, resolution: int) -> tuple[np.ndarray, int]:
     """Voxel indices [N, 3] -> (sorted unique int64 linear indices inside the grid, number outside)."""
@@ -83,6 +83,7 @@ def load_peer_mesh(path: str) -> tuple[np.ndarray, np.ndarray]:
 def prepare_jaxvox(spec: dict):
     """jaxvox in the mode named by the method; returns (call, to_ijk, extra info)."""
     import jax
+
     import jaxvox as jv
 
     mode = spec["method"].removeprefix("jaxvox-")
@@ -93,9 +94,11 @@ def prepare_jaxvox(spec: dict):
         return jax.block_until_ready(jv.voxelize(mesh, grid, mode=mode, progress=False))
 
     device = jax.devices()[0]
-    info = dict(grid=dict(origin=np.asarray(grid.origin, np.float64).tolist(),
-                          voxel_size=float(grid.voxel_size)),
-                backend=jax.default_backend(), device=device.device_kind)
+    info = dict(
+        grid=dict(origin=np.asarray(grid.origin, np.float64).tolist(), voxel_size=float(grid.voxel_size)),
+        backend=jax.default_backend(),
+        device=device.device_kind,
+    )
     return call, lambda vox: vox.to_numpy(), info
 
 
@@ -104,8 +107,7 @@ def prepare_open3d(spec: dict):
     import open3d as o3d
 
     vertices, faces = load_peer_mesh(spec["path"])
-    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices),
-                                     o3d.utility.Vector3iVector(faces))
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices), o3d.utility.Vector3iVector(faces))
     origin = np.asarray(spec["grid"]["origin"])
     h = spec["grid"]["voxel_size"]
     max_bound = origin + spec["resolution"] * h
@@ -133,8 +135,12 @@ def prepare_trimesh(spec: dict):
     return lambda: mesh.voxelized(h), to_ijk, {}
 
 
-PREPARE = {"jaxvox-conservative": prepare_jaxvox, "jaxvox-6-separating": prepare_jaxvox,
-           "open3d": prepare_open3d, "trimesh": prepare_trimesh}
+PREPARE = {
+    "jaxvox-conservative": prepare_jaxvox,
+    "jaxvox-6-separating": prepare_jaxvox,
+    "open3d": prepare_open3d,
+    "trimesh": prepare_trimesh,
+}
 
 
 def device_peak_bytes() -> int | None:
@@ -155,8 +161,7 @@ def worker(spec: dict) -> dict:
     rss_before = _common.peak_rss_mib()
     timing, result = _common.time_calls(call, spec["repeats"])
     rss_peak = _common.peak_rss_mib()
-    out = dict(timing, rss_before_mib=rss_before, rss_peak_mib=rss_peak,
-               device_peak_bytes=device_peak_bytes(), **info)
+    out = dict(timing, rss_before_mib=rss_before, rss_peak_mib=rss_peak, device_peak_bytes=device_peak_bytes(), **info)
     if spec["method"].startswith("jaxvox"):
         out["count"] = int(result.count)
     if spec["save"]:
@@ -168,6 +173,7 @@ def worker(spec: dict) -> dict:
 
 
 # --------------------------------------------------------------------------- driver side
+
 
 def bounding_cube_grid(path: Path, resolution: int, padding: float = 0.01) -> dict:
     """The placement `jv.Grid.fit` uses (a padded cube centred on the bounding box).
@@ -201,8 +207,9 @@ def run_case(mesh: str, resolution: int, methods: list[str], args, tmp: Path) ->
             rows.append(dict(row, skipped=f"R > {args.max_resolution[method]}"))
             continue
         save = tmp / f"{method}.npy"
-        spec = dict(method=method, path=str(path), resolution=resolution,
-                    repeats=args.repeats, grid=grid, save=str(save))
+        spec = dict(
+            method=method, path=str(path), resolution=resolution, repeats=args.repeats, grid=grid, save=str(save)
+        )
         row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
         if "error" not in row:
             grid = grid or row.get("grid")
@@ -218,8 +225,14 @@ def run_case(mesh: str, resolution: int, methods: list[str], args, tmp: Path) ->
 
 def run_huge(resolution: int, args) -> dict:
     """jaxvox conservative on the bunny at a resolution too large for the peers (one repeat)."""
-    spec = dict(method=REFERENCE, path=str(args.mesh_dir / "stanford-bunny.obj"),
-                resolution=resolution, repeats=1, grid=None, save=None)
+    spec = dict(
+        method=REFERENCE,
+        path=str(args.mesh_dir / "stanford-bunny.obj"),
+        resolution=resolution,
+        repeats=1,
+        grid=None,
+        save=None,
+    )
     row = dict(mesh="stanford-bunny", resolution=resolution, method=REFERENCE)
     row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
     print(f"stanford-bunny R={resolution} {REFERENCE}: {summary(row)}", file=sys.stderr)
@@ -230,8 +243,10 @@ def summary(row: dict) -> str:
     """One line about a result row for the log."""
     if "error" in row or "skipped" in row:
         return row.get("error") or f"skipped ({row['skipped']})"
-    text = f"{row['median_s']:.3g} s (first call {row['first_s']:.3g} s), " \
-           f"peak RSS {row['rss_peak_mib']:.0f} MiB, {row['count']} voxels"
+    text = (
+        f"{row['median_s']:.3g} s (first call {row['first_s']:.3g} s), "
+        f"peak RSS {row['rss_peak_mib']:.0f} MiB, {row['count']} voxels"
+    )
     if "error_rate" in row:
         text += f", FP {row['false_positives']}, FN {row['false_negatives']}"
     return text
@@ -244,9 +259,11 @@ def table(rows: list[dict]) -> str:
         cells = dict(mesh=row["mesh"], resolution=row["resolution"], method=row["method"])
         if "median_s" in row:
             cells.update(
-                time=f"{row['median_s']:.3g}", rss=f"{row['rss_peak_mib']:.0f}",
+                time=f"{row['median_s']:.3g}",
+                rss=f"{row['rss_peak_mib']:.0f}",
                 rss_delta=f"{row['rss_peak_mib'] - row['rss_before_mib']:.0f}",
-                count=f"{row['count']:,}")
+                count=f"{row['count']:,}",
+            )
             if row["method"].startswith("jaxvox"):  # the peers compile nothing
                 cells["compile"] = f"{row['compile_s']:.3g}"
         else:
@@ -256,10 +273,19 @@ def table(rows: list[dict]) -> str:
             if row["method"] in PEERS:
                 cells["err"] = f"{100 * row['error_rate']:.2f}"
         formatted.append(cells)
-    columns = [("mesh", "mesh"), ("resolution", "R"), ("method", "method"),
-               ("time", "time (s)"), ("compile", "compile (s)"), ("rss", "peak RSS (MiB)"),
-               ("rss_delta", "RSS growth (MiB)"), ("count", "voxels"),
-               ("fp", "false +"), ("fn", "false -"), ("err", "error (%)")]
+    columns = [
+        ("mesh", "mesh"),
+        ("resolution", "R"),
+        ("method", "method"),
+        ("time", "time (s)"),
+        ("compile", "compile (s)"),
+        ("rss", "peak RSS (MiB)"),
+        ("rss_delta", "RSS growth (MiB)"),
+        ("count", "voxels"),
+        ("fp", "false +"),
+        ("fn", "false -"),
+        ("err", "error (%)"),
+    ]
     return _common.markdown_table(formatted, columns)
 
 
@@ -271,22 +297,36 @@ def plot(rows: list[dict], path: Path) -> None:
     colors = dict(zip(METHODS, ["C0", "C1", "C2", "C3"]))
     for method in METHODS:
         for mesh in meshes:
-            done = [r for r in rows if r["method"] == method and r["mesh"] == mesh
-                    and "median_s" in r]
+            done = [r for r in rows if r["method"] == method and r["mesh"] == mesh and "median_s" in r]
             if not done:
                 continue
             res = [r["resolution"] for r in done]
             label = f"{method}, {mesh}"
-            ax_time.plot(res, [r["median_s"] for r in done], styles[mesh], marker="o",
-                         color=colors[method], label=label)
+            ax_time.plot(
+                res, [r["median_s"] for r in done], styles[mesh], marker="o", color=colors[method], label=label
+            )
             if method in PEERS and all("error_rate" in r for r in done):
-                ax_err.plot(res, [100 * r["error_rate"] for r in done], styles[mesh],
-                            marker="o", color=colors[method], label=label)
-    ax_time.set(xscale="log", yscale="log", xlabel="resolution R (voxels per axis)",
-                ylabel="median time per call (s)", title="Surface voxelization time")
-    ax_err.set(xscale="log", xlabel="resolution R (voxels per axis)",
-               ylabel="(false + and false -) / exact voxels (%)",
-               title="Error against the exact conservative set")
+                ax_err.plot(
+                    res,
+                    [100 * r["error_rate"] for r in done],
+                    styles[mesh],
+                    marker="o",
+                    color=colors[method],
+                    label=label,
+                )
+    ax_time.set(
+        xscale="log",
+        yscale="log",
+        xlabel="resolution R (voxels per axis)",
+        ylabel="median time per call (s)",
+        title="Surface voxelization time",
+    )
+    ax_err.set(
+        xscale="log",
+        xlabel="resolution R (voxels per axis)",
+        ylabel="(false + and false -) / exact voxels (%)",
+        title="Error against the exact conservative set",
+    )
     for ax in (ax_time, ax_err):
         ax.set_xticks(sorted({r["resolution"] for r in rows}))
         ax.xaxis.set_major_formatter("{x:.0f}")
@@ -295,37 +335,44 @@ def plot(rows: list[dict], path: Path) -> None:
         if ax.has_data():
             ax.legend(fontsize="small")
     if not ax_err.has_data():
-        ax_err.text(0.5, 0.5, "no jaxvox conservative run to compare with",
-                    transform=ax_err.transAxes, ha="center")
+        ax_err.text(0.5, 0.5, "no jaxvox conservative run to compare with", transform=ax_err.transAxes, ha="center")
     _common.save_figure(fig, path)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     """Command-line options; see the module docstring."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--meshes", nargs="+", default=list(DEFAULT_MESHES),
-                        help="mesh names in --mesh-dir, without .obj")
+    parser.add_argument(
+        "--meshes", nargs="+", default=list(DEFAULT_MESHES), help="mesh names in --mesh-dir, without .obj"
+    )
     parser.add_argument("--mesh-dir", type=Path, default=_common.MESH_DIR)
-    parser.add_argument("--resolutions", nargs="*", type=int,
-                        default=[128, 256, 512, 1024, 2048],
-                        help="voxels per axis (powers of two); may be empty with --huge")
+    parser.add_argument(
+        "--resolutions",
+        nargs="*",
+        type=int,
+        default=[128, 256, 512, 1024, 2048],
+        help="voxels per axis (powers of two); may be empty with --huge",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="timed calls after the warm-up")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS))
-    parser.add_argument("--max-resolution", nargs="*", default=[],
-                        metavar="METHOD=R", help="skip METHOD above R (default: trimesh=512)")
-    parser.add_argument("--huge", type=int, metavar="R",
-                        help="also run jaxvox conservative alone on the bunny at this R")
-    parser.add_argument("--timeout", type=float, default=3600,
-                        help="seconds before one case is abandoned")
+    parser.add_argument(
+        "--max-resolution", nargs="*", default=[], metavar="METHOD=R", help="skip METHOD above R (default: trimesh=512)"
+    )
+    parser.add_argument(
+        "--huge", type=int, metavar="R", help="also run jaxvox conservative alone on the bunny at this R"
+    )
+    parser.add_argument("--timeout", type=float, default=3600, help="seconds before one case is abandoned")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
-    parser.add_argument("--smoke", action="store_true",
-                        help="R = 64, 128 only; outputs are named bench_voxelize_smoke.*")
+    parser.add_argument(
+        "--smoke", action="store_true", help="R = 64, 128 only; outputs are named bench_voxelize_smoke.*"
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
         args.resolutions = [64, 128]
-    args.max_resolution = dict(DEFAULT_MAX_RESOLUTION, **{
-        method: int(r) for method, r in (item.split("=") for item in args.max_resolution)})
+    args.max_resolution = dict(
+        DEFAULT_MAX_RESOLUTION, **{method: int(r) for method, r in (item.split("=") for item in args.max_resolution)}
+    )
     return args
 
 
@@ -343,16 +390,23 @@ def main(argv=None) -> None:
     huge = run_huge(args.huge, args) if args.huge else None
 
     stem = "bench_voxelize_smoke" if args.smoke else "bench_voxelize"
-    sections = [("Surface voxelization", rows),
-                ("Streaming (host-side voxelize)", [huge] if huge else [])]
+    sections = [("Surface voxelization", rows), ("Streaming (host-side voxelize)", [huge] if huge else [])]
     report = "\n".join(f"## {title}\n\n{table(part)}" for title, part in sections if part)
     data = dict(
         machine=_common.machine_info(["jax", "jaxlib", "open3d", "trimesh", "numpy"]),
-        device=next((dict(backend=r["backend"], device=r["device"]) for r in rows + [huge or {}]
-                     if "backend" in r), None),
-        settings=dict(meshes=args.meshes, resolutions=args.resolutions, repeats=args.repeats,
-                      methods=methods, max_resolution=args.max_resolution),
-        results=rows, huge=huge)
+        device=next(
+            (dict(backend=r["backend"], device=r["device"]) for r in rows + [huge or {}] if "backend" in r), None
+        ),
+        settings=dict(
+            meshes=args.meshes,
+            resolutions=args.resolutions,
+            repeats=args.repeats,
+            methods=methods,
+            max_resolution=args.max_resolution,
+        ),
+        results=rows,
+        huge=huge,
+    )
     _common.write_json(args.out / f"{stem}.json", data)
     (args.out / f"{stem}.md").write_text(report)
     if rows:

@@ -37,9 +37,8 @@ import argparse
 import sys
 import time
 
-import numpy as np
-
 import _common
+import numpy as np
 
 METHODS = ("band", "jfa", "jfa+sweep", "exact")
 
@@ -93,7 +92,8 @@ def worker(spec: dict) -> dict:
                     g = np.stack(np.meshgrid(*(np.arange(a, b) for a, b in zip(lo, hi)), indexing="ij"), -1)
                     d = scene.compute_signed_distance(((g + 0.5) * h).reshape(-1, 3).astype(np.float32)).numpy()
                     fields[(c,) + np.ix_(*(np.mod(np.arange(a, b), r) for a, b in zip(lo, hi)))] = np.clip(
-                        d, -trunc * h, trunc * h).reshape(hi - lo)
+                        d, -trunc * h, trunc * h
+                    ).reshape(hi - lo)
             corner = new
             times.append(time.perf_counter() - t0)
         return fields, corner, times[1:]
@@ -116,19 +116,35 @@ def worker(spec: dict) -> dict:
         got, ref = fields / h, exact_fields / h
         err = np.abs(got - ref).reshape(-1)
         firm = np.abs(ref) > 0.5
-        row = dict(method=method, frame_median_s=float(np.median(flights[1][1])),
-                   frame_max_s=float(np.max(flights[1][1])), compile_s=max(flights[0][0] - flights[1][0], 0.0),
-                   max=float(err.max()), mean=float(err.mean()), p99=float(np.percentile(err, 99)),
-                   sign_errors=int((np.sign(got) != np.sign(ref))[firm].sum()), sign_checked=int(firm.sum()))
+        row = dict(
+            method=method,
+            frame_median_s=float(np.median(flights[1][1])),
+            frame_max_s=float(np.max(flights[1][1])),
+            compile_s=max(flights[0][0] - flights[1][0], 0.0),
+            max=float(err.max()),
+            mean=float(err.mean()),
+            p99=float(np.percentile(err, 99)),
+            sign_errors=int((np.sign(got) != np.sign(ref))[firm].sum()),
+            sign_checked=int(firm.sum()),
+        )
         if method != "open3d":
             call = lambda: jax.block_until_ready(jv.build_clipmap(mesh, path[-1], method=method, **settings).fields)
             timing, _ = _common.time_calls(call, 0 if method == "exact" else 2)  # exact: one call (minutes)
             row.update(rebuild_s=timing["median_s"])
         rows.append(row)
     exposed = _exposed_per_frame(path, start, h0, r, n)
-    return dict(resolution=r, cascades=n, truncation=trunc, voxel_size=h0, faces=mesh.num_faces,
-                frames=len(path), step_voxels=spec["step"], exposed_voxels_per_frame=exposed, rows=rows,
-                peak_rss_mib=_common.peak_rss_mib())
+    return dict(
+        resolution=r,
+        cascades=n,
+        truncation=trunc,
+        voxel_size=h0,
+        faces=mesh.num_faces,
+        frames=len(path),
+        step_voxels=spec["step"],
+        exposed_voxels_per_frame=exposed,
+        rows=rows,
+        peak_rss_mib=_common.peak_rss_mib(),
+    )
 
 
 def _reference(scene, corner, h0, r, trunc):
@@ -161,31 +177,56 @@ def _exposed_per_frame(path, start, h0, r, n) -> float:
 
 def table(cases: list[dict]) -> str:
     def rows_of(case):
-        return [dict(mesh=case["mesh"], R=f"{case['resolution']} x {case['cascades']}", method=row["method"],
-                     frame=f"{row['frame_median_s'] * 1e3:.3g} / {row['frame_max_s'] * 1e3:.3g}",
-                     rebuild=f"{row['rebuild_s']:.3g}" if "rebuild_s" in row else "-",
-                     compile=f"{row['compile_s']:.2g}",
-                     err=f"{row['max']:.3f} / {row['mean']:.4f} / {row['p99']:.3f}",
-                     sign=f"{row['sign_errors']} / {row['sign_checked']:,}",
-                     exposed=f"{case['exposed_voxels_per_frame']:,.0f}") for row in case["rows"]]
+        return [
+            dict(
+                mesh=case["mesh"],
+                R=f"{case['resolution']} x {case['cascades']}",
+                method=row["method"],
+                frame=f"{row['frame_median_s'] * 1e3:.3g} / {row['frame_max_s'] * 1e3:.3g}",
+                rebuild=f"{row['rebuild_s']:.3g}" if "rebuild_s" in row else "-",
+                compile=f"{row['compile_s']:.2g}",
+                err=f"{row['max']:.3f} / {row['mean']:.4f} / {row['p99']:.3f}",
+                sign=f"{row['sign_errors']} / {row['sign_checked']:,}",
+                exposed=f"{case['exposed_voxels_per_frame']:,.0f}",
+            )
+            for row in case["rows"]
+        ]
 
     out = _common.case_rows(cases, rows_of)
-    columns = [("mesh", "mesh"), ("R", "R x cascades"), ("method", "method"), ("exposed", "exposed voxels / frame"),
-               ("frame", "frame: median / max (ms)"), ("rebuild", "rebuild (s)"), ("compile", "compile (s)"),
-               ("err", "vs exact: max / mean / p99 (voxels)"), ("sign", "sign errors")]
+    columns = [
+        ("mesh", "mesh"),
+        ("R", "R x cascades"),
+        ("method", "method"),
+        ("exposed", "exposed voxels / frame"),
+        ("frame", "frame: median / max (ms)"),
+        ("rebuild", "rebuild (s)"),
+        ("compile", "compile (s)"),
+        ("err", "vs exact: max / mean / p99 (voxels)"),
+        ("sign", "sign errors"),
+    ]
     return _common.markdown_table(out, columns)
 
 
 def plot(cases: list[dict], stem) -> None:
     fig, ax = _common.new_figure(1, width=7.0)
     for k, method in enumerate(METHODS + ("open3d",)):
-        pts = [(row["frame_median_s"], max(row["max"], 1e-4), case) for case in cases if "rows" in case
-               for row in case["rows"] if row["method"] == method]
+        pts = [
+            (row["frame_median_s"], max(row["max"], 1e-4), case)
+            for case in cases
+            if "rows" in case
+            for row in case["rows"]
+            if row["method"] == method
+        ]
         ax.scatter([p[0] for p in pts], [p[1] for p in pts], color=f"C{k}", label=method)
         for p in pts:
             ax.annotate(f"{p[2]['mesh'][:5]} {p[2]['resolution']}", (p[0], p[1]), fontsize=6)
-    ax.set(xscale="log", yscale="log", xlabel="median time per frame (s), every cascade updated",
-           ylabel="max |error| vs exact clamped SDF (voxels; 1e-4 = exact)", title="Clipmap updates: time vs error")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="median time per frame (s), every cascade updated",
+        ylabel="max |error| vs exact clamped SDF (voxels; 1e-4 = exact)",
+        title="Clipmap updates: time vs error",
+    )
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small")
     _common.save_figure(fig, stem.with_suffix(".png"))
@@ -211,13 +252,21 @@ def main() -> None:
     cases = []
     for name in args.meshes:
         for r in args.resolutions:
-            spec = dict(path=str(_common.MESH_DIR / f"{name}.obj"), resolution=r, cascades=args.cascades,
-                        truncation=args.truncation, frames=args.frames, step=args.step)
+            spec = dict(
+                path=str(_common.MESH_DIR / f"{name}.obj"),
+                resolution=r,
+                cascades=args.cascades,
+                truncation=args.truncation,
+                frames=args.frames,
+                step=args.step,
+            )
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=name, resolution=r)
             cases.append(case)
             print(table([case]), flush=True)
-    _common.write_json(stem.with_suffix(".json"), dict(machine=_common.machine_info(["jax", "open3d"]),
-                                                       settings=vars(args), cases=cases))
+    _common.write_json(
+        stem.with_suffix(".json"),
+        dict(machine=_common.machine_info(["jax", "open3d"]), settings=vars(args), cases=cases),
+    )
     stem.with_suffix(".md").write_text(table(cases) + "\n")
     plot(cases, stem)
     print(table(cases))

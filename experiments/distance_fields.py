@@ -39,13 +39,17 @@ import os
 import sys
 from pathlib import Path
 
+import _common
 import numpy as np
 
-import _common
-
-METHODS = [("jfa", "jfa", {}), ("jfa-separable", "jfa-separable", {}),
-           ("sweep x1", "sweep", dict(sweeps=1)), ("sweep x2", "sweep", dict(sweeps=2)),
-           ("sweep x3", "sweep", dict(sweeps=3)), ("jfa+sweep", "jfa+sweep", dict(sweeps=3))]
+METHODS = [
+    ("jfa", "jfa", {}),
+    ("jfa-separable", "jfa-separable", {}),
+    ("sweep x1", "sweep", dict(sweeps=1)),
+    ("sweep x2", "sweep", dict(sweeps=2)),
+    ("sweep x3", "sweep", dict(sweeps=3)),
+    ("jfa+sweep", "jfa+sweep", dict(sweeps=3)),
+]
 LARGE_METHODS = ("jfa-separable", "jfa+sweep")  # above --all-methods-max (the others take minutes)
 
 
@@ -74,8 +78,9 @@ def worker(spec: dict) -> dict:
         return (np.stack(np.unravel_index(flat, (r, r, r)), -1) + 0.5) * h + origin
 
     def per_slab(fn):  # fn(float32 centres [r*r, 3]) -> [r*r], one x slab at a time (memory)
-        return np.stack([fn(centres(np.arange(i * r * r, (i + 1) * r * r)).astype(np.float32)).reshape(r, r)
-                         for i in range(r)])
+        return np.stack(
+            [fn(centres(np.arange(i * r * r, (i + 1) * r * r)).astype(np.float32)).reshape(r, r) for i in range(r)]
+        )
 
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32))
@@ -98,8 +103,11 @@ def worker(spec: dict) -> dict:
 
         w = winding_number(mesh.vertices, mesh.faces, centres(sample))
         firm = np.abs(w - 0.5) > 0.01
-        sign.update(errors=int((np.asarray(solid).reshape(-1)[sample] != (w > 0.5))[firm].sum()),
-                    checked=int(firm.sum()), reference="float64 winding number, subsample")
+        sign.update(
+            errors=int((np.asarray(solid).reshape(-1)[sample] != (w > 0.5))[firm].sum()),
+            checked=int(firm.sum()),
+            reference="float64 winding number, subsample",
+        )
         del solid
     if watertight:
         solid = np.asarray(solid)
@@ -116,12 +124,17 @@ def worker(spec: dict) -> dict:
         if spec.get("max_bytes") and need > spec["max_bytes"]:  # refused by distance_field: record why
             rows.append(dict(method=label, refused=f"needs {need / 2**30:.1f} GiB"))
             continue
-        call = lambda: jax.block_until_ready(jv.distance_field(mesh, grid, method=method, signed=False,
-                                                               max_bytes=spec.get("max_bytes"), **kw))
+        call = lambda: jax.block_until_ready(
+            jv.distance_field(mesh, grid, method=method, signed=False, max_bytes=spec.get("max_bytes"), **kw)
+        )
         timing, field = _common.time_calls(call, repeats)
         field = np.asarray(field) / h
-        row = dict(method=label, **{k: timing[k] for k in ("median_s", "compile_s", "first_s")},
-                   vs_exact=_errors(field, exact), vs_edt=_errors(field, edt))
+        row = dict(
+            method=label,
+            **{k: timing[k] for k in ("median_s", "compile_s", "first_s")},
+            vs_exact=_errors(field, exact),
+            vs_edt=_errors(field, edt),
+        )
         if label == "jfa+sweep":
             for fmt in jv.distance.FORMATS:
                 q = jv.quantize_field(jax.numpy.asarray(field * h), grid, format=fmt)
@@ -129,9 +142,18 @@ def worker(spec: dict) -> dict:
         rows.append(row)
         stride = max(1, r // 128)  # keep the JSON small
         slices[label] = (field - exact)[::stride, ::stride, r // 2].round(4).tolist()
-    return dict(resolution=r, voxel_size=h, faces=mesh.num_faces, watertight=bool(watertight),
-                open3d_vs_float64_max=open3d_vs_f64, subsample=spec["subsample"], sign=sign,
-                rows=rows, slices=slices, peak_rss_mib=_common.peak_rss_mib())
+    return dict(
+        resolution=r,
+        voxel_size=h,
+        faces=mesh.num_faces,
+        watertight=bool(watertight),
+        open3d_vs_float64_max=open3d_vs_f64,
+        subsample=spec["subsample"],
+        sign=sign,
+        rows=rows,
+        slices=slices,
+        peak_rss_mib=_common.peak_rss_mib(),
+    )
 
 
 def table(cases: list[dict]) -> str:
@@ -144,21 +166,41 @@ def table(cases: list[dict]) -> str:
         rows = []
         for row in case["rows"]:
             if "refused" in row:
-                rows.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
-                                 time=f"refused ({row['refused']})"))
+                rows.append(
+                    dict(
+                        mesh=case["mesh"],
+                        R=case["resolution"],
+                        method=row["method"],
+                        time=f"refused ({row['refused']})",
+                    )
+                )
                 continue
             a, b = row["vs_exact"], row["vs_edt"]
-            rows.append(dict(mesh=case["mesh"], R=case["resolution"], method=row["method"],
-                             time=f"{row['median_s']:.3g}", compile=f"{row['compile_s']:.2g}",
-                             exact=f"{a['max']:.3f} / {a['mean']:.4f} / {a['p99']:.3f}",
-                             edt=f"{b['max']:.3f} / {b['mean']:.3f} / {b['p99']:.3f}",
-                             sign=f"{sign['method']}: {sign_text}"))
+            rows.append(
+                dict(
+                    mesh=case["mesh"],
+                    R=case["resolution"],
+                    method=row["method"],
+                    time=f"{row['median_s']:.3g}",
+                    compile=f"{row['compile_s']:.2g}",
+                    exact=f"{a['max']:.3f} / {a['mean']:.4f} / {a['p99']:.3f}",
+                    edt=f"{b['max']:.3f} / {b['mean']:.3f} / {b['p99']:.3f}",
+                    sign=f"{sign['method']}: {sign_text}",
+                )
+            )
         return rows
 
     out = _common.case_rows(cases, rows_of)
-    columns = [("mesh", "mesh"), ("R", "R"), ("method", "method"), ("time", "time (s)"),
-               ("compile", "compile (s)"), ("exact", "vs exact: max / mean / p99 (voxels)"),
-               ("edt", "vs EDT of surface voxels: max / mean / p99"), ("sign", "sign errors")]
+    columns = [
+        ("mesh", "mesh"),
+        ("R", "R"),
+        ("method", "method"),
+        ("time", "time (s)"),
+        ("compile", "compile (s)"),
+        ("exact", "vs exact: max / mean / p99 (voxels)"),
+        ("edt", "vs EDT of surface voxels: max / mean / p99"),
+        ("sign", "sign errors"),
+    ]
     return _common.markdown_table(out, columns)
 
 
@@ -166,16 +208,25 @@ def plot(cases: list[dict], stem: Path) -> None:
     fig, (ax_max, ax_mean) = _common.new_figure(2)
     labels = [m[0] for m in METHODS]
     for n, label in enumerate(labels):
-        pts = [(row["median_s"], row["vs_exact"], case["resolution"], case["mesh"])
-               for case in cases if "rows" in case for row in case["rows"]
-               if row["method"] == label and "refused" not in row]
+        pts = [
+            (row["median_s"], row["vs_exact"], case["resolution"], case["mesh"])
+            for case in cases
+            if "rows" in case
+            for row in case["rows"]
+            if row["method"] == label and "refused" not in row
+        ]
         for ax, key in ((ax_max, "max"), (ax_mean, "mean")):
             ax.scatter([p[0] for p in pts], [p[1][key] for p in pts], color=f"C{n}", label=label)
             for p in pts:
                 ax.annotate(f"{p[3][:5]} {p[2]}", (p[0], p[1][key]), fontsize=6)
     for ax, key in ((ax_max, "max"), (ax_mean, "mean")):
-        ax.set(xscale="log", yscale="log", xlabel="median time per field (s)",
-               ylabel=f"{key} |error| vs exact distance (voxels)", title=f"Time vs {key} error")
+        ax.set(
+            xscale="log",
+            yscale="log",
+            xlabel="median time per field (s)",
+            ylabel=f"{key} |error| vs exact distance (voxels)",
+            title=f"Time vs {key} error",
+        )
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small")
     _common.save_figure(fig, stem.with_suffix(".png"))
@@ -196,14 +247,18 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--subsample", type=int, default=2000, help="float64 check points")
     parser.add_argument("--timeout", type=float, default=7200)
-    parser.add_argument("--all-methods-max", type=int, default=128,
-                        help=f"larger R run only {', '.join(LARGE_METHODS)}")
-    parser.add_argument("--winding-max", type=int, default=512,
-                        help="largest R at which the winding-number sign of open meshes is run")
-    parser.add_argument("--max-bytes", type=float, default=0.75,
-                        help="memory a field may use, as a fraction of physical memory")
-    parser.add_argument("--update", action="store_true",
-                        help="merge into the existing JSON (replacing the same mesh and R)")
+    parser.add_argument(
+        "--all-methods-max", type=int, default=128, help=f"larger R run only {', '.join(LARGE_METHODS)}"
+    )
+    parser.add_argument(
+        "--winding-max", type=int, default=512, help="largest R at which the winding-number sign of open meshes is run"
+    )
+    parser.add_argument(
+        "--max-bytes", type=float, default=0.75, help="memory a field may use, as a fraction of physical memory"
+    )
+    parser.add_argument(
+        "--update", action="store_true", help="merge into the existing JSON (replacing the same mesh and R)"
+    )
     parser.add_argument("--smoke", action="store_true", help="spot at R = 32, 64, one repeat")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -216,19 +271,29 @@ def main(argv=None) -> None:
     cases = json.loads(path.read_text())["cases"] if args.update and path.exists() else []
     for mesh in args.meshes:
         for r in _common.progress(args.resolutions, desc=mesh):
-            spec = dict(path=str(_common.MESH_DIR / f"{mesh}.obj"), resolution=r,
-                        repeats=args.repeats, subsample=args.subsample,
-                        all_methods_max=args.all_methods_max, winding_max=args.winding_max,
-                        max_bytes=int(args.max_bytes * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")))
+            spec = dict(
+                path=str(_common.MESH_DIR / f"{mesh}.obj"),
+                resolution=r,
+                repeats=args.repeats,
+                subsample=args.subsample,
+                all_methods_max=args.all_methods_max,
+                winding_max=args.winding_max,
+                max_bytes=int(args.max_bytes * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")),
+            )
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=mesh, resolution=r)
             cases = [c for c in cases if (c["mesh"], c["resolution"]) != (mesh, r)] + [case]
             print(f"{mesh} R={r}: {case.get('error', 'done')}", file=sys.stderr)
     order = {m: n for n, m in enumerate(args.meshes)}
     cases.sort(key=lambda c: (order.get(c["mesh"], len(order)), c["mesh"], c["resolution"]))
     report = table(cases)
-    _common.write_json(stem.with_suffix(".json"), dict(
-        machine=_common.machine_info(["jax", "jaxlib", "open3d", "scipy", "numpy"]),
-        settings=vars(args) | dict(mesh_dir=None), cases=cases))
+    _common.write_json(
+        stem.with_suffix(".json"),
+        dict(
+            machine=_common.machine_info(["jax", "jaxlib", "open3d", "scipy", "numpy"]),
+            settings=vars(args) | dict(mesh_dir=None),
+            cases=cases,
+        ),
+    )
     stem.with_suffix(".md").write_text(report)
     plot(cases, stem)
     print(report)

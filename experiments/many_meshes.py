@@ -41,15 +41,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import _common
+import numpy as np
 
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 SHARED = ("suzanne", "woody", "beetle", "spot", "cow", "teapot", "fandisk", "stanford-bunny")
 
 
 # --------------------------------------------------------------------------- the stream
+
 
 def random_rotation(rng) -> np.ndarray:
     """A uniformly random 3x3 rotation (QR of a Gaussian matrix, signs fixed)."""
@@ -77,8 +77,7 @@ def mesh_stream(mesh_dir: Path, count: int, seed: int = 0) -> list[tuple[str, np
         v = sphere.vertices * (1 + 0.15 * rng.standard_normal((len(sphere.vertices), 1)).clip(-2, 2))
         items.append((f"bumpy-sphere-{subdivisions}-{k}", v, sphere.faces))
     for major, minor in ((32, 16), (64, 32), (128, 64), (256, 96), (384, 150)):
-        torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=major,
-                                       minor_sections=minor)
+        torus = trimesh.creation.torus(major_radius=1.0, minor_radius=0.3, major_sections=major, minor_sections=minor)
         items.append((f"torus-{major}x{minor}", torus.vertices, torus.faces))
     for name, times in (("spot", 1), ("cow", 1), ("fandisk", 1), ("teapot", 2)):
         v, f = shared[name]
@@ -86,11 +85,13 @@ def mesh_stream(mesh_dir: Path, count: int, seed: int = 0) -> list[tuple[str, np
             v, f = trimesh.remesh.subdivide(v, f)
         items.append((f"{name}-subdivided-{times}", v, f))
     order = rng.permutation(len(items))
-    return [(items[i][0], np.asarray(items[i][1], np.float32), np.asarray(items[i][2], np.int32))
-            for i in order[:count]]
+    return [
+        (items[i][0], np.asarray(items[i][1], np.float32), np.asarray(items[i][2], np.int32)) for i in order[:count]
+    ]
 
 
 # --------------------------------------------------------------------------- worker side
+
 
 def worker(spec: dict) -> dict:
     """Runs the stream at one resolution: jaxvox (first pass and compiled) and Open3D.
@@ -108,7 +109,8 @@ def worker(spec: dict) -> dict:
 
     compiles = []
     jax.monitoring.register_event_duration_secs_listener(
-        lambda event, seconds, **kw: compiles.append(seconds) if event == COMPILE_EVENT else None)
+        lambda event, seconds, **kw: compiles.append(seconds) if event == COMPILE_EVENT else None
+    )
     try:
         import open3d as o3d
     except ImportError as exc:
@@ -123,8 +125,9 @@ def worker(spec: dict) -> dict:
         return int(vox.count), dag.num_nodes, int((np.asarray(hit.status) == jv.HIT).sum())
 
     def open3d_call(vertices, faces, grid, rays):
-        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(vertices.astype(np.float64)),
-                                         o3d.utility.Vector3iVector(faces))
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(vertices.astype(np.float64)), o3d.utility.Vector3iVector(faces)
+        )
         lo = np.asarray(grid.origin, np.float64)
         h = float(grid.voxel_size)
         voxels = o3d.geometry.VoxelGrid.create_from_triangle_mesh_within_bounds(mesh, h, lo, lo + resolution * h)
@@ -147,8 +150,9 @@ def worker(spec: dict) -> dict:
     warmup = dict(seconds=time.perf_counter() - start, compiles=len(compiles), compile_s=sum(compiles))
 
     rows = []
-    for name, vertices, faces in _common.progress(mesh_stream(Path(spec["mesh_dir"]), spec["count"]),
-                                                  desc=f"R={resolution}"):
+    for name, vertices, faces in _common.progress(
+        mesh_stream(Path(spec["mesh_dir"]), spec["count"]), desc=f"R={resolution}"
+    ):
         mesh, grid, o, d = prepare(vertices, faces)
         row = dict(mesh=name, faces=len(faces))
         n, start = len(compiles), time.perf_counter()
@@ -170,14 +174,24 @@ def worker(spec: dict) -> dict:
                 times.append(time.perf_counter() - start)
             row["open3d_s"] = statistics.median(times)
         rows.append(row)
-        print(f"R={resolution} {name} ({len(faces):,} faces): first {row['first_s']:.2f} s "
-              f"({row['compiles']} compiles), compiled {row['compiled_s']:.3f} s"
-              + (f", open3d {row['open3d_s']:.3f} s" if "open3d_s" in row else ""), file=sys.stderr)
-    return dict(resolution=resolution, warmup=warmup, meshes=rows, backend=jax.default_backend(),
-                device=jax.devices()[0].device_kind, open3d=o3d is not None)
+        print(
+            f"R={resolution} {name} ({len(faces):,} faces): first {row['first_s']:.2f} s "
+            f"({row['compiles']} compiles), compiled {row['compiled_s']:.3f} s"
+            + (f", open3d {row['open3d_s']:.3f} s" if "open3d_s" in row else ""),
+            file=sys.stderr,
+        )
+    return dict(
+        resolution=resolution,
+        warmup=warmup,
+        meshes=rows,
+        backend=jax.default_backend(),
+        device=jax.devices()[0].device_kind,
+        open3d=o3d is not None,
+    )
 
 
 # --------------------------------------------------------------------------- driver side
+
 
 def summary_row(case: dict) -> dict:
     """One table row of a resolution's results (or its error)."""
@@ -187,10 +201,17 @@ def summary_row(case: dict) -> dict:
     first = sum(r["first_s"] for r in rows)
     compiled = sum(r["compiled_s"] for r in rows)
     compiles = sum(r["compiles"] for r in rows)
-    out = dict(resolution=case["resolution"], meshes=len(rows), compiles=compiles,
-               per_mesh=f"{compiles / len(rows):.2f}", compile_s=f"{sum(r['compile_s'] for r in rows):.2f}",
-               first=f"{first:.2f}", compiled=f"{compiled:.2f}", ratio=f"{first / compiled:.2f}",
-               warmup=f"{case['warmup']['seconds']:.1f} ({case['warmup']['compiles']})")
+    out = dict(
+        resolution=case["resolution"],
+        meshes=len(rows),
+        compiles=compiles,
+        per_mesh=f"{compiles / len(rows):.2f}",
+        compile_s=f"{sum(r['compile_s'] for r in rows):.2f}",
+        first=f"{first:.2f}",
+        compiled=f"{compiled:.2f}",
+        ratio=f"{first / compiled:.2f}",
+        warmup=f"{case['warmup']['seconds']:.1f} ({case['warmup']['compiles']})",
+    )
     if case["open3d"]:
         out["open3d"] = f"{sum(r['open3d_s'] for r in rows):.2f}"
     return out
@@ -198,10 +219,18 @@ def summary_row(case: dict) -> dict:
 
 def table(cases: list[dict]) -> str:
     """The per-resolution summary as a markdown table (times in seconds)."""
-    columns = [("resolution", "R"), ("meshes", "meshes"), ("warmup", "warm-up s (compiles)"),
-               ("compiles", "compiles after warm-up"), ("per_mesh", "compiles per mesh"),
-               ("compile_s", "compile s"), ("first", "first pass s"), ("compiled", "compiled s"),
-               ("ratio", "first / compiled"), ("open3d", "Open3D s")]
+    columns = [
+        ("resolution", "R"),
+        ("meshes", "meshes"),
+        ("warmup", "warm-up s (compiles)"),
+        ("compiles", "compiles after warm-up"),
+        ("per_mesh", "compiles per mesh"),
+        ("compile_s", "compile s"),
+        ("first", "first pass s"),
+        ("compiled", "compiled s"),
+        ("ratio", "first / compiled"),
+        ("open3d", "Open3D s"),
+    ]
     return _common.markdown_table([summary_row(c) for c in cases], columns)
 
 
@@ -218,8 +247,7 @@ def plot(cases: list[dict], path: Path) -> None:
         for key, label in series:
             if all(key in r for r in rows):
                 ax.plot(x, np.cumsum([r[key] for r in rows]), marker=".", label=label)
-        ax.set(xlabel="meshes processed", ylabel="cumulative seconds", yscale="log",
-               title=f"R = {case['resolution']}")
+        ax.set(xlabel="meshes processed", ylabel="cumulative seconds", yscale="log", title=f"R = {case['resolution']}")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize="small")
     _common.save_figure(fig, path)
@@ -234,12 +262,19 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--image", type=int, nargs=2, default=[256, 256], metavar=("W", "H"))
     parser.add_argument("--timeout", type=float, default=4 * 3600, help="seconds before a resolution is abandoned")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
-    parser.add_argument("--smoke", action="store_true",
-                        help="R = 32, 64 on 6 meshes; outputs are named many_meshes_smoke.*")
-    parser.add_argument("--cache", help="persistent compilation cache folder for the workers (default: none, "
-                        "so first calls compile; run twice with a folder to measure a returning session)")
-    parser.add_argument("--update", action="store_true",
-                        help="merge into the existing JSON: replace its resolutions that were run, keep the others")
+    parser.add_argument(
+        "--smoke", action="store_true", help="R = 32, 64 on 6 meshes; outputs are named many_meshes_smoke.*"
+    )
+    parser.add_argument(
+        "--cache",
+        help="persistent compilation cache folder for the workers (default: none, "
+        "so first calls compile; run twice with a folder to measure a returning session)",
+    )
+    parser.add_argument(
+        "--update",
+        action="store_true",
+        help="merge into the existing JSON: replace its resolutions that were run, keep the others",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
@@ -254,19 +289,30 @@ def main(argv=None) -> None:
         return
     cases = []
     for resolution in args.resolutions:
-        spec = dict(mesh_dir=str(args.mesh_dir), count=args.meshes, resolution=resolution,
-                    width=args.image[0], height=args.image[1], cache=args.cache)
+        spec = dict(
+            mesh_dir=str(args.mesh_dir),
+            count=args.meshes,
+            resolution=resolution,
+            width=args.image[0],
+            height=args.image[1],
+            cache=args.cache,
+        )
         case = _common.run_worker(__file__, spec, timeout=args.timeout)
         cases.append(dict(case, resolution=resolution))
     stem = "many_meshes_smoke" if args.smoke else "many_meshes"
     if args.update and (args.out / f"{stem}.json").exists():
-        kept = [c for c in json.loads((args.out / f"{stem}.json").read_text())["results"]
-                if c["resolution"] not in args.resolutions]
+        kept = [
+            c
+            for c in json.loads((args.out / f"{stem}.json").read_text())["results"]
+            if c["resolution"] not in args.resolutions
+        ]
         cases = sorted(kept + cases, key=lambda c: c["resolution"])
     report = f"## Many meshes through the host API\n\n{table(cases)}"
-    data = dict(machine=_common.machine_info(["jax", "jaxlib", "open3d", "trimesh", "numpy"]),
-                settings=dict(resolutions=[c["resolution"] for c in cases], meshes=args.meshes, image=args.image),
-                results=cases)
+    data = dict(
+        machine=_common.machine_info(["jax", "jaxlib", "open3d", "trimesh", "numpy"]),
+        settings=dict(resolutions=[c["resolution"] for c in cases], meshes=args.meshes, image=args.image),
+        results=cases,
+    )
     _common.write_json(args.out / f"{stem}.json", data)
     (args.out / f"{stem}.md").write_text(report)
     plot(cases, args.out / f"{stem}.png")

@@ -50,17 +50,29 @@ import json
 import sys
 from pathlib import Path
 
+import _common
 import numpy as np
 
-import _common
-
 ALL_MESHES = ("stanford-bunny", "spot", "teapot", "suzanne", "fandisk", "cow", "woody", "beetle")
-LAYOUTS = ("dense bits", "spc", "spc+exsum", "octree-33B", "octree", "octree+prefix", "octree-sparse", "dag-33B",
-           "dag", "dag+prefix", "dag-sparse", "dag-sparse+prefix")
+LAYOUTS = (
+    "dense bits",
+    "spc",
+    "spc+exsum",
+    "octree-33B",
+    "octree",
+    "octree+prefix",
+    "octree-sparse",
+    "dag-33B",
+    "dag",
+    "dag+prefix",
+    "dag-sparse",
+    "dag-sparse+prefix",
+)
 
 
 def layout_bytes(svo, dag, resolution: int) -> dict[str, int]:
     """Bytes of every layout in the module docstring, from the built trees."""
+
     def parts(tree):
         sizes = tree.level_sizes
         nodes, inner = sum(sizes), sum(sizes[:-1])
@@ -94,7 +106,8 @@ def worker(spec: dict) -> dict:
     mesh = jv.load_mesh(spec["path"])
     resolution = spec["resolution"]
     vox_timing, vox = _common.time_calls(
-        lambda: jax.block_until_ready(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution))), 0)
+        lambda: jax.block_until_ready(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution))), 0
+    )
     trees, timings = {}, {}
     for name, build in (("octree", jv.build_octree), ("dag", jv.build_dag)):
         timing, tree = _common.time_calls(lambda: jax.block_until_ready(build(vox)), spec["repeats"])
@@ -130,30 +143,44 @@ def table(rows: list[dict]) -> str:
             out.append(dict(case=f"{row['mesh']} {row['resolution']}^3", octree=row["error"]))
             continue
         b = row["bytes"]
-        out.append({
-            "case": f"{row['mesh']} {row['resolution']}^3",
-            "voxels": f"{row['voxels']:,}",
-            "dense": mib(b["dense bits"]),
-            "spc": mib(b["spc"]),
-            "octree": mib(b["octree"]),
-            "octree+prefix": mib(b["octree+prefix"]),
-            "dag": mib(b["dag"]),
-            "dag+prefix": mib(b["dag+prefix"]),
-            "dag-sparse": mib(b["dag-sparse"]),
-            "dag-sparse+prefix": mib(b["dag-sparse+prefix"]),
-            "ratio": f"{b['octree'] / b['dag']:.1f}x",
-            "ratio33": f"{b['octree-33B'] / b['dag-33B']:.1f}x",
-            "bpv": f"{row['bits_per_voxel']['dag+prefix']:.2f}",
-            "t_svo": f"{row['build_octree']['median_s']:.2f}",
-            "t_dag": f"{row['build_dag']['median_s']:.2f}",
-            "peak": f"{row['peak_rss_mib'] / 1024:.1f}",
-        })
-    columns = [("case", "case"), ("voxels", "voxels"), ("dense", "dense bits MiB"), ("spc", "SPC MiB"),
-               ("octree", "octree MiB"), ("octree+prefix", "octree+prefix MiB"), ("dag", "DAG MiB"),
-               ("dag+prefix", "DAG+prefix MiB"), ("dag-sparse", "sparse DAG MiB"),
-               ("dag-sparse+prefix", "sparse DAG+prefix MiB"), ("ratio", "octree/DAG bytes"),
-               ("ratio33", "octree/DAG, 33 B/node (slides)"), ("bpv", "DAG+prefix bits/voxel"), ("t_svo", "SVO build s"),
-               ("t_dag", "DAG build s"), ("peak", "peak RSS GiB")]
+        out.append(
+            {
+                "case": f"{row['mesh']} {row['resolution']}^3",
+                "voxels": f"{row['voxels']:,}",
+                "dense": mib(b["dense bits"]),
+                "spc": mib(b["spc"]),
+                "octree": mib(b["octree"]),
+                "octree+prefix": mib(b["octree+prefix"]),
+                "dag": mib(b["dag"]),
+                "dag+prefix": mib(b["dag+prefix"]),
+                "dag-sparse": mib(b["dag-sparse"]),
+                "dag-sparse+prefix": mib(b["dag-sparse+prefix"]),
+                "ratio": f"{b['octree'] / b['dag']:.1f}x",
+                "ratio33": f"{b['octree-33B'] / b['dag-33B']:.1f}x",
+                "bpv": f"{row['bits_per_voxel']['dag+prefix']:.2f}",
+                "t_svo": f"{row['build_octree']['median_s']:.2f}",
+                "t_dag": f"{row['build_dag']['median_s']:.2f}",
+                "peak": f"{row['peak_rss_mib'] / 1024:.1f}",
+            }
+        )
+    columns = [
+        ("case", "case"),
+        ("voxels", "voxels"),
+        ("dense", "dense bits MiB"),
+        ("spc", "SPC MiB"),
+        ("octree", "octree MiB"),
+        ("octree+prefix", "octree+prefix MiB"),
+        ("dag", "DAG MiB"),
+        ("dag+prefix", "DAG+prefix MiB"),
+        ("dag-sparse", "sparse DAG MiB"),
+        ("dag-sparse+prefix", "sparse DAG+prefix MiB"),
+        ("ratio", "octree/DAG bytes"),
+        ("ratio33", "octree/DAG, 33 B/node (slides)"),
+        ("bpv", "DAG+prefix bits/voxel"),
+        ("t_svo", "SVO build s"),
+        ("t_dag", "DAG build s"),
+        ("peak", "peak RSS GiB"),
+    ]
     return _common.markdown_table(out, columns)
 
 
@@ -166,20 +193,38 @@ def plot(rows: list[dict], path: Path) -> None:
     res = [r["resolution"] for r in mine]
     colours = [f"C{i % 10}" for i in range(len(LAYOUTS))]
     for i, layout in enumerate(LAYOUTS):
-        ax_bytes.plot(res, [r["bytes"][layout] for r in mine], marker="os^"[i // 10 % 3], color=colours[i],
-                      ls="-" if i < 10 else "--", label=layout)
+        ax_bytes.plot(
+            res,
+            [r["bytes"][layout] for r in mine],
+            marker="os^"[i // 10 % 3],
+            color=colours[i],
+            ls="-" if i < 10 else "--",
+            label=layout,
+        )
     ax_bytes.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bytes", title=f"{first}: bytes per layout")
     ax_bytes.legend(fontsize=7)
     for mesh in dict.fromkeys(r["mesh"] for r in rows):
         part = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
         x = [r["resolution"] for r in part]
         ax_ratio.plot(x, [r["bytes"]["octree-33B"] / r["bytes"]["dag-33B"] for r in part], marker="o", label=mesh)
-        ax_ratio.plot(x, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in part], ls=":", color=ax_ratio.lines[-1].get_color())
+        ax_ratio.plot(
+            x, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in part], ls=":", color=ax_ratio.lines[-1].get_color()
+        )
         ax_bits.plot(x, [r["bits_per_voxel"]["dag+prefix"] for r in part], marker="o", label=mesh)
-    ax_ratio.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="octree bytes / DAG bytes",
-                 title="DAG compression (solid: 33 B/node, dotted: jaxvox tables)")
-    ax_bits.set(xscale="log", yscale="log", xlabel="resolution R", ylabel="bits per voxel",
-                title="DAG + prefix sums, bits per voxel")
+    ax_ratio.set(
+        xscale="log",
+        yscale="log",
+        xlabel="resolution R",
+        ylabel="octree bytes / DAG bytes",
+        title="DAG compression (solid: 33 B/node, dotted: jaxvox tables)",
+    )
+    ax_bits.set(
+        xscale="log",
+        yscale="log",
+        xlabel="resolution R",
+        ylabel="bits per voxel",
+        title="DAG + prefix sums, bits per voxel",
+    )
     for ax in (ax_bytes, ax_ratio, ax_bits):
         ax.set_xticks(res, [str(r) for r in res])
         ax.grid(True, which="both", alpha=0.3)
@@ -193,15 +238,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--meshes", nargs="+", default=list(ALL_MESHES))
     parser.add_argument("--mesh-dir", type=Path, default=_common.MESH_DIR)
     parser.add_argument("--resolutions", nargs="*", type=int, default=[64, 128, 256, 512, 1024, 2048])
-    parser.add_argument("--huge", nargs="*", type=int, default=[4096, 8192], metavar="R",
-                        help="resolutions run for the first mesh only (default 4096 8192)")
+    parser.add_argument(
+        "--huge",
+        nargs="*",
+        type=int,
+        default=[4096, 8192],
+        metavar="R",
+        help="resolutions run for the first mesh only (default 4096 8192)",
+    )
     parser.add_argument("--repeats", type=int, default=2, help="timed builds after the first (0 above 2048)")
     parser.add_argument("--timeout", type=float, default=3600)
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--smoke", action="store_true", help="R = 64, 128 on two meshes; *_smoke outputs")
     parser.add_argument("--plot-only", action="store_true", help="redraw the PNG and table from the JSON")
-    parser.add_argument("--update", action="store_true",
-                        help="merge into the existing JSON: replace its rows for the cases run, keep the others")
+    parser.add_argument(
+        "--update",
+        action="store_true",
+        help="merge into the existing JSON: replace its rows for the cases run, keep the others",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
@@ -224,8 +278,11 @@ def main(argv=None) -> None:
     cases += [(args.meshes[0], r) for r in args.huge if r not in args.resolutions]
     rows = []
     for mesh, resolution in _common.progress(cases, desc="cases"):
-        spec = dict(path=str(args.mesh_dir / f"{mesh}.obj"), resolution=resolution,
-                    repeats=args.repeats if resolution <= 2048 else 0)
+        spec = dict(
+            path=str(args.mesh_dir / f"{mesh}.obj"),
+            resolution=resolution,
+            repeats=args.repeats if resolution <= 2048 else 0,
+        )
         row = dict(mesh=mesh, resolution=resolution)
         row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
         rows.append(row)
@@ -235,12 +292,18 @@ def main(argv=None) -> None:
         old = json.loads((args.out / f"{stem}.json").read_text())
         done = {(r["mesh"], r["resolution"]) for r in rows}
         order = list(dict.fromkeys(r["mesh"] for r in old["results"] + rows))
-        rows = sorted([r for r in old["results"] if (r["mesh"], r["resolution"]) not in done] + rows,
-                      key=lambda r: (order.index(r["mesh"]), r["resolution"]))
+        rows = sorted(
+            [r for r in old["results"] if (r["mesh"], r["resolution"]) not in done] + rows,
+            key=lambda r: (order.index(r["mesh"]), r["resolution"]),
+        )
         settings = dict(old["settings"], updated=old["settings"].get("updated", []) + [settings])
     report = table(rows)
-    _common.write_json(args.out / f"{stem}.json", dict(
-        machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=settings, layouts=LAYOUTS, results=rows))
+    _common.write_json(
+        args.out / f"{stem}.json",
+        dict(
+            machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=settings, layouts=LAYOUTS, results=rows
+        ),
+    )
     (args.out / f"{stem}.md").write_text(report)
     plot(rows, args.out / f"{stem}.png")
     print(report)

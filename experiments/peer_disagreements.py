@@ -20,9 +20,8 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import _common
+import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -46,8 +45,10 @@ def classify(mesh_path: Path, resolution: int) -> dict:
     import trimesh
 
     tm = trimesh.load(mesh_path, force="mesh", process=False)
-    o3 = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(tm.vertices, np.float64)),
-                                   o3d.utility.Vector3iVector(np.asarray(tm.faces, np.int32)))
+    o3 = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.asarray(tm.vertices, np.float64)),
+        o3d.utility.Vector3iVector(np.asarray(tm.faces, np.int32)),
+    )
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     vg = o3d.geometry.VoxelGrid.create_from_triangle_mesh_within_bounds(o3, h, origin, origin + resolution * h)
@@ -67,11 +68,16 @@ def classify(mesh_path: Path, resolution: int) -> dict:
         ref = reference_voxelize(v, f[near], grid.origin, grid.voxel_size, resolution)
         margins.append(float(ref.lookup(ijk[None])[0][0]))
     margins = np.array(margins)
-    return dict(mesh=mesh_path.stem, resolution=resolution, exact=len(ours),
-                open3d_missed=len(only_ours), open3d_extra=len(only_theirs),
-                max_abs_margin_voxels=float(np.abs(margins).max()) if len(margins) else 0.0,
-                margins_missed=margins[:len(only_ours)].tolist(),
-                margins_extra=margins[len(only_ours):].tolist())
+    return dict(
+        mesh=mesh_path.stem,
+        resolution=resolution,
+        exact=len(ours),
+        open3d_missed=len(only_ours),
+        open3d_extra=len(only_theirs),
+        max_abs_margin_voxels=float(np.abs(margins).max()) if len(margins) else 0.0,
+        margins_missed=margins[: len(only_ours)].tolist(),
+        margins_extra=margins[len(only_ours) :].tolist(),
+    )
 
 
 def main() -> None:
@@ -82,11 +88,20 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "experiments" / "results")
     args = parser.parse_args()
     rows = [classify(args.mesh_dir / f"{m}.obj", r) for m in args.meshes for r in args.resolutions]
-    _common.write_json(args.out / "peer_disagreements.json", dict(machine=_common.machine_info(["open3d"]),
-                                                                  rows=rows))
-    print(_common.markdown_table(rows, [("mesh", "mesh"), ("resolution", "R"), ("exact", "exact voxels"),
-                                        ("open3d_missed", "Open3D missed"), ("open3d_extra", "Open3D extra"),
-                                        ("max_abs_margin_voxels", "largest |margin| (voxels)")]))
+    _common.write_json(args.out / "peer_disagreements.json", dict(machine=_common.machine_info(["open3d"]), rows=rows))
+    print(
+        _common.markdown_table(
+            rows,
+            [
+                ("mesh", "mesh"),
+                ("resolution", "R"),
+                ("exact", "exact voxels"),
+                ("open3d_missed", "Open3D missed"),
+                ("open3d_extra", "Open3D extra"),
+                ("max_abs_margin_voxels", "largest |margin| (voxels)"),
+            ],
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -25,9 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import _common
+import numpy as np
 
 DEFAULT_MESHES = ("stanford-bunny", "spot")
 
@@ -36,8 +35,10 @@ def _metrics(image: np.ndarray, reference: np.ndarray) -> dict:
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
     a, b = image.astype(np.float64) / 255.0, reference.astype(np.float64) / 255.0
-    return dict(psnr=float(peak_signal_noise_ratio(b, a, data_range=1.0)),
-                ssim=float(structural_similarity(b, a, channel_axis=-1, data_range=1.0)))
+    return dict(
+        psnr=float(peak_signal_noise_ratio(b, a, data_range=1.0)),
+        ssim=float(structural_similarity(b, a, channel_axis=-1, data_range=1.0)),
+    )
 
 
 def worker(spec: dict) -> dict:
@@ -48,8 +49,15 @@ def worker(spec: dict) -> dict:
 
     mesh = jv.load_mesh(_common.MESH_DIR / f"{spec['mesh']}.obj")
     eye, target = jv.look_at_view(mesh, azimuth=spec["azimuth"], elevation=20.0, distance=1.6)
-    settings = dict(env=jv.sky_environment(), width=spec["width"], height=spec["height"], spp=spec["spp"],
-                    bounces=spec["bounces"], key=spec["seed"], progress=False)
+    settings = dict(
+        env=jv.sky_environment(),
+        width=spec["width"],
+        height=spec["height"],
+        spp=spec["spp"],
+        bounces=spec["bounces"],
+        key=spec["seed"],
+        progress=False,
+    )
     out = Path(spec["out"])
     row = dict(mesh=spec["mesh"], case=spec["case"], spp=spec["spp"])
     if spec["case"] in ("reference", "mesh"):
@@ -59,14 +67,22 @@ def worker(spec: dict) -> dict:
         start = time.perf_counter()
         tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=R)))
         tree.mask.block_until_ready()
-        row.update(resolution=R, build_s=time.perf_counter() - start, dag_bytes=int(tree.compact_nbytes),
-                   voxels=int(tree.voxel_count))
+        row.update(
+            resolution=R,
+            build_s=time.perf_counter() - start,
+            dag_bytes=int(tree.compact_nbytes),
+            voxels=int(tree.voxel_count),
+        )
         run = lambda: jax.block_until_ready(jv.render(tree, eye, target, **settings))
     repeats = 0 if spec["case"] == "reference" else spec["repeats"]
     timing, result = _common.time_calls(run, repeats)
     samples = spec["width"] * spec["height"] * spec["spp"]
-    row.update(timing=timing, ns_per_sample=timing["median_s"] / samples * 1e9, peak_rss_mib=_common.peak_rss_mib(),
-               stopped=int(result.stopped))
+    row.update(
+        timing=timing,
+        ns_per_sample=timing["median_s"] / samples * 1e9,
+        peak_rss_mib=_common.peak_rss_mib(),
+        stopped=int(result.stopped),
+    )
     image = jv.tonemap(result.radiance)
     name = f"{spec['mesh']}_{spec['case']}" + (f"_{spec['resolution']}" if spec["case"] == "dag" else "")
     write_png(out / f"{name}.png", image)
@@ -84,19 +100,39 @@ def chart(rows: list[dict], path: Path) -> None:
     fig, (left, right) = _common.new_figure(2)
     for mesh in sorted({r["mesh"] for r in rows}):
         dags = sorted((r for r in rows if r["mesh"] == mesh and r["case"] == "dag"), key=lambda r: r["resolution"])
-        line, = left.plot([r["ns_per_sample"] for r in dags], [r["psnr"] for r in dags], "o-", label=f"{mesh} DAG")
+        (line,) = left.plot([r["ns_per_sample"] for r in dags], [r["psnr"] for r in dags], "o-", label=f"{mesh} DAG")
         for r in dags:
-            left.annotate(f"{r['resolution']}", (r["ns_per_sample"], r["psnr"]), textcoords="offset points",
-                          xytext=(4, 4), fontsize=8)
-        right.plot([r["resolution"] for r in dags], [r["ssim"] for r in dags], "o-", color=line.get_color(),
-                   label=f"{mesh} DAG")
+            left.annotate(
+                f"{r['resolution']}",
+                (r["ns_per_sample"], r["psnr"]),
+                textcoords="offset points",
+                xytext=(4, 4),
+                fontsize=8,
+            )
+        right.plot(
+            [r["resolution"] for r in dags],
+            [r["ssim"] for r in dags],
+            "o-",
+            color=line.get_color(),
+            label=f"{mesh} DAG",
+        )
         for r in rows:
             if r["mesh"] == mesh and r["case"] == "mesh":
-                left.plot([r["ns_per_sample"]], [r["psnr"]], "*", ms=12, color=line.get_color(),
-                          label=f"{mesh} mesh (Embree), same spp")
+                left.plot(
+                    [r["ns_per_sample"]],
+                    [r["psnr"]],
+                    "*",
+                    ms=12,
+                    color=line.get_color(),
+                    label=f"{mesh} mesh (Embree), same spp",
+                )
                 right.axhline(r["ssim"], ls="--", color=line.get_color(), label=f"{mesh} mesh, same spp")
-    left.set(xscale="log", xlabel="time per pixel sample (ns, 8 bounces)", ylabel="PSNR vs reference (dB)",
-             title="speed against accuracy (2-core CPU)")
+    left.set(
+        xscale="log",
+        xlabel="time per pixel sample (ns, 8 bounces)",
+        ylabel="PSNR vs reference (dB)",
+        title="speed against accuracy (2-core CPU)",
+    )
     right.set(xscale="log", xlabel="DAG resolution R", ylabel="SSIM vs reference", title="structure against R")
     right.set_xscale("log", base=2)
     left.legend(fontsize=8)
@@ -110,8 +146,11 @@ def strip(rows: list[dict], folder: Path, path: Path) -> None:
     lines = []
     for mesh in sorted({r["mesh"] for r in rows}):
         mine = [r for r in rows if r["mesh"] == mesh]
-        order = ([r for r in mine if r["case"] == "reference"] + [r for r in mine if r["case"] == "mesh"]
-                 + sorted((r for r in mine if r["case"] == "dag"), key=lambda r: r["resolution"]))
+        order = (
+            [r for r in mine if r["case"] == "reference"]
+            + [r for r in mine if r["case"] == "mesh"]
+            + sorted((r for r in mine if r["case"] == "dag"), key=lambda r: r["resolution"])
+        )
         tiles = [iio.imread(folder / r["image"]) for r in order if (folder / r["image"]).exists()]
         gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
         lines.append(np.concatenate([x for t in tiles for x in (t, gap)][:-1], axis=1))
@@ -143,8 +182,15 @@ def main():
     images.mkdir(parents=True, exist_ok=True)
     rows = []
     for mesh in _common.progress(args.meshes, desc="meshes"):
-        base = dict(mesh=mesh, width=width, height=height, bounces=args.bounces, repeats=args.repeats,
-                    out=str(images), azimuth=35.0 if mesh != "spot" else 145.0)
+        base = dict(
+            mesh=mesh,
+            width=width,
+            height=height,
+            bounces=args.bounces,
+            repeats=args.repeats,
+            out=str(images),
+            azimuth=35.0 if mesh != "spot" else 145.0,
+        )
         cases = [dict(case="reference", spp=args.reference_spp, seed=12345), dict(case="mesh", spp=args.spp, seed=0)]
         cases += [dict(case="dag", resolution=R, spp=args.spp, seed=0) for R in args.resolutions]
         for case in cases:
@@ -155,23 +201,49 @@ def main():
                     break
                 continue
             rows.append(row)
-            print(f"{mesh} {case['case']} {case.get('resolution', '')}: {row['ns_per_sample']:.0f} ns/sample, "
-                  f"PSNR {row.get('psnr', float('nan')):.2f} dB, SSIM {row.get('ssim', float('nan')):.4f}, "
-                  f"{row['peak_rss_mib']:.0f} MiB", flush=True)
-            _common.write_json(args.out / f"{stem}.json",
-                               dict(machine=_common.machine_info(["jax", "embreex", "numpy", "scikit-image"]),
-                                    settings=dict(width=width, height=height, spp=args.spp,
-                                                  reference_spp=args.reference_spp, bounces=args.bounces),
-                                    rows=rows))
-    columns = [("mesh", "mesh"), ("case", "render"), ("resolution", "R"), ("spp", "spp"), ("ns", "ns / sample"),
-               ("psnr", "PSNR dB"), ("ssim", "SSIM"), ("build", "voxelize + DAG s"), ("mib", "DAG MiB"),
-               ("rss", "peak RSS MiB")]
-    table = [dict(mesh=r["mesh"], case=r["case"], resolution=r.get("resolution", "-"), spp=r["spp"],
-                  ns=f"{r['ns_per_sample']:.0f}", psnr=f"{r['psnr']:.2f}" if "psnr" in r else "-",
-                  ssim=f"{r['ssim']:.4f}" if "ssim" in r else "-",
-                  build=f"{r['build_s']:.1f}" if "build_s" in r else "-",
-                  mib=f"{r['dag_bytes'] / 2**20:.1f}" if "dag_bytes" in r else "-", rss=f"{r['peak_rss_mib']:.0f}")
-             for r in rows]
+            print(
+                f"{mesh} {case['case']} {case.get('resolution', '')}: {row['ns_per_sample']:.0f} ns/sample, "
+                f"PSNR {row.get('psnr', float('nan')):.2f} dB, SSIM {row.get('ssim', float('nan')):.4f}, "
+                f"{row['peak_rss_mib']:.0f} MiB",
+                flush=True,
+            )
+            _common.write_json(
+                args.out / f"{stem}.json",
+                dict(
+                    machine=_common.machine_info(["jax", "embreex", "numpy", "scikit-image"]),
+                    settings=dict(
+                        width=width, height=height, spp=args.spp, reference_spp=args.reference_spp, bounces=args.bounces
+                    ),
+                    rows=rows,
+                ),
+            )
+    columns = [
+        ("mesh", "mesh"),
+        ("case", "render"),
+        ("resolution", "R"),
+        ("spp", "spp"),
+        ("ns", "ns / sample"),
+        ("psnr", "PSNR dB"),
+        ("ssim", "SSIM"),
+        ("build", "voxelize + DAG s"),
+        ("mib", "DAG MiB"),
+        ("rss", "peak RSS MiB"),
+    ]
+    table = [
+        dict(
+            mesh=r["mesh"],
+            case=r["case"],
+            resolution=r.get("resolution", "-"),
+            spp=r["spp"],
+            ns=f"{r['ns_per_sample']:.0f}",
+            psnr=f"{r['psnr']:.2f}" if "psnr" in r else "-",
+            ssim=f"{r['ssim']:.4f}" if "ssim" in r else "-",
+            build=f"{r['build_s']:.1f}" if "build_s" in r else "-",
+            mib=f"{r['dag_bytes'] / 2**20:.1f}" if "dag_bytes" in r else "-",
+            rss=f"{r['peak_rss_mib']:.0f}",
+        )
+        for r in rows
+    ]
     md = _common.markdown_table(table, columns)
     (args.out / f"{stem}.md").write_text(md + "\n")
     print(md)

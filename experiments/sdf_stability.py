@@ -32,9 +32,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
 import _common
+import numpy as np
 
 sys.path.insert(0, str(_common.REPO_ROOT))
 import jax  # noqa: E402
@@ -53,10 +52,10 @@ def scenes() -> dict:
     parts = []
     for n in range(24):  # many small primitives around a big box
         c = rng.uniform(-0.8, 0.8, 3)
-        parts.append(sdf.sphere(rng.uniform(0.08, 0.2), center=c) if n % 2 else
-                     sdf.box(rng.uniform(0.05, 0.15, 3), center=c))
-    csg = sdf.difference(sdf.union(sdf.rounded_box((0.35, 0.25, 0.3), 0.05), *parts),
-                         sdf.cylinder(0.12, 1.0))
+        parts.append(
+            sdf.sphere(rng.uniform(0.08, 0.2), center=c) if n % 2 else sdf.box(rng.uniform(0.05, 0.15, 3), center=c)
+        )
+    csg = sdf.difference(sdf.union(sdf.rounded_box((0.35, 0.25, 0.3), 0.05), *parts), sdf.cylinder(0.12, 1.0))
     return {
         "sphere": sdf.sphere(0.7),
         "csg (26 primitives)": csg,
@@ -108,11 +107,19 @@ def evaluate(t_ref, hit, steps, voxel) -> dict:
     is_hit = status == jv.HIT
     both = ref_hit & is_hit
     err = np.abs(t - t_ref)[both] / voxel
-    return dict(misses=int((ref_hit & ~is_hit).sum()), false_hits=int((~ref_hit & is_hit).sum()),
-                step_cap=int((status == jv.STEP_CAP).sum()), hits=int(is_hit.sum()), ref_hits=int(ref_hit.sum()),
-                steps_mean=float(steps.mean()), steps_p99=float(np.percentile(steps, 99)), steps_max=int(steps.max()),
-                err_max=float(err.max()) if err.size else 0.0, err_mean=float(err.mean()) if err.size else 0.0,
-                err_p99=float(np.percentile(err, 99)) if err.size else 0.0)
+    return dict(
+        misses=int((ref_hit & ~is_hit).sum()),
+        false_hits=int((~ref_hit & is_hit).sum()),
+        step_cap=int((status == jv.STEP_CAP).sum()),
+        hits=int(is_hit.sum()),
+        ref_hits=int(ref_hit.sum()),
+        steps_mean=float(steps.mean()),
+        steps_p99=float(np.percentile(steps, 99)),
+        steps_max=int(steps.max()),
+        err_max=float(err.max()) if err.size else 0.0,
+        err_mean=float(err.mean()) if err.size else 0.0,
+        err_p99=float(np.percentile(err, 99)) if err.size else 0.0,
+    )
 
 
 def failure_map(t_ref, hit, voxel, shape) -> np.ndarray:
@@ -157,20 +164,35 @@ def main(argv=None) -> None:
         maps[scene_name] = {}
         for method in METHODS:
             timing, hit, steps = run_method(method, scene, tree, o, u, args.repeats)
-            row = dict(scene=scene_name, method=method, lipschitz=sdf.lipschitz_bound(scene),
-                       median_s=timing["median_s"], compile_s=timing["compile_s"],
-                       mrays_s=len(o) / timing["median_s"] / 1e6, **evaluate(t_ref, hit, steps, voxel))
+            row = dict(
+                scene=scene_name,
+                method=method,
+                lipschitz=sdf.lipschitz_bound(scene),
+                median_s=timing["median_s"],
+                compile_s=timing["compile_s"],
+                mrays_s=len(o) / timing["median_s"] / 1e6,
+                **evaluate(t_ref, hit, steps, voxel),
+            )
             if method == "octree":
-                row.update(build_s=build["median_s"], build_compile_s=build["compile_s"], leaves=int(tree.voxel_count), nodes=tree.num_nodes)
+                row.update(
+                    build_s=build["median_s"],
+                    build_compile_s=build["compile_s"],
+                    leaves=int(tree.voxel_count),
+                    nodes=tree.num_nodes,
+                )
             rows.append(row)
-            maps[scene_name][method] = dict(steps=steps.reshape(shape),
-                                            failures=failure_map(t_ref, hit, voxel, shape))
-            print(f"{scene_name} {method}: {row['median_s']:.3f} s, {row['steps_mean']:.1f} steps/ray, "
-                  f"misses {row['misses']}, false hits {row['false_hits']}, cap {row['step_cap']}", flush=True)
+            maps[scene_name][method] = dict(steps=steps.reshape(shape), failures=failure_map(t_ref, hit, voxel, shape))
+            print(
+                f"{scene_name} {method}: {row['median_s']:.3f} s, {row['steps_mean']:.1f} steps/ray, "
+                f"misses {row['misses']}, false hits {row['false_hits']}, cap {row['step_cap']}",
+                flush=True,
+            )
 
     stem = _common.RESULTS_DIR / ("sdf_stability_smoke" if args.smoke else "sdf_stability")
-    _common.write_json(stem.with_suffix(".json"), dict(
-        machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=vars(args), rows=rows))
+    _common.write_json(
+        stem.with_suffix(".json"),
+        dict(machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=vars(args), rows=rows),
+    )
     report = table(rows, args)
     stem.with_suffix(".md").write_text(report)
     plot(rows, maps, stem)
@@ -181,17 +203,32 @@ def table(rows, args) -> str:
     out = []
     plain = {r["scene"]: r["median_s"] for r in rows if r["method"] == "plain"}
     for r in rows:
-        out.append(dict(scene=r["scene"], method=r["method"], time=f"{r['median_s'] * 1e3:.1f}",
-                        speedup=f"{plain[r['scene']] / r['median_s']:.2f}x",
-                        steps=f"{r['steps_mean']:.1f} / {r['steps_p99']:.0f} / {r['steps_max']}",
-                        errors=f"{r['misses']} / {r['false_hits']} / {r['step_cap']}",
-                        err=f"{r['err_max']:.3f} / {r['err_mean']:.4f} / {r['err_p99']:.3f}",
-                        build=(f"{r['build_s']:.2f} s (+{r['build_compile_s']:.0f} s compile), {r['leaves']:,} leaves"
-                               if "build_s" in r else "")))
-    columns = [("scene", "scene"), ("method", "method"), ("time", f"ms per {args.width}x{args.height} image"),
-               ("speedup", "vs plain"), ("steps", "evaluations per ray: mean / p99 / max"),
-               ("errors", "misses / false hits / step cap"), ("err", "|t - t_ref| max / mean / p99 (voxels)"),
-               ("build", "octree build")]
+        out.append(
+            dict(
+                scene=r["scene"],
+                method=r["method"],
+                time=f"{r['median_s'] * 1e3:.1f}",
+                speedup=f"{plain[r['scene']] / r['median_s']:.2f}x",
+                steps=f"{r['steps_mean']:.1f} / {r['steps_p99']:.0f} / {r['steps_max']}",
+                errors=f"{r['misses']} / {r['false_hits']} / {r['step_cap']}",
+                err=f"{r['err_max']:.3f} / {r['err_mean']:.4f} / {r['err_p99']:.3f}",
+                build=(
+                    f"{r['build_s']:.2f} s (+{r['build_compile_s']:.0f} s compile), {r['leaves']:,} leaves"
+                    if "build_s" in r
+                    else ""
+                ),
+            )
+        )
+    columns = [
+        ("scene", "scene"),
+        ("method", "method"),
+        ("time", f"ms per {args.width}x{args.height} image"),
+        ("speedup", "vs plain"),
+        ("steps", "evaluations per ray: mean / p99 / max"),
+        ("errors", "misses / false hits / step cap"),
+        ("err", "|t - t_ref| max / mean / p99 (voxels)"),
+        ("build", "octree build"),
+    ]
     return _common.markdown_table(out, columns)
 
 
@@ -204,19 +241,30 @@ def plot(rows, maps, stem) -> None:
     for r in rows:
         c = f"C{scene_names.index(r['scene'])}"
         bad = (r["misses"] + r["false_hits"] + r["step_cap"]) / max(r["ref_hits"], 1)
-        ax_err.scatter(r["steps_mean"], max(r["err_p99"], 1e-5) + bad, color=c, marker=markers[r["method"]],
-                       label=f"{r['scene']}" if r["method"] == "plain" else None)
+        ax_err.scatter(
+            r["steps_mean"],
+            max(r["err_p99"], 1e-5) + bad,
+            color=c,
+            marker=markers[r["method"]],
+            label=f"{r['scene']}" if r["method"] == "plain" else None,
+        )
     for m, mk in markers.items():
         ax_err.scatter([], [], color="k", marker=mk, label=m)
-    ax_err.set(xscale="log", yscale="log", xlabel="scene evaluations per ray (mean)",
-               ylabel="p99 |t error| (voxels) + failed-ray fraction", title="Speed vs accuracy")
+    ax_err.set(
+        xscale="log",
+        yscale="log",
+        xlabel="scene evaluations per ray (mean)",
+        ylabel="p99 |t error| (voxels) + failed-ray fraction",
+        title="Speed vs accuracy",
+    )
     ax_err.legend(fontsize=6)
     width = 0.2
     for n, m in enumerate(METHODS):
         ys = [next(r["median_s"] for r in rows if r["scene"] == s and r["method"] == m) for s in scene_names]
         ax_time.bar(np.arange(len(scene_names)) + n * width, ys, width, label=m)
-    ax_time.set_xticks(np.arange(len(scene_names)) + 1.5 * width, [s[:14] for s in scene_names], fontsize=6,
-                       rotation=20)
+    ax_time.set_xticks(
+        np.arange(len(scene_names)) + 1.5 * width, [s[:14] for s in scene_names], fontsize=6, rotation=20
+    )
     ax_time.set(ylabel="seconds per image", title="Time per image")
     ax_time.legend(fontsize="small")
     _common.save_figure(fig, stem.with_suffix(".png"))
@@ -234,8 +282,10 @@ def plot(rows, maps, stem) -> None:
                 ax.set_xticks([])
                 ax.set_yticks([])
         axes[i, 0].set_ylabel(scene_name[:16], fontsize=6)
-    fig.suptitle("steps per pixel (0-128) | failures: orange t error > 1 voxel, red miss, blue false hit, "
-                 "black step cap", fontsize=7)
+    fig.suptitle(
+        "steps per pixel (0-128) | failures: orange t error > 1 voxel, red miss, blue false hit, black step cap",
+        fontsize=7,
+    )
     _common.save_figure(fig, stem.parent / f"{stem.name}_maps.png")
 
 

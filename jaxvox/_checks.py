@@ -71,19 +71,34 @@ def check_int(what: str, value, *, minimum: int | None = None, maximum: int | No
     return value
 
 
-def check_number(what: str, value, *, above: float | None = None, minimum: float | None = None,
-                 maximum: float | None = None, below: float | None = None, finite: bool = True) -> float:
+def check_number(
+    what: str,
+    value,
+    *,
+    above: float | None = None,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    below: float | None = None,
+    finite: bool = True,
+) -> float:
     """`value` as a float; raises if it is not a real number, is NaN (or inf when `finite`),
     or lies outside ``(above, below)`` / ``[minimum, maximum]``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        if not (isinstance(value, (np.ndarray, jax.Array)) and np.ndim(value) == 0
-                and np.issubdtype(np.asarray(value).dtype, np.number)):
+        if not (
+            isinstance(value, (np.ndarray, jax.Array))
+            and np.ndim(value) == 0
+            and np.issubdtype(np.asarray(value).dtype, np.number)
+        ):
             raise refuse(what, "must be a real number", value)
     x = float(value)
     if math.isnan(x) or (finite and math.isinf(x)):
         raise refuse(what, "must be finite" if finite else "must not be NaN", value)
-    for bound, bad, relation in ((above, lambda b: x <= b, ">"), (minimum, lambda b: x < b, ">="),
-                                 (maximum, lambda b: x > b, "<="), (below, lambda b: x >= b, "<")):
+    for bound, bad, relation in (
+        (above, lambda b: x <= b, ">"),
+        (minimum, lambda b: x < b, ">="),
+        (maximum, lambda b: x > b, "<="),
+        (below, lambda b: x >= b, "<"),
+    ):
         if bound is not None and bad(bound):
             raise refuse(what, f"must be {relation} {bound}", value)
     return x

@@ -1,9 +1,10 @@
 """Geometry kernels shared by several modules (private module, public names).
 
 Point-triangle squared distance (the voxelizer's closest-triangle ids, the distance
-fields) and the signed solid angle of a triangle (winding numbers, the brute-force sign
-of the distance fields). Both work on x, y, z components as separate arrays, so XLA
-fuses each into one elementwise loop.
+fields), the signed solid angle of a triangle (winding numbers, the brute-force sign
+of the distance fields) and a NaN-safe vector norm (SDF scenes, sphere tracing). The
+first two work on x, y, z components as separate arrays, so XLA fuses each into one
+elementwise loop.
 """
 
 from __future__ import annotations
@@ -53,8 +54,7 @@ def solid_angle(p, t):
     a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
-    det = (a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2])
-           + a[2] * (b[0] * c[1] - b[1] * c[0]))
+    det = a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (b[0] * c[1] - b[1] * c[0])
     den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
     return jnp.arctan2(det, den) / (2 * jnp.pi)
 

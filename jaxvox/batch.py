@@ -25,7 +25,8 @@ land on the other side of the tie, as they can in any jitted `voxelize_fixed`.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -53,6 +54,7 @@ from jaxvox.voxelize import (
     OVERFLOW_ROWS,
     OVERFLOW_VOXELS,
     Capacities,
+    Mode,
     Voxels,
     check_capacities,
     voxel_capacities,
@@ -72,8 +74,7 @@ def _stack(items):
     return jax.device_put(jax.tree.map(lambda *leaves: np.stack([np.asarray(x) for x in leaves]), *items))
 
 
-def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
-                 num_faces: int | None = None) -> Mesh:
+def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None, num_faces: int | None = None) -> Mesh:
     """Pads meshes to common sizes and stacks them along a new leading batch axis.
 
     Every mesh is validated and padded with `pad_mesh`; then its padding vertices are set
@@ -105,26 +106,34 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
     for b, mesh in enumerate(meshes):
         validate_mesh(mesh)
         if mesh.num_faces == 0:
-            raise refuse(f"stack_meshes meshes[{b}]", "must have faces (its padding faces would add voxels)",
-                         mesh.faces.shape)
+            raise refuse(
+                f"stack_meshes meshes[{b}]", "must have faces (its padding faces would add voxels)", mesh.faces.shape
+            )
     v_max = max(m.num_vertices for m in meshes)
     f_max = max(m.num_faces for m in meshes)
     if num_vertices is None:
         num_vertices = bucket(v_max + 1)
     elif check_int("stack_meshes num_vertices", num_vertices) <= v_max:
-        raise refuse("stack_meshes num_vertices", f"too small: must be above the largest mesh's {v_max} "
-                     "vertices (one padding vertex is needed)", num_vertices)
+        raise refuse(
+            "stack_meshes num_vertices",
+            f"too small: must be above the largest mesh's {v_max} vertices (one padding vertex is needed)",
+            num_vertices,
+        )
     if num_faces is None:
         num_faces = bucket(f_max)
     elif check_int("stack_meshes num_faces", num_faces) < f_max:
-        raise refuse("stack_meshes num_faces", f"too small: must be at least the largest mesh's {f_max} faces",
-                     num_faces)
+        raise refuse(
+            "stack_meshes num_faces", f"too small: must be at least the largest mesh's {f_max} faces", num_faces
+        )
     for name in _OPTIONAL:
         present = [getattr(m, name) is not None for m in meshes]
         if any(present) and not all(present):
             missing = [b for b, p in enumerate(present) if not p]
-            raise refuse(f"stack_meshes meshes' {name}", "must be in every mesh or in none (strip them or add "
-                         "them to all)", f"missing in items {missing}")
+            raise refuse(
+                f"stack_meshes meshes' {name}",
+                "must be in every mesh or in none (strip them or add them to all)",
+                f"missing in items {missing}",
+            )
     # Padding fixes the vertex axis of colours and uvs; channels and texture sizes must match.
     for name, shape_of in (("colors", lambda a: a.shape[1:]), ("texture", lambda a: a.shape)):
         shapes = sorted({shape_of(getattr(m, name)) for m in meshes if getattr(m, name) is not None})
@@ -134,8 +143,8 @@ def stack_meshes(meshes: Sequence[Mesh], *, num_vertices: int | None = None,
     for mesh in meshes:
         p = pad_mesh(mesh, num_vertices, num_faces)
         vertices, faces = np.array(p.vertices), np.array(p.faces)
-        vertices[mesh.num_vertices:] = np.nan
-        faces[mesh.num_faces:] = mesh.num_vertices
+        vertices[mesh.num_vertices :] = np.nan
+        faces[mesh.num_faces :] = mesh.num_vertices
         padded.append(Mesh(vertices, faces, colors=p.colors, uvs=p.uvs, texture=p.texture))
     return _stack(padded)
 
@@ -183,8 +192,11 @@ def _mesh_list(caller: str, meshes: Sequence[Mesh]) -> list[Mesh]:
     except TypeError:
         items = None
     if not items:
-        raise refuse(f"{caller} meshes", "must be a sequence of at least one jaxvox.Mesh",
-                     type(meshes) if items is None else items)
+        raise refuse(
+            f"{caller} meshes",
+            "must be a sequence of at least one jaxvox.Mesh",
+            type(meshes) if items is None else items,
+        )
     return items
 
 
@@ -195,7 +207,7 @@ def _grid_list(caller: str, grids: Grid | Sequence[Grid], count: int | None = No
     if isinstance(grids, Grid) and count is not None:
         return [grids] * count
     try:
-        items = list(grids)
+        items = [grids] if isinstance(grids, Grid) else list(grids)
     except TypeError:
         raise refuse(what, "expected a jaxvox.Grid or a sequence of them", type(grids)) from None
     if count is None and not items:
@@ -210,8 +222,9 @@ def _grid_list(caller: str, grids: Grid | Sequence[Grid], count: int | None = No
     return items
 
 
-def batch_capacities(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *,
-                     mode: str = CONSERVATIVE) -> tuple[Capacities, tuple[int, ...]]:
+def batch_capacities(
+    meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *, mode: Mode = CONSERVATIVE
+) -> tuple[Capacities, tuple[int, ...]]:
     """Host-side capacities with which `voxelize_build_trace` fits every item.
 
     The voxelizer's are the elementwise maximum over the items of `voxel_capacities`
@@ -241,16 +254,18 @@ def batch_capacities(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], *,
     for mesh, grid in zip(meshes, grids):
         caps.append(voxel_capacities(mesh, grid, mode=mode))
         sizes = np.maximum(sizes, _level_sizes(voxelize(mesh, grid, mode=mode).to_numpy(), depth))
-    return Capacities(*(max(c) for c in zip(*caps))), _tree_capacities(sizes)
+    return Capacities._make(max(c) for c in zip(*caps)), _tree_capacities(sizes)
 
 
 # ----------------------------------------------------------------------------- jittable pipeline
 
 
-@functools.partial(jax.jit, static_argnames=("capacities", "tree_capacities", "mode", "dag", "method",
-                                             "max_steps", "lanes"))
-def _voxelize_build_trace(meshes, grids, origins, directions, *, capacities, tree_capacities, mode,
-                          dag, method, max_steps, lanes):
+@functools.partial(
+    jax.jit, static_argnames=("capacities", "tree_capacities", "mode", "dag", "method", "max_steps", "lanes")
+)
+def _voxelize_build_trace(
+    meshes, grids, origins, directions, *, capacities, tree_capacities, mode, dag, method, max_steps, lanes
+):
     build = build_dag if dag else build_octree
 
     def one(mesh, grid, o, d):
@@ -262,11 +277,20 @@ def _voxelize_build_trace(meshes, grids, origins, directions, *, capacities, tre
     return jax.vmap(one, in_axes=(0, grid_axis, 0, 0))(meshes, grids, origins, directions)
 
 
-def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directions: jax.Array, *,
-                         capacities: Capacities, tree_capacities: Sequence[int],
-                         mode: str = CONSERVATIVE, dag: bool = True, method: str = "esvo",
-                         max_steps: int | None = None,
-                         lanes: int | None = 16384) -> tuple[Voxels, Octree, Hit]:
+def voxelize_build_trace(
+    meshes: Mesh,
+    grids: Grid,
+    origins: jax.Array,
+    directions: jax.Array,
+    *,
+    capacities: Capacities,
+    tree_capacities: Sequence[int],
+    mode: Mode = CONSERVATIVE,
+    dag: bool = True,
+    method: str = "esvo",
+    max_steps: int | None = None,
+    lanes: int | None = 16384,
+) -> tuple[Voxels, Octree, Hit]:
     """Voxelizes, builds and traces a batch of meshes in one jitted, vmapped program.
 
     Per item: `voxelize_fixed` -> `build_dag` (or `build_octree`) with static capacities
@@ -307,15 +331,24 @@ def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directio
     check_type("voxelize_build_trace meshes", meshes, Mesh)
     check_type("voxelize_build_trace grids", grids, Grid)
     if np.ndim(meshes.vertices) != 3 or np.ndim(meshes.faces) != 3:
-        raise refuse("voxelize_build_trace meshes", "need a leading batch axis (stack_meshes): vertices "
-                     "[B, V, 3], faces [B, F, 3]", (np.shape(meshes.vertices), np.shape(meshes.faces)))
+        raise refuse(
+            "voxelize_build_trace meshes",
+            "need a leading batch axis (stack_meshes): vertices [B, V, 3], faces [B, F, 3]",
+            (np.shape(meshes.vertices), np.shape(meshes.faces)),
+        )
     count = np.shape(meshes.faces)[0]
     if np.shape(origins)[:1] != (count,) or np.shape(directions)[:1] != (count,):
-        raise refuse("voxelize_build_trace origins, directions", f"need a leading batch axis of {count} "
-                     "(one per mesh)", (np.shape(origins), np.shape(directions)))
+        raise refuse(
+            "voxelize_build_trace origins, directions",
+            f"need a leading batch axis of {count} (one per mesh)",
+            (np.shape(origins), np.shape(directions)),
+        )
     if np.ndim(grids.origin) == 2 and np.shape(grids.origin)[0] != count:
-        raise refuse("voxelize_build_trace grids", f"must be one Grid or a stack of {count} (one per mesh)",
-                     f"{np.shape(grids.origin)[0]} grids")
+        raise refuse(
+            "voxelize_build_trace grids",
+            f"must be one Grid or a stack of {count} (one per mesh)",
+            f"{np.shape(grids.origin)[0]} grids",
+        )
     depth = grids.resolution.bit_length() - 1
     capacities = check_capacities("voxelize_build_trace capacities", capacities)
     tree_capacities = check_level_capacities("voxelize_build_trace tree_capacities", tree_capacities, depth)
@@ -325,9 +358,19 @@ def voxelize_build_trace(meshes: Mesh, grids: Grid, origins: jax.Array, directio
         max_steps = check_int("voxelize_build_trace max_steps", max_steps, minimum=1)
     if lanes is not None:
         lanes = check_int("voxelize_build_trace lanes", lanes, minimum=1)
-    return _voxelize_build_trace(meshes, grids, origins, directions, capacities=capacities,
-                                 tree_capacities=tree_capacities, mode=mode, dag=bool(dag),
-                                 method=method, max_steps=max_steps, lanes=lanes)
+    return _voxelize_build_trace(
+        meshes,
+        grids,
+        origins,
+        directions,
+        capacities=capacities,
+        tree_capacities=tree_capacities,
+        mode=mode,
+        dag=bool(dag),
+        method=method,
+        max_steps=max_steps,
+        lanes=lanes,
+    )
 
 
 # ----------------------------------------------------------------------------- host helper
@@ -366,14 +409,24 @@ def _grow(capacities: Capacities, tree_capacities: tuple[int, ...], flags: int):
     sizes = [bucket(2 * c) if flags & bit else c for c, bit in zip(capacities[:4], bits)]
     if flags & OVERFLOW_NODES:
         tree_capacities = _tree_capacities((1,) + tuple(2 * c for c in tree_capacities[1:]))
-    return Capacities(*sizes, capacities.row_chunk), tree_capacities
+    return Capacities._make([*sizes, capacities.row_chunk]), tree_capacities
 
 
-def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, directions, *,
-              capacities: Capacities | None = None, tree_capacities: Sequence[int] | None = None,
-              mode: str = CONSERVATIVE, dag: bool = True, method: str = "esvo",
-              max_steps: int | None = None, lanes: int | None = 16384,
-              max_tries: int = 8) -> BatchResult:
+def run_batch(
+    meshes: Sequence[Mesh],
+    grids: Grid | Sequence[Grid],
+    origins,
+    directions,
+    *,
+    capacities: Capacities | None = None,
+    tree_capacities: Sequence[int] | None = None,
+    mode: Mode = CONSERVATIVE,
+    dag: bool = True,
+    method: str = "esvo",
+    max_steps: int | None = None,
+    lanes: int | None = 16384,
+    max_tries: int = 8,
+) -> BatchResult:
     """Runs a batch through `voxelize_build_trace`; re-runs only the items that overflowed.
 
     The meshes are stacked with `stack_meshes` and run in one compiled program. Items
@@ -412,7 +465,9 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
     grid_batch = grids if isinstance(grids, Grid) else jax.device_get(stack_grids(grid_list))
     origins, directions = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
     count = len(meshes)
-    voxels, trees, hit_rows = [None] * count, [None] * count, [None] * count
+    voxels: list = [None] * count
+    trees: list = [None] * count
+    hit_rows: list = [None] * count
     pending, retried = np.arange(count), []
     for attempt in range(max_tries):
         take = pending
@@ -420,9 +475,19 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
             retried.append(tuple(int(i) for i in pending))
             take = np.concatenate([pending, np.full(bucket(len(pending), 1) - len(pending), pending[0])])
         sub_grids = grid_batch if isinstance(grids, Grid) else _take(grid_batch, take)
-        out = voxelize_build_trace(_take(stacked, take), sub_grids, origins[take], directions[take],
-                                   capacities=capacities, tree_capacities=tree_capacities, mode=mode,
-                                   dag=dag, method=method, max_steps=max_steps, lanes=lanes)
+        out = voxelize_build_trace(
+            _take(stacked, take),
+            sub_grids,
+            origins[take],
+            directions[take],
+            capacities=capacities,
+            tree_capacities=tree_capacities,
+            mode=mode,
+            dag=dag,
+            method=method,
+            max_steps=max_steps,
+            lanes=lanes,
+        )
         vox, tree, hit = jax.device_get(out)
         flags = np.asarray(tree.overflow)[: len(pending)]
         for row, item in enumerate(pending):
@@ -434,11 +499,14 @@ def run_batch(meshes: Sequence[Mesh], grids: Grid | Sequence[Grid], origins, dir
             break
         pending = pending[flags != 0]
         if attempt + 1 < max_tries:
-            capacities, tree_capacities = _grow(capacities, tree_capacities,
-                                                int(np.bitwise_or.reduce(flags[flags != 0])))
+            capacities, tree_capacities = _grow(
+                capacities, tuple(tree_capacities), int(np.bitwise_or.reduce(flags[flags != 0]))
+            )
     else:
-        raise JaxvoxError(f"run_batch: items {tuple(int(i) for i in pending)} still overflow "
-                          f"({describe(np.bitwise_or.reduce(flags))}) after {max_tries} runs; last capacities "
-                          f"{tuple(capacities)}, tree capacities {tree_capacities}")
+        raise JaxvoxError(
+            f"run_batch: items {tuple(int(i) for i in pending)} still overflow "
+            f"({describe(np.bitwise_or.reduce(flags))}) after {max_tries} runs; last capacities "
+            f"{tuple(capacities)}, tree capacities {tree_capacities}"
+        )
     hits = jax.tree.map(lambda *rows: np.stack(rows), *hit_rows)
-    return BatchResult(voxels, trees, hits, tuple(retried), capacities, tree_capacities)
+    return BatchResult(voxels, trees, hits, tuple(retried), capacities, tuple(tree_capacities))

@@ -8,8 +8,7 @@ import numpy as np
 from jaxvox._checks import check_int, check_number, check_vector, is_concrete, refuse
 
 
-def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25.0,
-                 distance: float = 2.2):
+def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25.0, distance: float = 2.2):
     """An eye and target framing a mesh (or ``(lo, hi)`` bounds): ``(eye [3], target [3])`` float32.
 
     The eye is ``distance`` times the box's largest extent away from the box centre, at
@@ -24,11 +23,15 @@ def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25
     elif hasattr(mesh_or_bounds, "vertices"):
         v = np.asarray(mesh_or_bounds.vertices, np.float64)
         if v.ndim != 2 or v.shape[1] != 3 or not len(v) or not np.isfinite(v).all():
-            raise refuse("look_at_view mesh", "needs [V, 3] vertices, V >= 1, all finite", v if v.size <= 12 else v.shape)
+            raise refuse(
+                "look_at_view mesh", "needs [V, 3] vertices, V >= 1, all finite", v if v.size <= 12 else v.shape
+            )
         lo, hi = v.min(0), v.max(0)
     else:
         raise refuse("look_at_view mesh_or_bounds", "expected a jaxvox.Mesh or (lo, hi) bounds", mesh_or_bounds)
-    azimuth, elevation = (check_number(f"look_at_view {n}", a) for n, a in (("azimuth", azimuth), ("elevation", elevation)))
+    azimuth, elevation = (
+        check_number(f"look_at_view {n}", a) for n, a in (("azimuth", azimuth), ("elevation", elevation))
+    )
     distance = check_number("look_at_view distance", distance, above=0.0)
     centre, extent = (lo + hi) / 2, float(np.max(hi - lo))
     a, e = np.radians(azimuth), np.radians(elevation)
@@ -83,14 +86,25 @@ def pinhole_rays(eye, target, *, width: int, height: int, fov: float = 40.0, up=
         and (for concrete values) non-finite or coincident eye and target, or an ``up``
         parallel to the view direction.
     """
-    width, height = check_int("pinhole_rays width", width, minimum=1), check_int("pinhole_rays height", height, minimum=1)
+    width, height = (
+        check_int("pinhole_rays width", width, minimum=1),
+        check_int("pinhole_rays height", height, minimum=1),
+    )
     if all(is_concrete(x) for x in (eye, target, up)):
         check_view("pinhole_rays", eye, target, up, fov)
     eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
     px = (jnp.arange(width) + 0.5)[None, :]
     py = (jnp.arange(height) + 0.5)[:, None]
-    d = pixel_directions(eye, target, jnp.asarray(up, jnp.float32), px, py, width=width, height=height,
-                         tan_half_fov=np.tan(np.radians(fov) / 2))
+    d = pixel_directions(
+        eye,
+        target,
+        jnp.asarray(up, jnp.float32),
+        px,
+        py,
+        width=width,
+        height=height,
+        tan_half_fov=np.tan(np.radians(fov) / 2),
+    )
     return jnp.broadcast_to(eye, d.shape), d
 
 

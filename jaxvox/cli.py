@@ -29,7 +29,7 @@ def _load(path: str | None):
     return jv.load_mesh(path), os.path.basename(path)
 
 
-def _voxelize_timed(mesh, grid, mode: str):
+def _voxelize_timed(mesh, grid, mode):
     import jaxvox as jv
 
     start = time.perf_counter()
@@ -48,8 +48,10 @@ def cmd_voxelize(args) -> int:
     grid = jv.Grid.fit(mesh, resolution=args.resolution)
     vox, seconds = _voxelize_timed(mesh, grid, args.mode)
     jv.save_voxels(args.out, vox)
-    print(f"{name}: {mesh.num_faces} triangles -> {int(vox.count)} voxels ({args.mode}, {args.resolution}^3) "
-          f"in {seconds:.2f} s; wrote {args.out}")
+    print(
+        f"{name}: {mesh.num_faces} triangles -> {int(vox.count)} voxels ({args.mode}, {args.resolution}^3) "
+        f"in {seconds:.2f} s; wrote {args.out}"
+    )
     return 0
 
 
@@ -65,8 +67,10 @@ def _build_timed(vox, kind: str):
 
 def _tree_line(tree, seconds: float) -> str:
     kind = "DAG" if tree.dag else "octree"
-    return (f"{kind:6s} {tree.num_nodes:>9,d} nodes, {tree.compact_nbytes / 2**20:8.2f} MiB "
-            f"({8 * tree.compact_nbytes / max(int(tree.voxel_count), 1):.1f} bits/voxel), built in {seconds:.2f} s")
+    return (
+        f"{kind:6s} {tree.num_nodes:>9,d} nodes, {tree.compact_nbytes / 2**20:8.2f} MiB "
+        f"({8 * tree.compact_nbytes / max(int(tree.voxel_count), 1):.1f} bits/voxel), built in {seconds:.2f} s"
+    )
 
 
 def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> None:
@@ -84,8 +88,10 @@ def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> N
     hit = jax.block_until_ready(jv.trace(tree, origins, directions))
     seconds = time.perf_counter() - start
     hits = int((hit.status == jv.HIT).sum())
-    print(f"  traced {width}x{height} primary rays through the DAG in {seconds:.3f} s "
-          f"({width * height / seconds / 1e6:.2f} Mrays/s, {hits:,} hits)")
+    print(
+        f"  traced {width}x{height} primary rays through the DAG in {seconds:.3f} s "
+        f"({width * height / seconds / 1e6:.2f} Mrays/s, {hits:,} hits)"
+    )
     gap = np.full((height, 8, 3), 255, np.uint8)
     iio.imwrite(path, np.concatenate([hit_image(hit, "depth"), gap, hit_image(hit, "normal")], axis=1))
 
@@ -126,8 +132,10 @@ def cmd_run(args) -> int:
         _voxelize_timed(mesh, grid, mode)  # compile
         vox, seconds = _voxelize_timed(mesh, grid, mode)
         results[mode] = vox.to_numpy()
-        print(f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
-              f"(after a warm-up call that compiles)")
+        print(
+            f"  {mode:13s} {args.resolution}^3: {len(results[mode]):>9,d} voxels in {seconds:.3f} s "
+            f"(after a warm-up call that compiles)"
+        )
     vox = jv.voxelize(mesh, grid, triangle_ids=True)
     attributes = jv.voxel_attributes(mesh, vox)
     trees = {}
@@ -184,7 +192,7 @@ def _environment(spec: str):
     if spec in ("white", "black"):
         return jv.uniform_environment(rgb=1.0 if spec == "white" else 0.0)
     if spec.startswith("uniform:"):
-        return jv.uniform_environment(rgb=_numbers(spec[len("uniform:"):], "env uniform:", (1, 3)))
+        return jv.uniform_environment(rgb=_numbers(spec[len("uniform:") :], "env uniform:", (1, 3)))
     return jv.load_environment(spec)
 
 
@@ -217,8 +225,10 @@ def _render_scene(args):
         attributes = jv.voxel_attributes(mesh, vox)
         tree.mask.block_until_ready()
         bounds = tuple(np.asarray(b) for b in (mesh.vertices.min(0), mesh.vertices.max(0)))
-        print(f"{name}: {mesh.num_faces:,} triangles -> {int(tree.voxel_count):,} voxels at {args.resolution}^3, "
-              f"DAG of {tree.num_nodes:,} nodes, in {time.perf_counter() - start:.1f} s")
+        print(
+            f"{name}: {mesh.num_faces:,} triangles -> {int(tree.voxel_count):,} voxels at {args.resolution}^3, "
+            f"DAG of {tree.num_nodes:,} nodes, in {time.perf_counter() - start:.1f} s"
+        )
     material = _numbers(args.albedo, "albedo", (1, 3))
     albedo = jv.voxel_albedo(attributes, default=np.broadcast_to(material, 3))
     emission = None
@@ -268,10 +278,21 @@ def cmd_render(args) -> int:
     if len(camera) == 6:
         eye, target = camera[:3], camera[3:]
     else:
-        eye, target = jv.look_at_view(bounds, azimuth=camera[0], elevation=camera[1],
-                                      **({"distance": camera[2]} if len(camera) == 3 else {}))
-    settings = dict(env=env, albedo=albedo, emission=emission, width=width, height=height, fov=args.fov, spp=args.spp,
-                    bounces=args.bounces, key=args.seed, batch_rays=args.batch_rays)
+        eye, target = jv.look_at_view(
+            bounds, azimuth=camera[0], elevation=camera[1], **({"distance": camera[2]} if len(camera) == 3 else {})
+        )
+    settings = dict(
+        env=env,
+        albedo=albedo,
+        emission=emission,
+        width=width,
+        height=height,
+        fov=args.fov,
+        spp=args.spp,
+        bounces=args.bounces,
+        key=args.seed,
+        batch_rays=args.batch_rays,
+    )
     start = time.perf_counter()
     result = jv.render(tree, eye, target, **settings)
     result.radiance.block_until_ready()
@@ -280,15 +301,21 @@ def cmd_render(args) -> int:
     os.makedirs(out_dir, exist_ok=True)
     exr, png = jv.save_render(args.out, result, exposure=args.exposure)
     samples = width * height * args.spp
-    print(f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed} "
-          f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)")
+    print(
+        f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed} "
+        f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)"
+    )
     if int(result.stopped):
-        print(f"  note: {int(result.stopped)} of {samples:,} paths ({100 * int(result.stopped) / samples:.4f}%) ended "
-              "before their last bounce (a ray reached the traversal's step cap, or started inside a voxel); "
-              "each keeps the light it gathered, so its pixel is at most that fraction darker")
+        print(
+            f"  note: {int(result.stopped)} of {samples:,} paths ({100 * int(result.stopped) / samples:.4f}%) ended "
+            "before their last bounce (a ray reached the traversal's step cap, or started inside a voxel); "
+            "each keeps the light it gathered, so its pixel is at most that fraction darker"
+        )
     print(f"  peak memory: {_peak_rss_mib():.0f} MiB")
-    print(f"wrote {exr} (linear HDR: R, G, B; depth Z, +inf where a pixel sees no surface; coverage A; "
-          "normal N.X N.Y N.Z)")
+    print(
+        f"wrote {exr} (linear HDR: R, G, B; depth Z, +inf where a pixel sees no surface; coverage A; "
+        "normal N.X N.Y N.Z)"
+    )
     print(f"wrote {png} (tone-mapped sRGB)")
     return 0
 
@@ -302,12 +329,16 @@ def cmd_info(args) -> int:
     voxels = int(tree.voxel_count)
     g = tree.grid
     print(f"{args.file}: {'DAG' if tree.dag else 'octree'} ({tree.mode} voxels)")
-    print(f"  grid: {g.resolution}^3, voxel size {float(g.voxel_size):.6g}, origin "
-          f"{', '.join(f'{x:.6g}' for x in np.asarray(g.origin))}")
+    print(
+        f"  grid: {g.resolution}^3, voxel size {float(g.voxel_size):.6g}, origin "
+        f"{', '.join(f'{x:.6g}' for x in np.asarray(g.origin))}"
+    )
     print(f"  levels: {tree.depth}, nodes per level: {list(tree.level_sizes)}")
     print(f"  nodes: {tree.num_nodes:,}, voxels: {voxels:,}")
-    print(f"  bytes: {tree.compact_nbytes:,} ({tree.compact_nbytes / 2**20:.2f} MiB), "
-          f"{8 * tree.compact_nbytes / max(voxels, 1):.2f} bits per voxel")
+    print(
+        f"  bytes: {tree.compact_nbytes:,} ({tree.compact_nbytes / 2**20:.2f} MiB), "
+        f"{8 * tree.compact_nbytes / max(voxels, 1):.2f} bits per voxel"
+    )
     names = ", ".join(f"{k} {tuple(v.shape)} {v.dtype}" for k, v in sorted(attributes.items()))
     print(f"  attributes: {names or 'none'}")
     return 0
@@ -335,29 +366,64 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
-    command("run", cmd_run, "main job: voxelize the default scene (or MESH), build its octree and DAG, "
-            "report, write a PNG and the DAG", 256, DEFAULT_OUT, "output folder (default: out)")
-    vox = command("voxelize", cmd_voxelize, "voxelize a mesh to a voxel file", 512, "voxels.npz",
-                  "output file: .binvox, .npz (voxel indices and the grid), or the voxels' surface as "
-                  ".ply / .obj (default: voxels.npz)")
+    command(
+        "run",
+        cmd_run,
+        "main job: voxelize the default scene (or MESH), build its octree and DAG, report, write a PNG and the DAG",
+        256,
+        DEFAULT_OUT,
+        "output folder (default: out)",
+    )
+    vox = command(
+        "voxelize",
+        cmd_voxelize,
+        "voxelize a mesh to a voxel file",
+        512,
+        "voxels.npz",
+        "output file: .binvox, .npz (voxel indices and the grid), or the voxels' surface as "
+        ".ply / .obj (default: voxels.npz)",
+    )
     vox.add_argument("--mode", choices=["conservative", "6-separating"], default="conservative")
-    build = command("build", cmd_build, "voxelize a mesh and save its DAG (or octree) with attributes", 512,
-                    "tree.jvx", "output tree file")
+    build = command(
+        "build",
+        cmd_build,
+        "voxelize a mesh and save its DAG (or octree) with attributes",
+        512,
+        "tree.jvx",
+        "output tree file",
+    )
     build.add_argument("--kind", choices=["dag", "octree"], default="dag")
-    render = command("render", cmd_render, "path-trace the default scene (or MESH, or a .jvx tree file) to an "
-                     "EXR and a PNG", 256, "render.exr", "output .exr file; the PNG is written beside it")
+    render = command(
+        "render",
+        cmd_render,
+        "path-trace the default scene (or MESH, or a .jvx tree file) to an EXR and a PNG",
+        256,
+        "render.exr",
+        "output .exr file; the PNG is written beside it",
+    )
     render.add_argument("--size", default="640x360", help="image WIDTHxHEIGHT in pixels (default 640x360)")
     render.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
     render.add_argument("--bounces", type=int, default=8, help="diffuse bounces (default 8)")
-    render.add_argument("--env", default="sky", help="lighting: sky (procedural, with a sun), white, black, "
-                        "uniform:R,G,B, or a lat-long .exr/.npy file")
-    render.add_argument("--camera", default=None, help="AZIMUTH,ELEVATION[,DISTANCE] in degrees around the scene "
-                        "(default 35,25), or EYE_X,EYE_Y,EYE_Z,TARGET_X,TARGET_Y,TARGET_Z")
+    render.add_argument(
+        "--env",
+        default="sky",
+        help="lighting: sky (procedural, with a sun), white, black, uniform:R,G,B, or a lat-long .exr/.npy file",
+    )
+    render.add_argument(
+        "--camera",
+        default=None,
+        help="AZIMUTH,ELEVATION[,DISTANCE] in degrees around the scene "
+        "(default 35,25), or EYE_X,EYE_Y,EYE_Z,TARGET_X,TARGET_Y,TARGET_Z",
+    )
     render.add_argument("--fov", type=float, default=40.0, help="vertical field of view in degrees")
     render.add_argument("--albedo", default="0.7", help="material colour where the mesh has no vertex colours")
-    render.add_argument("--emit", action="append", metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B",
-                        help="voxels whose centres lie in this world box emit this linear radiance "
-                        "(repeatable; write --emit=-1,... when the box starts with a minus sign)")
+    render.add_argument(
+        "--emit",
+        action="append",
+        metavar="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B",
+        help="voxels whose centres lie in this world box emit this linear radiance "
+        "(repeatable; write --emit=-1,... when the box starts with a minus sign)",
+    )
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     render.add_argument("--batch-rays", type=int, default=1 << 18, help="paths traced per batch (memory)")

@@ -39,8 +39,9 @@ def enable_compilation_cache(*, path: str | os.PathLike | None = None) -> str | 
     try:
         os.makedirs(folder, exist_ok=True)
     except OSError as exc:
-        raise refuse("enable_compilation_cache path", f"cannot create the folder ({exc.strerror or exc})",
-                     folder) from None
+        raise refuse(
+            "enable_compilation_cache path", f"cannot create the folder ({exc.strerror or exc})", folder
+        ) from None
     jax.config.update("jax_compilation_cache_dir", folder)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder

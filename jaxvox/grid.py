@@ -65,7 +65,7 @@ class Grid:
         object.__setattr__(self, "resolution", check_resolution(resolution))
 
     @classmethod
-    def fit(cls, mesh, resolution: int, *, padding: float = 0.01) -> "Grid":
+    def fit(cls, mesh, resolution: int, *, padding: float = 0.01) -> Grid:
         """A cubic grid around `mesh`'s bounding box, centred on it.
 
         Args:

@@ -66,8 +66,9 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise refuse("read_exr path", "is a directory, expected a file" if os.path.isdir(path) else "file not found",
-                     path)
+        raise refuse(
+            "read_exr path", "is a directory, expected a file" if os.path.isdir(path) else "file not found", path
+        )
     try:
         with OpenEXR.File(path, separate_channels=True) as exr:
             return {name: np.asarray(c.pixels, np.float32) for name, c in exr.channels().items()}
@@ -94,20 +95,22 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
         raise refuse("read_hdr path", "truncated HDR header", path)
     if b"FORMAT=" in data[:end] and b"FORMAT=32-bit_rle_rgbe" not in data[:end]:
         raise refuse("read_hdr path", "only 32-bit_rle_rgbe HDR files are read", path)
-    size = data[end + 2:line_end].split()
+    size = data[end + 2 : line_end].split()
     if len(size) != 4 or size[0] != b"-Y" or size[2] != b"+X" or not (size[1].isdigit() and size[3].isdigit()):
-        raise refuse("read_hdr path", f"unsupported HDR size line {data[end + 2:line_end]!r} (expected -Y H +X W)",
-                     path)
+        raise refuse(
+            "read_hdr path", f"unsupported HDR size line {data[end + 2 : line_end]!r} (expected -Y H +X W)", path
+        )
     height, width = int(size[1]), int(size[3])
     buf, pos = np.frombuffer(data, np.uint8), line_end + 1
     # A run-length encoded pixel takes at least 8/127 bytes (two per run of up to 127 per channel).
     if height * width > 16 * (len(data) - pos):
-        raise refuse("read_hdr path", f"truncated HDR pixel data ({len(data) - pos} bytes for {height}x{width} "
-                     "pixels)", path)
+        raise refuse(
+            "read_hdr path", f"truncated HDR pixel data ({len(data) - pos} bytes for {height}x{width} pixels)", path
+        )
     rgbe = np.empty((height, width, 4), np.uint8)
     try:
         for row in range(height):
-            head = buf[pos:pos + 4]
+            head = buf[pos : pos + 4]
             if 8 <= width < 32768 and head[0] == 2 and head[1] == 2 and (int(head[2]) << 8 | head[3]) == width:
                 pos += 4
                 for c in range(4):  # each channel run-length encoded on its own
@@ -115,15 +118,15 @@ def read_hdr(path: str | os.PathLike) -> np.ndarray:
                     while x < width:
                         count = int(buf[pos])
                         if count > 128:
-                            rgbe[row, x:x + count - 128, c] = buf[pos + 1]
+                            rgbe[row, x : x + count - 128, c] = buf[pos + 1]
                             x, pos = x + count - 128, pos + 2
                         else:
                             if count == 0 or x + count > width:
                                 raise IndexError
-                            rgbe[row, x:x + count, c] = buf[pos + 1:pos + 1 + count]
+                            rgbe[row, x : x + count, c] = buf[pos + 1 : pos + 1 + count]
                             x, pos = x + count, pos + 1 + count
             else:
-                rgbe[row] = buf[pos:pos + 4 * width].reshape(width, 4)
+                rgbe[row] = buf[pos : pos + 4 * width].reshape(width, 4)
                 pos += 4 * width
     except (IndexError, ValueError):
         raise refuse("read_hdr path", "truncated or corrupt HDR pixel data", path) from None
@@ -177,13 +180,18 @@ def write_png(path: str | os.PathLike, rgb) -> None:
     if not (a.ndim == 2 or (a.ndim == 3 and a.shape[2] in (3, 4))) or min(a.shape[:2], default=0) < 1:
         raise refuse("write_png rgb", "must be an [H, W], [H, W, 3] or [H, W, 4] image", a.shape)
     if a.dtype != np.uint8 and not (a.dtype.kind in "iuf" and np.all((a >= 0) & (a <= 255) & (a == np.round(a)))):
-        raise refuse("write_png rgb", "must be uint8 or integers in [0, 255] (tone-map float images first)",
-                     a.dtype)
+        raise refuse("write_png rgb", "must be uint8 or integers in [0, 255] (tone-map float images first)", a.dtype)
     iio.imwrite(check_output_path("write_png path", path), a.astype(np.uint8), extension=".png")
 
 
-def save_render(path: str | os.PathLike, result: RenderResult, *, exposure: float = 0.0,
-                curve: str = "aces", far: float = float("inf")) -> tuple[str, str]:
+def save_render(
+    path: str | os.PathLike,
+    result: RenderResult,
+    *,
+    exposure: float = 0.0,
+    curve: str = "aces",
+    far: float = float("inf"),
+) -> tuple[str, str]:
     """Writes a render as a linear EXR at `path` and a tone-mapped sRGB PNG beside it.
 
     The EXR holds float32 channels ``R, G, B`` (linear radiance, the environment
@@ -212,8 +220,16 @@ def save_render(path: str | os.PathLike, result: RenderResult, *, exposure: floa
     check_type("save_render result", result, RenderResult)
     rgb, depth, normal = (np.asarray(a) for a in (result.radiance, result.depth, result.normal))
     covered = np.isfinite(depth)
-    channels = {"R": rgb[..., 0], "G": rgb[..., 1], "B": rgb[..., 2], "Z": np.where(covered, depth, far),
-                "A": covered.astype(np.float32), "N.X": normal[..., 0], "N.Y": normal[..., 1], "N.Z": normal[..., 2]}
+    channels = {
+        "R": rgb[..., 0],
+        "G": rgb[..., 1],
+        "B": rgb[..., 2],
+        "Z": np.where(covered, depth, far),
+        "A": covered.astype(np.float32),
+        "N.X": normal[..., 0],
+        "N.Y": normal[..., 1],
+        "N.Z": normal[..., 2],
+    }
     png = os.path.splitext(path)[0] + ".png"
     write_exr(path, channels)
     write_png(png, tonemap(rgb, exposure=exposure, curve=curve))

@@ -31,6 +31,7 @@ import os
 import struct
 import zlib
 from collections.abc import Mapping
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -73,7 +74,7 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     check_overflow("save tree", tree.overflow, "refusing to save a truncated tree")
     tree = compact(tree)
     n = int(tree.voxel_count)
-    arrays = {"mask": tree.mask, "child": tree.child, "prefix": tree.prefix}
+    arrays: dict[str, Any] = {"mask": tree.mask, "child": tree.child, "prefix": tree.prefix}
     for name, value in (attributes or {}).items():
         value = np.asarray(value)
         if value.ndim == 0 or value.shape[0] < n:
@@ -89,10 +90,17 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
         blobs.append(value)
         offset += -(-value.nbytes // _ALIGN) * _ALIGN
     header = dict(
-        kind="dag" if tree.dag else "octree", mode=tree.mode,
-        grid=dict(origin=[float(x) for x in np.asarray(tree.grid.origin)],
-                  voxel_size=float(tree.grid.voxel_size), resolution=tree.grid.resolution),
-        level_sizes=list(tree.level_sizes), voxel_count=n, arrays=entries)
+        kind="dag" if tree.dag else "octree",
+        mode=tree.mode,
+        grid=dict(
+            origin=[float(x) for x in np.asarray(tree.grid.origin)],
+            voxel_size=float(tree.grid.voxel_size),
+            resolution=tree.grid.resolution,
+        ),
+        level_sizes=list(tree.level_sizes),
+        voxel_count=n,
+        arrays=entries,
+    )
     head = json.dumps(header).encode()
     head += b" " * (-(len(head) + _PREFIX.size) % _ALIGN)
     path = os.fspath(path)
@@ -100,9 +108,10 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     try:
         with open(tmp, "wb") as fh:
             crc = 0
+            chunk: Any
             for chunk in [_PREFIX.pack(MAGIC, FORMAT_VERSION, len(head)), head, *blobs]:
                 if isinstance(chunk, np.ndarray):  # (a zero-size array cannot be cast)
-                    chunk = memoryview(chunk.reshape(-1)).cast("B") if chunk.size else b""
+                    chunk = memoryview(chunk.reshape(-1)).cast("B") if chunk.size else b""  # type: ignore[arg-type]
                 pad = b"\0" * (-len(chunk) % _ALIGN)
                 for data in (chunk, pad):
                     fh.write(data)
@@ -118,9 +127,16 @@ def _entry_bytes(entry: dict) -> int:
     """Byte size of one array descriptor; ValueError unless it is well formed."""
     dtype = np.dtype(entry["dtype"])
     shape, offset = entry["shape"], entry["offset"]
-    if (not isinstance(entry["name"], str) or dtype.kind not in _KINDS or dtype.byteorder == ">"
-            or not isinstance(shape, list) or not all(type(d) is int and d >= 0 for d in shape)
-            or type(offset) is not int or offset < 0 or offset % _ALIGN):
+    if (
+        not isinstance(entry["name"], str)
+        or dtype.kind not in _KINDS
+        or dtype.byteorder == ">"
+        or not isinstance(shape, list)
+        or not all(type(d) is int and d >= 0 for d in shape)
+        or type(offset) is not int
+        or offset < 0
+        or offset % _ALIGN
+    ):
         raise ValueError(f"bad array descriptor {entry}")
     return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
 
@@ -133,13 +149,12 @@ def _read(what: str, path) -> tuple[dict, dict[str, np.ndarray]]:
         raise refuse(what, "not a jaxvox tree file (bad magic bytes)", path)
     _, version, head_len = _PREFIX.unpack_from(data)
     if version != FORMAT_VERSION:
-        raise refuse(what, f"unsupported format version {version} (this jaxvox reads version {FORMAT_VERSION})",
-                     path)
+        raise refuse(what, f"unsupported format version {version} (this jaxvox reads version {FORMAT_VERSION})", path)
     start = _PREFIX.size + head_len
     if start > len(data):
         raise refuse(what, f"truncated ({len(data)} bytes, the header alone needs {start})", path)
     try:
-        header = json.loads(data[_PREFIX.size:start])
+        header = json.loads(data[_PREFIX.size : start])
         entries = header["arrays"]
         sizes = [_entry_bytes(e) for e in entries]
         end = start + max([e["offset"] + s for e, s in zip(entries, sizes)], default=0)
@@ -156,8 +171,9 @@ def _read(what: str, path) -> tuple[dict, dict[str, np.ndarray]]:
     arrays = {}
     for e, size in zip(entries, sizes):
         offset = start + e["offset"]
-        arrays[e["name"]] = np.frombuffer(data, np.dtype(e["dtype"]), size // np.dtype(e["dtype"]).itemsize,
-                                          offset).reshape(e["shape"])
+        arrays[e["name"]] = np.frombuffer(
+            data, np.dtype(e["dtype"]), size // np.dtype(e["dtype"]).itemsize, offset
+        ).reshape(e["shape"])
     return header, arrays
 
 
@@ -168,6 +184,7 @@ def _check_tree(what: str, path, header, arrays) -> None:
     against the level below, every prefix sum against the voxel counts of the children,
     and the total against ``voxel_count``: one vectorised pass per level. Errors name `what`.
     """
+
     def bad(problem):
         raise refuse(what, f"inconsistent ({problem})", path)
 
@@ -181,11 +198,20 @@ def _check_tree(what: str, path, header, arrays) -> None:
     except (JaxvoxError, KeyError, TypeError, ValueError) as exc:
         bad(f"header fields ({exc})")
     depth = resolution.bit_length() - 1
-    if (len(sizes) != depth or min(sizes) < 0 or sizes[0] > 1 or kind not in ("octree", "dag")
-            or mode not in MODES or len(origin) != 3 or not np.isfinite(origin + [voxel_size]).all()
-            or not voxel_size > 0):
-        bad(f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}, "
-            f"voxel_size {voxel_size}")
+    if (
+        len(sizes) != depth
+        or min(sizes) < 0
+        or sizes[0] > 1
+        or kind not in ("octree", "dag")
+        or mode not in MODES
+        or len(origin) != 3
+        or not np.isfinite(origin + [voxel_size]).all()
+        or not voxel_size > 0
+    ):
+        bad(
+            f"level sizes {sizes} for resolution {resolution}, kind {kind!r}, mode {mode!r}, origin {origin}, "
+            f"voxel_size {voxel_size}"
+        )
     stored = stored_sizes(sizes)
     n_nodes, n_inner = sum(stored), sum(stored[:-1])
     expect = {"mask": ((n_nodes,), np.uint8), "child": ((n_inner, 8), np.uint32), "prefix": ((n_inner, 8), np.uint32)}
@@ -196,7 +222,7 @@ def _check_tree(what: str, path, header, arrays) -> None:
     mask, child, prefix = arrays["mask"], arrays["child"], arrays["prefix"]
     starts = np.cumsum((0,) + stored)
     bits = (mask[:, None] >> np.arange(8, dtype=np.uint8)) & 1 == 1  # [N, 8] present children
-    counts = bits[starts[-2]:].sum(1).astype(np.int64)  # voxels below each node, bottom level first
+    counts = bits[starts[-2] :].sum(1).astype(np.int64)  # voxels below each node, bottom level first
     for level in range(depth - 2, -1, -1):
         rows = slice(starts[level], starts[level + 1])
         c, present = child[rows], bits[rows]
@@ -225,11 +251,20 @@ def load(path: str | os.PathLike) -> Octree:
     g = header["grid"]
     grid = Grid(origin=np.float32(g["origin"]), voxel_size=np.float32(g["voxel_size"]), resolution=g["resolution"])
     sizes = tuple(int(s) for s in header["level_sizes"])
-    return padded(Octree(
-        mask=jnp.asarray(arrays["mask"]), child=jnp.asarray(arrays["child"]), prefix=jnp.asarray(arrays["prefix"]),
-        level_count=jnp.asarray(sizes, jnp.int32), voxel_count=jnp.int32(header["voxel_count"]),
-        overflow=jnp.int32(0), grid=grid, level_capacity=jnp.asarray(stored_sizes(sizes), jnp.int32),
-        dag=header["kind"] == "dag", mode=header["mode"]))
+    return padded(
+        Octree(
+            mask=jnp.asarray(arrays["mask"]),
+            child=jnp.asarray(arrays["child"]),
+            prefix=jnp.asarray(arrays["prefix"]),
+            level_count=jnp.asarray(sizes, jnp.int32),
+            voxel_count=jnp.int32(header["voxel_count"]),
+            overflow=jnp.int32(0),
+            grid=grid,
+            level_capacity=jnp.asarray(stored_sizes(sizes), jnp.int32),
+            dag=header["kind"] == "dag",
+            mode=header["mode"],
+        )
+    )
 
 
 def load_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -240,4 +275,4 @@ def load_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """
     _, arrays = _read("load_attributes path", path)
     prefix = "attribute/"
-    return {name[len(prefix):]: a for name, a in arrays.items() if name.startswith(prefix)}
+    return {name[len(prefix) :]: a for name, a in arrays.items() if name.startswith(prefix)}

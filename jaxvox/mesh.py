@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -116,16 +117,20 @@ def validate_mesh(mesh: Mesh) -> None:
             raise refuse("Mesh colors", f"must have shape [V, 3] or [V, 4] with V = {len(v)}", c.shape)
         _unit_range("Mesh colors", c)
     if (mesh.uvs is None) != (mesh.texture is None):
-        raise refuse("Mesh texture", "needs both uvs [V, 2] and texture [H, W, C]",
-                     "only uvs" if mesh.texture is None else "only a texture")
+        raise refuse(
+            "Mesh texture",
+            "needs both uvs [V, 2] and texture [H, W, C]",
+            "only uvs" if mesh.texture is None else "only a texture",
+        )
     if mesh.uvs is not None:
         uv, tex = np.asarray(mesh.uvs), np.asarray(mesh.texture)
         if uv.shape != (len(v), 2):
             raise refuse("Mesh uvs", f"must have shape [V, 2] with V = {len(v)}", uv.shape)
         bad = ~(np.abs(uv) <= MAX_UV).all(1)
         if bad.any():
-            raise refuse("Mesh uvs", f"must be finite and at most {MAX_UV:.0e} in magnitude (the texture repeats)",
-                         uv[bad][0])
+            raise refuse(
+                "Mesh uvs", f"must be finite and at most {MAX_UV:.0e} in magnitude (the texture repeats)", uv[bad][0]
+            )
         if tex.ndim != 3 or min(tex.shape[:2]) < 1 or tex.shape[2] not in (3, 4):
             raise refuse("Mesh texture", "must have shape [H, W, 3] or [H, W, 4]", tex.shape)
         _unit_range("Mesh texture", tex)
@@ -192,17 +197,23 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise refuse("load_mesh path", "holds no triangles", path)
     colors = uvs = texture = None
-    kind = getattr(loaded.visual, "kind", None)
+    visual: Any = loaded.visual  # ColorVisuals or TextureVisuals, told apart by `kind`
+    kind = getattr(visual, "kind", None)
     if kind == "vertex":
-        colors = np.asarray(loaded.visual.vertex_colors, np.float32) / 255.0
-    elif kind == "texture" and loaded.visual.uv is not None:
-        material = loaded.visual.material
+        colors = np.asarray(visual.vertex_colors, np.float32) / 255.0
+    elif kind == "texture" and visual.uv is not None:
+        material = visual.material
         image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
         if image is not None:
-            uvs = np.asarray(loaded.visual.uv, np.float32)
+            uvs = np.asarray(visual.uv, np.float32)
             texture = np.asarray(image.convert("RGBA"), np.float32) / 255.0
-    mesh = Mesh(np.asarray(loaded.vertices, np.float32), np.asarray(loaded.faces, np.int32), colors=colors, uvs=uvs,
-                texture=texture)
+    mesh = Mesh(
+        np.asarray(loaded.vertices, np.float32),
+        np.asarray(loaded.faces, np.int32),
+        colors=colors,
+        uvs=uvs,
+        texture=texture,
+    )
     validate_mesh(mesh)
     return mesh
 
@@ -255,8 +266,11 @@ def pad_mesh(mesh: Mesh, num_vertices: int, num_faces: int) -> Mesh:
     v = np.asarray(mesh.vertices)
     f = np.asarray(mesh.faces)
     if num_vertices < len(v) or num_faces < len(f):
-        raise refuse("pad_mesh num_vertices, num_faces", f"must be at least the mesh's ({len(v)}, {len(f)})",
-                     (num_vertices, num_faces))
+        raise refuse(
+            "pad_mesh num_vertices, num_faces",
+            f"must be at least the mesh's ({len(v)}, {len(f)})",
+            (num_vertices, num_faces),
+        )
     repeat_first = lambda a: np.concatenate([a, np.repeat(a[:1], num_vertices - len(a), axis=0)])
     f_pad = np.concatenate([f, np.zeros((num_faces - len(f), 3), np.int32)])
     colors, uvs = (None if a is None else repeat_first(np.asarray(a)) for a in (mesh.colors, mesh.uvs))

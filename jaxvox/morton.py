@@ -19,7 +19,7 @@ WORD_MASK = (1 << WORD_BITS) - 1
 EMPTY = np.uint32(0xFFFFFFFF)  # a key no voxel has (bit 31 set); padding sorts last
 
 
-def _spread10(x: jax.Array) -> jax.Array:
+def _spread10(x):
     """Spreads the low 10 bits of uint32 `x` to every third bit (bit b -> bit 3b)."""
     x = x & 0x3FF
     x = (x | (x << 16)) & 0x030000FF

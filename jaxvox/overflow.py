@@ -46,7 +46,7 @@ class Overflow(enum.IntFlag):
 def describe(flags) -> str:
     """The names of the bits set in `flags` (an int or a scalar array), e.g. ``"COLUMNS|VOXELS"``."""
     flags = int(flags)
-    names = [bit.name for bit in Overflow if flags & bit]
+    names = [str(bit.name) for bit in Overflow if flags & bit]
     unknown = flags & ~sum(Overflow)
     return "|".join(names + ([hex(unknown)] if unknown else [])) or "none"
 

@@ -31,15 +31,18 @@ def default_scene() -> Mesh:
     base.apply_translation([0.0, 0.0, -0.6])
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.35)
     ball.apply_translation([0.9, -0.9, -0.1])
-    scene = trimesh.util.concatenate([knot, base, ball])
+    scene: trimesh.Trimesh = trimesh.util.concatenate([knot, base, ball])  # type: ignore[assignment]
     hue = np.repeat(t / (2.0 * np.pi), len(knot.vertices) // len(t))
-    colors = np.concatenate([
-        0.5 + 0.45 * np.cos(2.0 * np.pi * (hue[:, None] + np.array([0.0, 1.0, 2.0]) / 3.0)),
-        np.full((len(base.vertices), 3), 0.6),
-        np.tile([0.95, 0.55, 0.15], (len(ball.vertices), 1)),
-    ])
-    return Mesh(np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32),
-                colors=colors.astype(np.float32))
+    colors = np.concatenate(
+        [
+            0.5 + 0.45 * np.cos(2.0 * np.pi * (hue[:, None] + np.array([0.0, 1.0, 2.0]) / 3.0)),
+            np.full((len(base.vertices), 3), 0.6),
+            np.tile([0.95, 0.55, 0.15], (len(ball.vertices), 1)),
+        ]
+    )
+    return Mesh(
+        np.asarray(scene.vertices, np.float32), np.asarray(scene.faces, np.int32), colors=colors.astype(np.float32)
+    )
 
 
 def _tube(path: np.ndarray, radius: float, sides: int) -> trimesh.Trimesh:

@@ -37,7 +37,6 @@ from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, lipschitz_bound
 from jaxvox.sdf.base import check_scene
 from jaxvox.sphere_tracing import (
-    RUNNING,
     checked_rays,
     refine_hits,
     surface_hit,
@@ -45,6 +44,7 @@ from jaxvox.sphere_tracing import (
     unit_directions,
 )
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
+from jaxvox.trace.hit import RUNNING
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
 # Child offsets in slot order (slot = x | y << 1 | z << 2, as in `jaxvox.octree`).
@@ -86,8 +86,7 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
     """
     check_type("voxelize_sdf grid", grid, Grid)
     check_scene(scene, "voxelize_sdf scene")
-    lip = check_number("voxelize_sdf lipschitz", lipschitz_bound(scene) if lipschitz is None else lipschitz,
-                       above=0.0)
+    lip = check_number("voxelize_sdf lipschitz", lipschitz_bound(scene) if lipschitz is None else lipschitz, above=0.0)
     extent = float(np.abs(np.asarray(grid.origin)).max()) + grid.resolution * float(grid.voxel_size)
     slack = np.float32(8 * np.finfo(np.float32).eps * extent)  # centre rounding in float32
     depth = grid.resolution.bit_length() - 1
@@ -102,8 +101,11 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
         padded[:n] = cells
         keep, nan = _crossed(scene, jnp.asarray(padded), grid, np.float32(lip), slack, np.int32(shift))
         if bool(nan):
-            raise refuse("voxelize_sdf scene", f"must not be NaN at a cell centre (NaN at the level with cells "
-                         f"of {2**shift} voxels)", scene)
+            raise refuse(
+                "voxelize_sdf scene",
+                f"must not be NaN at a cell centre (NaN at the level with cells of {2**shift} voxels)",
+                scene,
+            )
         cells = cells[np.asarray(keep)[:n]]
     n = len(cells)
     coords = np.full((bucket(n), 3), UNUSED, np.int32)
@@ -111,8 +113,7 @@ def voxelize_sdf(scene: SDF, grid: Grid, *, lipschitz: float | None = None) -> V
     return Voxels(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, CONSERVATIVE)
 
 
-def build_octree_from_sdf(scene: SDF, grid: Grid, *, dag: bool = False,
-                          lipschitz: float | None = None) -> Octree:
+def build_octree_from_sdf(scene: SDF, grid: Grid, *, dag: bool = False, lipschitz: float | None = None) -> Octree:
     """Sparse voxel octree (or DAG) of the voxels the surface of `scene` may cross.
 
     `voxelize_sdf` followed by `jaxvox.build_octree` (or `jaxvox.build_dag` when `dag`);
@@ -169,24 +170,44 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         status = jnp.where((status == RUNNING) & ((leaves >= max_leaves) | (steps >= max_steps)), STEP_CAP, status)
         status = jnp.where(entered, status, jnp.where(running, leaf.status, s.status))
         t_next = jnp.where(left, jnp.maximum(final.t, t_out + nudge), final.t)
-        return _Round(t=jnp.where(entered, t_next, s.t), status=status.astype(jnp.int32), steps=steps,
-                      leaves=leaves, voxel=jnp.where(entered[:, None], leaf.voxel, s.voxel),
-                      on_surface=jnp.where(entered, jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0),
-                                           s.on_surface),
-                      d=jnp.where(entered, final.d_prev, s.d))
+        return _Round(
+            t=jnp.where(entered, t_next, s.t),
+            status=status.astype(jnp.int32),
+            steps=steps,
+            leaves=leaves,
+            voxel=jnp.where(entered[:, None], leaf.voxel, s.voxel),
+            on_surface=jnp.where(entered, jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0), s.on_surface),
+            d=jnp.where(entered, final.d_prev, s.d),
+        )
 
     inside = scene._distance(o) < 0  # starts inside the surface: a hit at t = 0, as sphere_trace
-    init = _Round(t=jnp.zeros(n, jnp.float32),
-                  status=jnp.where(bad, INVALID, jnp.where(inside, HIT, RUNNING)).astype(jnp.int32),
-                  steps=jnp.ones(n, jnp.int32), leaves=jnp.zeros(n, jnp.int32),
-                  voxel=jnp.full((n, 3), -1, jnp.int32), on_surface=jnp.zeros(n, bool), d=jnp.zeros(n, jnp.float32))
+    init = _Round(
+        t=jnp.zeros(n, jnp.float32),
+        status=jnp.where(bad, INVALID, jnp.where(inside, HIT, RUNNING)).astype(jnp.int32),
+        steps=jnp.ones(n, jnp.int32),
+        leaves=jnp.zeros(n, jnp.int32),
+        voxel=jnp.full((n, 3), -1, jnp.int32),
+        on_surface=jnp.zeros(n, bool),
+        d=jnp.zeros(n, jnp.float32),
+    )
     final = jax.lax.while_loop(lambda s: jnp.any(s.status == RUNNING), body, init)
     return final
 
 
-def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=np.inf,
-                        max_steps: int = 256, max_leaves: int = 256, epsilon=1e-4, relaxation=1.0,
-                        method: str = "esvo", return_steps: bool = False):
+def sphere_trace_octree(
+    scene: SDF,
+    tree: Octree,
+    origins,
+    directions,
+    *,
+    t_max=np.inf,
+    max_steps: int = 256,
+    max_leaves: int = 256,
+    epsilon=1e-4,
+    relaxation=1.0,
+    method: str = "esvo",
+    return_steps: bool = False,
+):
     """Sphere tracing that skips empty space with an octree of the scene.
 
     As `jaxvox.sphere_trace` with ``t_min = 0`` (same hit test and refinement of ``t``
@@ -220,24 +241,34 @@ def sphere_trace_octree(scene: SDF, tree: Octree, origins, directions, *, t_max=
     check_type("sphere_trace_octree tree", tree, Octree)
     max_leaves = check_int("sphere_trace_octree max_leaves", max_leaves, minimum=1)
     check_choice("sphere_trace_octree method", method, TRACE_METHODS)
-    o, d, scalars = checked_rays(scene, origins, directions, t_max=t_max, epsilon=epsilon,
-                                 relaxation=relaxation, max_steps=max_steps)
+    o, d, scalars = checked_rays(
+        scene, origins, directions, t_max=t_max, epsilon=epsilon, relaxation=relaxation, max_steps=max_steps
+    )
     batch = o.shape[:-1]
-    hit, steps = _sphere_trace_octree(scene, tree, o.reshape(-1, 3), d.reshape(-1, 3), scalars["t_max"],
-                                      scalars["epsilon"], scalars["relaxation"], max_steps=int(max_steps),
-                                      max_leaves=max_leaves, method=method)
+    hit, steps = _sphere_trace_octree(
+        scene,
+        tree,
+        o.reshape(-1, 3),
+        d.reshape(-1, 3),
+        scalars["t_max"],
+        scalars["epsilon"],
+        scalars["relaxation"],
+        max_steps=int(max_steps),
+        max_leaves=max_leaves,
+        method=method,
+    )
     hit = jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), hit)
     return (hit, steps.reshape(batch)) if return_steps else hit
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps", "max_leaves", "method"))
-def _sphere_trace_octree(scene, tree, o, directions, t_max, epsilon, relaxation, *, max_steps, max_leaves,
-                         method):
+def _sphere_trace_octree(scene, tree, o, directions, t_max, epsilon, relaxation, *, max_steps, max_leaves, method):
     """Flat [n] rays (any batch shape of the same size shares this compiled program)."""
     u = unit_directions(directions)
     frozen = jax.lax.stop_gradient((scene, tree, o, u))
-    final = _octree_trace(*frozen, t_max, epsilon, relaxation, max_steps=max_steps, max_leaves=max_leaves,
-                          method=method)
+    final = _octree_trace(
+        *frozen, t_max, epsilon, relaxation, max_steps=max_steps, max_leaves=max_leaves, method=method
+    )
     is_hit = final.status == HIT
     t, extra = refine_hits(frozen[0], frozen[2], frozen[3], final.t, final.d, is_hit & final.on_surface, 0.0, t_max)
     hit = surface_hit(scene, o, u, t, final.status, final.on_surface)

@@ -142,8 +142,12 @@ def sign_method(what: str, mesh: Mesh, method: str) -> str:
     if method == "auto":
         return "winding" if holes else "parity"
     if holes:
-        raise refuse(what, f"'parity' needs a watertight mesh, but {holes} edges are not shared by an even "
-                     "number of faces (holes or non-manifold edges); use 'winding' for open meshes", method)
+        raise refuse(
+            what,
+            f"'parity' needs a watertight mesh, but {holes} edges are not shared by an even "
+            "number of faces (holes or non-manifold edges); use 'winding' for open meshes",
+            method,
+        )
     return method
 
 
@@ -155,8 +159,9 @@ def solid_inside(mesh: Mesh, tris, grid: Grid, shape: tuple[int, int, int], meth
         return jnp.zeros(shape, bool)
     if method == "parity":
         return _parity(tris, shape=shape, capacity=bucket(int(_parity_count(tris, shape=shape))))
-    return box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), shape,
-                               beta=beta) > 0.5
+    return (
+        box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), shape, beta=beta) > 0.5
+    )
 
 
 def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> jax.Array:
@@ -198,7 +203,10 @@ def check_bytes(caller: str, resolution: int, per_voxel: int, max_bytes: int | N
     need = resolution**3 * per_voxel
     limit = _default_max_bytes() if max_bytes is None else max_bytes
     if need > limit:
-        raise refuse(f"{caller} grid resolution", f"needs about {need / 2**30:.2f} GiB ({per_voxel} bytes per "
-                     f"voxel), above max_bytes = {limit / 2**30:.2f} GiB (default: half the physical memory); use "
-                     "a lower resolution or raise max_bytes", resolution)
-
+        raise refuse(
+            f"{caller} grid resolution",
+            f"needs about {need / 2**30:.2f} GiB ({per_voxel} bytes per "
+            f"voxel), above max_bytes = {limit / 2**30:.2f} GiB (default: half the physical memory); use "
+            "a lower resolution or raise max_bytes",
+            resolution,
+        )

@@ -44,8 +44,7 @@ from jaxvox._errors import JaxvoxError
 from jaxvox._geometry import safe_norm
 from jaxvox.sdf import SDF
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
-
-RUNNING = -1  # `Hit.status` while a ray is being traced, never returned
+from jaxvox.trace.hit import RUNNING
 
 
 class _State(NamedTuple):
@@ -67,20 +66,26 @@ def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
         overlap_fails = (s.omega > 1.0) & (jnp.abs(d) + jnp.abs(s.d_prev) < s.t - s.t_prev)
         hit = (jnp.abs(d) < epsilon * jnp.maximum(s.t, 1.0)) | ((s.steps == 0) & (d < 0))
         t_next = jnp.maximum(s.t + s.omega * d, t_min)
-        status = jnp.where(jnp.isnan(d), INVALID,
-                           jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, RUNNING)))
+        status = jnp.where(
+            jnp.isnan(d),
+            INVALID,
+            jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, RUNNING)),
+        )
         steps = s.steps + 1
         accepted = _State(jnp.where(hit, s.t, t_next), s.t, d, s.omega, steps, status)
-        fallback = _State(s.t_prev + s.d_prev, s.t_prev, s.d_prev, jnp.ones_like(s.omega), steps,
-                          jnp.asarray(RUNNING, jnp.int32))
+        fallback = _State(
+            s.t_prev + s.d_prev, s.t_prev, s.d_prev, jnp.ones_like(s.omega), steps, jnp.asarray(RUNNING, jnp.int32)
+        )
         new = jax.tree.map(lambda a, b: jnp.where(overlap_fails, a, b), fallback, accepted)
-        return new._replace(status=jnp.where((new.status == RUNNING) & (steps >= max_steps), STEP_CAP,
-                                             new.status).astype(jnp.int32))
+        return new._replace(
+            status=jnp.where((new.status == RUNNING) & (steps >= max_steps), STEP_CAP, new.status).astype(jnp.int32)
+        )
 
     bad = jnp.any(jnp.isnan(o)) | jnp.any(jnp.isnan(u)) | jnp.all(u == 0)
     start = jnp.where(t_min > t_max, MISS, RUNNING)
-    init = _State(t_min, t_min, jnp.zeros_like(t_min), relaxation, jnp.int32(0),
-                  jnp.where(bad, INVALID, start).astype(jnp.int32))
+    init = _State(
+        t_min, t_min, jnp.zeros_like(t_min), relaxation, jnp.int32(0), jnp.where(bad, INVALID, start).astype(jnp.int32)
+    )
     return jax.lax.while_loop(lambda s: s.status == RUNNING, body, init)
 
 
@@ -128,9 +133,21 @@ def _refine_one(scene, o, u, t0, f0, active, t_lo, t_hi):
     at = lambda s: t0 + sigma * s  # [] float32 t of a distance from the hit
     ulp = jnp.abs(jnp.nextafter(t0, t0 + sigma) - t0)  # probes move t by at least this
     zero, one, no = jnp.zeros_like(g0), jnp.ones_like(g0), jnp.bool_(False)
-    init = _Refine(s_out=zero, g_out=g0, s_old=zero, g_old=g0, s_in=zero, g_in=zero, w_out=one, w_in=one,
-                   last_in=no, s_next=jnp.minimum(jnp.maximum(_FIRST * g0, ulp), reach), bracketed=no,
-                   done=~(active & (g0 > 0) & jnp.isfinite(g0) & (reach > 0)), steps=jnp.int32(0))
+    init = _Refine(
+        s_out=zero,
+        g_out=g0,
+        s_old=zero,
+        g_old=g0,
+        s_in=zero,
+        g_in=zero,
+        w_out=one,
+        w_in=one,
+        last_in=no,
+        s_next=jnp.minimum(jnp.maximum(_FIRST * g0, ulp), reach),
+        bracketed=no,
+        done=~(active & (g0 > 0) & jnp.isfinite(g0) & (reach > 0)),
+        steps=jnp.int32(0),
+    )
 
     def strictly_inside(s, r):  # whether t(s) lies strictly between the bracket ends as float32
         return (sigma * (at(s) - at(r.s_out)) > 0) & (sigma * (at(r.s_in) - at(s)) > 0)
@@ -145,11 +162,18 @@ def _refine_one(scene, o, u, t0, f0, active, t_lo, t_hi):
         ratio = jnp.where(inside, g / jnp.where(r.g_in < 0, r.g_in, -1.0), g / r.g_out)  # g_out > 0
         scale = jnp.where(same, jnp.where((ratio < 1) & (ratio >= 0), 1.0 - ratio, 0.5), 1.0)
         r = r._replace(
-            s_out=jnp.where(inside, r.s_out, s), g_out=jnp.where(inside, r.g_out, g),
-            s_old=jnp.where(inside, r.s_old, r.s_out), g_old=jnp.where(inside, r.g_old, r.g_out),
-            s_in=jnp.where(inside, s, r.s_in), g_in=jnp.where(inside, g, r.g_in),
-            w_out=jnp.where(inside, r.w_out * scale, 1.0), w_in=jnp.where(inside, 1.0, r.w_in * scale),
-            last_in=inside, bracketed=r.bracketed | inside, steps=r.steps + 1)
+            s_out=jnp.where(inside, r.s_out, s),
+            g_out=jnp.where(inside, r.g_out, g),
+            s_old=jnp.where(inside, r.s_old, r.s_out),
+            g_old=jnp.where(inside, r.g_old, r.g_out),
+            s_in=jnp.where(inside, s, r.s_in),
+            g_in=jnp.where(inside, g, r.g_in),
+            w_out=jnp.where(inside, r.w_out * scale, 1.0),
+            w_in=jnp.where(inside, 1.0, r.w_in * scale),
+            last_in=inside,
+            bracketed=r.bracketed | inside,
+            steps=r.steps + 1,
+        )
         # Searching: extrapolate the secant of the last two outside points; where g does not
         # fall (a tangency, or float32 noise just short of the crossing), double the last step.
         last = r.s_out - r.s_old
@@ -210,8 +234,13 @@ def surface_hit(scene, o, u, t, status, on_surface) -> Hit:
     den = jnp.sum(g * jax.lax.stop_gradient(u), axis=-1)
     den_ok = is_hit & on_surface & (den != 0)
     correction = jnp.where(den_ok, (f - jax.lax.stop_gradient(f)) / jnp.where(den_ok, den, 1.0), 0.0)
-    return Hit(t=jnp.where(is_hit, t_star - correction, jnp.inf), voxel=jnp.full(t.shape + (3,), -1, jnp.int32),
-               normal=n, index=jnp.full(t.shape, -1, jnp.int32), status=status)
+    return Hit(
+        t=jnp.where(is_hit, t_star - correction, jnp.inf),
+        voxel=jnp.full(t.shape + (3,), -1, jnp.int32),
+        normal=n,
+        index=jnp.full(t.shape, -1, jnp.int32),
+        status=status,
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps", "return_steps"))
@@ -228,8 +257,18 @@ def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation,
     return (hit, (final.steps + extra).reshape(batch)) if return_steps else hit
 
 
-def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: int = 256, epsilon=1e-4,
-                 t_min=0.0, relaxation=1.0, return_steps: bool = False):
+def sphere_trace(
+    scene: SDF,
+    origins,
+    directions,
+    *,
+    t_max=np.inf,
+    max_steps: int = 256,
+    epsilon=1e-4,
+    t_min=0.0,
+    relaxation=1.0,
+    return_steps: bool = False,
+):
     """First surface hit of each ray ``origin + t * direction / |direction|`` by sphere tracing.
 
     Args:
@@ -271,10 +310,27 @@ def sphere_trace(scene: SDF, origins, directions, *, t_max=np.inf, max_steps: in
       JaxvoxError: bad shapes, ``max_steps < 1``, or (when concrete) ``epsilon <= 0``,
         relaxation outside (0, 2), NaN ``t_min`` / ``t_max``.
     """
-    o, d, scalars = checked_rays(scene, origins, directions, t_min=t_min, t_max=t_max, epsilon=epsilon,
-                                 relaxation=relaxation, max_steps=max_steps)
-    return _sphere_trace(scene, o, d, scalars["t_min"], scalars["t_max"], scalars["epsilon"],
-                         scalars["relaxation"], int(max_steps), bool(return_steps))
+    o, d, scalars = checked_rays(
+        scene,
+        origins,
+        directions,
+        t_min=t_min,
+        t_max=t_max,
+        epsilon=epsilon,
+        relaxation=relaxation,
+        max_steps=max_steps,
+    )
+    return _sphere_trace(
+        scene,
+        o,
+        d,
+        scalars["t_min"],
+        scalars["t_max"],
+        scalars["epsilon"],
+        scalars["relaxation"],
+        int(max_steps),
+        bool(return_steps),
+    )
 
 
 def checked_rays(scene, origins, directions, *, max_steps, **scalars):

@@ -113,8 +113,12 @@ def save_binvox(path: str | os.PathLike, voxels: Voxels) -> None:
     values, lengths = values[lengths > 0], lengths[lengths > 0]
     pairs = int((-(-lengths // BINVOX_MAX_RUN)).sum())
     if pairs > BINVOX_MAX_PAIRS:
-        raise refuse("save_binvox resolution", f"binvox stores every empty voxel, and these need {pairs:,} runs, "
-                     f"more than {BINVOX_MAX_PAIRS:,}; save as .npz instead", r)
+        raise refuse(
+            "save_binvox resolution",
+            f"binvox stores every empty voxel, and these need {pairs:,} runs, "
+            f"more than {BINVOX_MAX_PAIRS:,}; save as .npz instead",
+            r,
+        )
     tx, ty, tz = (float(x) for x in np.asarray(grid.origin))
     scale = float(grid.voxel_size) * r  # exact: a float32 times a power of two
     header = f"#binvox 1\ndim {r} {r} {r}\ntranslate {tx!r} {ty!r} {tz!r}\nscale {scale!r}\ndata\n"
@@ -130,14 +134,18 @@ def _binvox_header(data: bytes, path: str) -> tuple[int, np.ndarray, float, int]
     for number in range(_BINVOX_HEADER_LINES):
         end = data.find(b"\n", offset)
         if end < 0:
-            raise bad("is not a binvox file: the header ends before its 'data' line" if number
-                      else "is not a binvox file: it holds no header line")
+            raise bad(
+                "is not a binvox file: the header ends before its 'data' line"
+                if number
+                else "is not a binvox file: it holds no header line"
+            )
         words = data[offset:end].decode("ascii", "replace").split()
         offset = end + 1
         if number == 0:
             if words[:1] != ["#binvox"] or words[1:] not in (["1"], ["2"]):
-                raise bad(f"is not a binvox file: the first line must be '#binvox 1' (or 2), "
-                          f"not {' '.join(words)[:40]!r}")
+                raise bad(
+                    f"is not a binvox file: the first line must be '#binvox 1' (or 2), not {' '.join(words)[:40]!r}"
+                )
             continue
         if not words or words[0].startswith("#"):
             continue
@@ -160,12 +168,13 @@ def _binvox_header(data: bytes, path: str) -> tuple[int, np.ndarray, float, int]
         raise bad("has no 'dim' line in its binvox header")
     dims = fields["dim"]
     if len(set(dims)) != 1 or not 1 <= dims[0] <= MAX_RESOLUTION:
-        raise bad(f"has dim {' '.join(map(str, dims))}; jaxvox reads cubic grids of 1 to {MAX_RESOLUTION} "
-                  "voxels per axis")
+        raise bad(
+            f"has dim {' '.join(map(str, dims))}; jaxvox reads cubic grids of 1 to {MAX_RESOLUTION} voxels per axis"
+        )
     scale = fields.get("scale", [1.0])[0]
     if scale <= 0:
         raise bad(f"has scale {scale}; it must be > 0")
-    return dims[0], np.array(fields.get("translate", [0.0] * 3), np.float64), scale, offset
+    return int(dims[0]), np.array(fields.get("translate", [0.0] * 3), np.float64), float(scale), offset
 
 
 def load_binvox(path: str | os.PathLike, *, mode: str = CONSERVATIVE) -> Voxels:
@@ -200,7 +209,9 @@ def load_binvox(path: str | os.PathLike, *, mode: str = CONSERVATIVE) -> Voxels:
     covered = int(ends[-1]) if len(ends) else 0
     if covered != r**3:
         why = "is truncated: its" if covered < r**3 else "has too much data: its"
-        raise refuse("load_binvox path", f"{why} runs cover {covered:,} of the {r**3:,} voxels of dim {r} {r} {r}", path)
+        raise refuse(
+            "load_binvox path", f"{why} runs cover {covered:,} of the {r**3:,} voxels of dim {r} {r} {r}", path
+        )
     set_runs = values > 0
     first, length = (ends - counts)[set_runs], counts[set_runs]
     run_start = np.cumsum(length) - length
@@ -214,8 +225,14 @@ def _save_npz(path: str, voxels: Voxels) -> None:
     """Writes the .npz format of the module docstring (the exact name given)."""
     grid = voxels.grid
     with open(path, "wb") as fh:  # a file object: numpy appends no ".npz" to its name
-        np.savez_compressed(fh, ijk=voxels.to_numpy(), origin=np.asarray(grid.origin),
-                            voxel_size=np.asarray(grid.voxel_size), resolution=grid.resolution, mode=voxels.mode)
+        np.savez_compressed(
+            fh,
+            ijk=voxels.to_numpy(),
+            origin=np.asarray(grid.origin),
+            voxel_size=np.asarray(grid.voxel_size),
+            resolution=grid.resolution,
+            mode=voxels.mode,
+        )
 
 
 def _load_npz(path: str) -> Voxels:
@@ -236,8 +253,9 @@ def _load_npz(path: str) -> Voxels:
         raise refuse("load_voxels path", f"holds mode {mode!r}, expected one of {', '.join(MODES)}", path)
     if resolution.shape != () or resolution.dtype.kind not in "iu":
         raise refuse("load_voxels path", f"holds resolution {resolution!r}, expected one integer", path)
-    return _voxels("load_voxels path", path, arrays["ijk"], arrays["origin"], arrays["voxel_size"],
-                   int(resolution), str(mode))
+    return _voxels(
+        "load_voxels path", path, arrays["ijk"], arrays["origin"], arrays["voxel_size"], int(resolution), str(mode)
+    )
 
 
 def check_save_path(what: str, path: str | os.PathLike) -> tuple[str, str]:

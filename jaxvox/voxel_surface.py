@@ -61,7 +61,7 @@ def _face_tables():
     neighbour, corners = [], []
     for axis, side in itertools.product(range(3), (-1, 1)):
         u, w = (axis + 1) % 3, (axis + 2) % 3  # u x w = axis: this ring turns counter-clockwise about +axis
-        ring = [(0, 0), (1, 0), (1, 1), (0, 1)][:: side]
+        ring = [(0, 0), (1, 0), (1, 1), (0, 1)][::side]
         offsets = np.zeros((4, 3), np.int64)
         offsets[:, axis] = side > 0
         offsets[:, u], offsets[:, w] = np.array(ring).T
@@ -188,18 +188,22 @@ def voxels_to_mesh(voxels: Voxels) -> Mesh:
     centre_id = len(corner_keys) + len(mid_first) + np.arange(int(split.sum()))
 
     c = corner_keys // _FANS
-    points = np.concatenate([
-        np.stack([c // (r + 1) ** 2, c // (r + 1) % (r + 1), c % (r + 1)], axis=1),
-        ((corner + np.roll(corner, -1, axis=1)) / 2)[diagonal][mid_first],
-        corner[split].mean(axis=1),
-    ])
+    points = np.concatenate(
+        [
+            np.stack([c // (r + 1) ** 2, c // (r + 1) % (r + 1), c % (r + 1)], axis=1),
+            ((corner + np.roll(corner, -1, axis=1)) / 2)[diagonal][mid_first],
+            corner[split].mean(axis=1),
+        ]
+    )
     cs, ms, has_mid = corner_id[split], mid_id[split], diagonal[split]
     cs_next = np.roll(cs, -1, axis=1)
     centre = np.broadcast_to(centre_id[:, None], cs.shape)
-    triangles = np.concatenate([
-        corner_id[~split][:, [[0, 1, 2], [0, 2, 3]]].reshape(-1, 3),
-        np.stack([centre, cs, np.where(has_mid, ms, cs_next)], axis=-1).reshape(-1, 3),
-        np.stack([centre, ms, cs_next], axis=-1)[has_mid],
-    ])
+    triangles = np.concatenate(
+        [
+            corner_id[~split][:, [[0, 1, 2], [0, 2, 3]]].reshape(-1, 3),
+            np.stack([centre, cs, np.where(has_mid, ms, cs_next)], axis=-1).reshape(-1, 3),
+            np.stack([centre, ms, cs_next], axis=-1)[has_mid],
+        ]
+    )
     vertices = np.asarray(grid.origin, np.float64) + float(grid.voxel_size) * points
     return Mesh(vertices.astype(np.float32), triangles.astype(np.int32))

@@ -55,7 +55,7 @@ class _Tree(NamedTuple):
     radius: jax.Array  # [N] float32
     area: jax.Array  # [N, 3] float32 area vector
     first: jax.Array  # [N] int32
-    count: jax.Array  # [N] int32
+    count: jax.Array  # type: ignore[assignment]  # [N] int32
     triangles: jax.Array  # [F, 3, 3] float32 in tree order (level 0 node i is triangle i)
     levels: tuple[tuple[int, int], ...]  # (offset, size) per level, root first
 
@@ -82,13 +82,16 @@ def _build_tree(tris: np.ndarray) -> _Tree:
         c, r, a = levels[-1]
         n = len(c)
         pad = -n % 8
-        group = lambda x, fill=0.0: np.concatenate([x, np.full((pad,) + x.shape[1:], fill)]).reshape(-1, 8, *x.shape[1:])
+        group = lambda x, fill=0.0: np.concatenate([x, np.full((pad,) + x.shape[1:], fill)]).reshape(
+            -1, 8, *x.shape[1:]
+        )
         weight = group(np.linalg.norm(a, axis=-1))
         present = group(np.ones(n)) > 0
         total = weight.sum(1)
         mean = np.where(present[..., None], group(c), 0).sum(1) / present.sum(1)[:, None]
-        centroid = np.where((total > 0)[:, None], (weight[..., None] * group(c)).sum(1) / np.where(total > 0, total, 1)[:, None],
-                            mean)
+        centroid = np.where(
+            (total > 0)[:, None], (weight[..., None] * group(c)).sum(1) / np.where(total > 0, total, 1)[:, None], mean
+        )
         reach = np.where(present, np.linalg.norm(group(c) - centroid[:, None], axis=-1) + group(r), 0.0)
         levels.append((centroid, reach.max(1), group(a).sum(1)))
     levels = levels[::-1]  # root first
@@ -105,11 +108,15 @@ def _build_tree(tris: np.ndarray) -> _Tree:
             first.append(np.zeros(size, np.int64))
             count.append(np.zeros(size, np.int64))
     stack = lambda i: np.concatenate([level[i] for level in levels]).astype(np.float32)
-    return _Tree(centre=jnp.asarray(stack(0)), radius=jnp.asarray(stack(1)), area=jnp.asarray(stack(2)),
-                 first=jnp.asarray(np.concatenate(first).astype(np.int32)),
-                 count=jnp.asarray(np.concatenate(count).astype(np.int32)),
-                 triangles=jnp.asarray(tris.astype(np.float32)),
-                 levels=tuple(zip(offsets.tolist(), sizes)))
+    return _Tree(
+        centre=jnp.asarray(stack(0)),
+        radius=jnp.asarray(stack(1)),
+        area=jnp.asarray(stack(2)),
+        first=jnp.asarray(np.concatenate(first).astype(np.int32)),
+        count=jnp.asarray(np.concatenate(count).astype(np.int32)),
+        triangles=jnp.asarray(tris.astype(np.float32)),
+        levels=tuple(zip(offsets.tolist(), sizes)),
+    )
 
 
 def _block_offsets(block: int) -> np.ndarray:
@@ -137,8 +144,19 @@ def _near_children(tree: _Tree, blocks, nodes, n, *, per_axis: tuple[int, int, i
 
 
 @functools.partial(jax.jit, static_argnames=("per_axis", "block", "beta", "leaves", "capacity"))
-def _level(tree: _Tree, w, blocks, nodes, n, *, per_axis: tuple[int, int, int], block: int, beta: float, leaves: bool,
-           capacity: int):
+def _level(
+    tree: _Tree,
+    w,
+    blocks,
+    nodes,
+    n,
+    *,
+    per_axis: tuple[int, int, int],
+    block: int,
+    beta: float,
+    leaves: bool,
+    capacity: int,
+):
     """Adds one frontier's terms to ``w`` [B, b^3] and opens its near pairs.
 
     Returns (w, child blocks [capacity], child nodes [capacity]).
@@ -197,12 +215,14 @@ def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4
     if block & (block - 1):
         raise refuse("winding_numbers block", "must be a power of two", block)
     r = grid.resolution
-    return box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r),
-                              beta=beta, block=block)
+    return box_winding_numbers(
+        mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), (r, r, r), beta=beta, block=block
+    )
 
 
-def box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int, int, int], *,
-                       beta: float = 2.0, block: int = 4) -> jax.Array:
+def box_winding_numbers(
+    mesh: Mesh, origin, voxel_size: float, shape: tuple[int, int, int], *, beta: float = 2.0, block: int = 4
+) -> jax.Array:
     """`winding_numbers` at the centres of a box of voxels of any shape.
 
     Voxel (i, j, k) has its centre at ``origin + (i + 1/2, j + 1/2, k + 1/2) * voxel_size``.
@@ -232,8 +252,7 @@ def box_winding_numbers(mesh: Mesh, origin, voxel_size: float, shape: tuple[int,
         for depth in range(len(tree.levels)):
             leaves = depth == len(tree.levels) - 1
             opened = 0 if leaves else int(_near_children(tree, blocks, nodes, n, **settings))
-            w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket(opened),
-                                      **settings)
+            w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket(opened), **settings)
             n = opened
     w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)
     w = w.reshape(tuple(a * block for a in per_axis))

@@ -37,7 +37,7 @@ def _fresh_jax_caches(request):
     they keep theirs.
     """
     yield
-    if request.module.__name__.rsplit(".", 1)[-1] in ("test_distance", "test_sdf_octree", "test_trace"):
+    if request.module.__name__.rsplit(".", 1)[-1] in ("test_distance", "test_clipmap", "test_sdf_octree", "test_trace"):
         import jax
 
         jax.clear_caches()
@@ -52,8 +52,10 @@ def textured_quad(tmp_path):
 
     texels = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 0]]], np.uint8)
     (tmp_path / "quad.mtl").write_text("newmtl m\nKd 1 1 1\nmap_Kd tex.png\n")
-    (tmp_path / "quad.obj").write_text("mtllib quad.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
-                                       "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n")
+    (tmp_path / "quad.obj").write_text(
+        "mtllib quad.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+        "vt 0 0\nvt 1 0\nvt 1 1\nvt 0 1\nusemtl m\nf 1/1 2/2 3/3\nf 1/1 3/3 4/4\n"
+    )
     texels = texels.repeat(2, axis=0).repeat(2, axis=1)
     iio.imwrite(tmp_path / "tex.png", texels)
     return tmp_path / "quad.obj", texels / 255.0

@@ -247,9 +247,19 @@ def _separating_setup(P):
     with np.errstate(divide="ignore", invalid="ignore"):
         tie = np.where(nnorm > 0, (an[np.arange(T), d] - an[np.arange(T), d2]) / np.where(nnorm > 0, nnorm, 1.0), 0.0)
     return dict(
-        axes=axes, valid=valid, tmin=proj.min(1), tmax=proj.max(1), rad=rad,
-        n=n, nnorm=nnorm, d=d, d2=d2, tie=tie * E_len,
-        bmin=P.min(1), bmax=P.max(1), v0=P[:, 0],
+        axes=axes,
+        valid=valid,
+        tmin=proj.min(1),
+        tmax=proj.max(1),
+        rad=rad,
+        n=n,
+        nnorm=nnorm,
+        d=d,
+        d2=d2,
+        tie=tie * E_len,
+        bmin=P.min(1),
+        bmax=P.max(1),
+        v0=P[:, 0],
     )
 
 
@@ -350,8 +360,9 @@ def reference_voxelize(vertices, faces, origin, voxel_size, resolution: int, mod
     if mode == "6-separating":
         flat = ~np.any(_normal(P) != 0, axis=-1)  # zero-area triangles set nothing
         v32 = np.asarray(vertices, dtype=np.float32)[faces]
-        distinct = ~(np.all(v32[:, 0] == v32[:, 1], -1) | np.all(v32[:, 1] == v32[:, 2], -1)
-                     | np.all(v32[:, 2] == v32[:, 0], -1))
+        distinct = ~(
+            np.all(v32[:, 0] == v32[:, 1], -1) | np.all(v32[:, 1] == v32[:, 2], -1) | np.all(v32[:, 2] == v32[:, 0], -1)
+        )
         ambiguous = flat & distinct
         if ambiguous.any():
             Pa = P[ambiguous]
@@ -399,8 +410,12 @@ def winding_number(vertices, faces, points) -> np.ndarray:
         a, b, c = np.moveaxis(tri - p, 1, 0)
         la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
         det = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("ij,ij->i", a, b) * lc
-               + np.einsum("ij,ij->i", b, c) * la + np.einsum("ij,ij->i", c, a) * lb)
+        den = (
+            la * lb * lc
+            + np.einsum("ij,ij->i", a, b) * lc
+            + np.einsum("ij,ij->i", b, c) * la
+            + np.einsum("ij,ij->i", c, a) * lb
+        )
         out[n] = np.arctan2(det, den).sum() / (2 * np.pi)
     return out
 
@@ -452,9 +467,9 @@ def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
         return out
     step = max(1, chunk // len(tri))
     for s in range(0, len(points), step):
-        p = points[s:s + step, None, :]
+        p = points[s : s + step, None, :]
         q = closest_point_on_triangles(p, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
-        out[s:s + step] = np.sqrt(((q - p) ** 2).sum(-1)).min(1)
+        out[s : s + step] = np.sqrt(((q - p) ** 2).sum(-1)).min(1)
     return out
 
 

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-
 from tests.reference import morton_encode as ref_morton
 
 
@@ -72,8 +71,10 @@ def test_eager_jit_vmap_agree():
 
 def test_vmap_over_padded_meshes_of_different_sizes():
     small = _tetra(0.5, (0.2, 0.2, 0.2))
-    mesh_b = jv.Mesh(np.concatenate([np.asarray(_tetra().vertices), [[0.9, 0.9, 0.9]]]).astype(np.float32),
-                     np.concatenate([np.asarray(_tetra().faces), [[1, 2, 4]]]))
+    mesh_b = jv.Mesh(
+        np.concatenate([np.asarray(_tetra().vertices), [[0.9, 0.9, 0.9]]]).astype(np.float32),
+        np.concatenate([np.asarray(_tetra().faces), [[1, 2, 4]]]),
+    )
     grid = jv.Grid(origin=(-0.1, -0.1, -0.1), voxel_size=1.2 / 16, resolution=16)
     expected = [jv.voxelize(m, grid, mode="6-separating").to_numpy() for m in (small, mesh_b)]
     padded = [jv.pad_mesh(m, 5, 5) for m in (small, mesh_b)]
@@ -84,8 +85,15 @@ def test_vmap_over_padded_meshes_of_different_sizes():
         np.testing.assert_array_equal(np.asarray(out.coords[b, : int(out.count[b])]), e)
 
 
-@pytest.mark.parametrize("field, flag", [("columns", jv.OVERFLOW_COLUMNS), ("rows", jv.OVERFLOW_ROWS),
-                                         ("candidates", jv.OVERFLOW_CANDIDATES), ("voxels", jv.OVERFLOW_VOXELS)])
+@pytest.mark.parametrize(
+    "field, flag",
+    [
+        ("columns", jv.OVERFLOW_COLUMNS),
+        ("rows", jv.OVERFLOW_ROWS),
+        ("candidates", jv.OVERFLOW_CANDIDATES),
+        ("voxels", jv.OVERFLOW_VOXELS),
+    ],
+)
 def test_overflow_flag_and_host_retry(field, flag):
     mesh = _tetra()
     grid = jv.Grid.fit(mesh, resolution=64)
@@ -152,8 +160,10 @@ def test_streaming_regions_match_single_pass(meshes_dir):
 
 
 def test_high_resolutions_use_two_word_keys():
-    tri = jv.Mesh(np.array([[0.1, 0.2, 0.3], [0.1001, 0.2, 0.3], [0.1, 0.2002, 0.3001]], np.float32),
-                  np.array([[0, 1, 2]], np.int32))
+    tri = jv.Mesh(
+        np.array([[0.1, 0.2, 0.3], [0.1001, 0.2, 0.3], [0.1, 0.2002, 0.3001]], np.float32),
+        np.array([[0, 1, 2]], np.int32),
+    )
     for bits in (16, 20):  # 48- and 60-bit Morton keys, two 32-bit words each
         r = 1 << bits
         grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / r, resolution=r)
@@ -175,8 +185,10 @@ def test_triangle_ids_are_closest_setting_triangle():
     streamed = jv.voxelize(mesh, grid, triangle_ids=True, region_size=2)
     np.testing.assert_array_equal(streamed.triangle_ids(), ids)
     tris = np.asarray(grid.to_grid_units(mesh.triangles()), np.float64)
-    per_face = [{tuple(x) for x in jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f:f + 1]), grid).to_numpy()}
-                for f in range(mesh.num_faces)]
+    per_face = [
+        {tuple(x) for x in jv.voxelize(jv.Mesh(mesh.vertices, mesh.faces[f : f + 1]), grid).to_numpy()}
+        for f in range(mesh.num_faces)
+    ]
     settable = np.array([[tuple(x) in per_face[f] for f in range(mesh.num_faces)] for x in ijk])
     assert settable[np.arange(len(ids)), ids].all()  # each id is a triangle that sets the voxel
     d = np.stack([_dist_point_triangle(ijk + 0.5, tris[f]) for f in range(len(tris))], 1)

@@ -47,11 +47,13 @@ def assert_item_equal(voxels, tree, hit, ref):
     np.testing.assert_array_equal(voxels, ref_voxels)
     assert tree.dag == ref_tree.dag
     for field in TREE_FIELDS:
-        np.testing.assert_array_equal(np.asarray(getattr(tree, field)), np.asarray(getattr(ref_tree, field)),
-                                      err_msg=field)
+        np.testing.assert_array_equal(
+            np.asarray(getattr(tree, field)), np.asarray(getattr(ref_tree, field)), err_msg=field
+        )
     for field in HIT_FIELDS:
-        np.testing.assert_array_equal(np.asarray(getattr(hit, field)), np.asarray(getattr(ref_hit, field)),
-                                      err_msg=field)
+        np.testing.assert_array_equal(
+            np.asarray(getattr(hit, field)), np.asarray(getattr(ref_hit, field)), err_msg=field
+        )
 
 
 def item(tree, b):
@@ -82,8 +84,14 @@ def batch(meshes_dir):
     rays = [camera_rays(m) for m in meshes]
     origins, directions = (np.stack(parts) for parts in zip(*rays))
     refs = [host_reference(m, g, *r) for m, g, r in zip(meshes, grids, rays)]
-    return dict(meshes=meshes, grids=grids, origins=origins, directions=directions, refs=refs,
-                capacities=jv.batch_capacities(meshes, grids))
+    return dict(
+        meshes=meshes,
+        grids=grids,
+        origins=origins,
+        directions=directions,
+        refs=refs,
+        capacities=jv.batch_capacities(meshes, grids),
+    )
 
 
 def test_stack_meshes_pads_to_the_ladder(batch):
@@ -98,8 +106,8 @@ def test_stack_meshes_pads_to_the_ladder(batch):
         np.testing.assert_array_equal(faces[: mesh.num_faces], np.asarray(mesh.faces))
         np.testing.assert_array_equal(vertices[: mesh.num_vertices], np.asarray(mesh.vertices))
         # padding: NaN vertices, faces at the first of them (the voxelizer skips them)
-        assert np.isnan(vertices[mesh.num_vertices:]).all()
-        assert (faces[mesh.num_faces:] == mesh.num_vertices).all()
+        assert np.isnan(vertices[mesh.num_vertices :]).all()
+        assert (faces[mesh.num_faces :] == mesh.num_vertices).all()
     grids = jv.stack_grids(batch["grids"])
     assert grids.origin.shape == (4, 3) and grids.voxel_size.shape == (4,)
     assert grids.resolution == RESOLUTION
@@ -109,8 +117,7 @@ def test_batch_in_one_jit_matches_host_path(batch):
     caps, tree_caps = batch["capacities"]
     assert tree_caps[0] == 1 and len(tree_caps) == int(math.log2(RESOLUTION))
     meshes, grids = jv.stack_meshes(batch["meshes"]), jv.stack_grids(batch["grids"])
-    run = jax.jit(lambda m, g, o, d: jv.voxelize_build_trace(m, g, o, d, capacities=caps,
-                                                             tree_capacities=tree_caps))
+    run = jax.jit(lambda m, g, o, d: jv.voxelize_build_trace(m, g, o, d, capacities=caps, tree_capacities=tree_caps))
     counter = CompileCounter()
     vox, tree, hit = jax.block_until_ready(run(meshes, grids, batch["origins"], batch["directions"]))
     # The whole batch is one compiled program (an eager helper dropped from the caches by
@@ -126,8 +133,9 @@ def test_batch_in_one_jit_matches_host_path(batch):
     again = jv.stack_meshes([batch["meshes"][b] for b in order])
     assert again.faces.shape == meshes.faces.shape
     before = counter.count
-    vox, tree, hit = run(again, jv.stack_grids([batch["grids"][b] for b in order]),
-                         batch["origins"][order], batch["directions"][order])
+    vox, tree, hit = run(
+        again, jv.stack_grids([batch["grids"][b] for b in order]), batch["origins"][order], batch["directions"][order]
+    )
     assert counter.count == before
     for b, source in enumerate(order):
         assert_item_equal(item(vox, b).to_numpy(), jv.compact(item(tree, b)), item(hit, b), batch["refs"][source])
@@ -139,8 +147,9 @@ def test_tiny_capacities_flag_items_and_only_those_are_rerun(batch):
     caps, tree_caps = batch["capacities"]
     needs = [jv.voxel_capacities(m, g) for m, g in zip(meshes, grids)]
     # octree nodes per level (what tree capacities bound, for a DAG too): distinct ijk >> (D - l)
-    sizes = [np.array([len(np.unique(ref[0] >> (depth - level), axis=0)) for level in range(depth)])
-             for ref in batch["refs"]]
+    sizes = [
+        np.array([len(np.unique(ref[0] >> (depth - level), axis=0)) for level in range(depth)]) for ref in batch["refs"]
+    ]
     # Capacities that fit the item with the fewest voxels, and its tree's last level.
     small = int(np.argmin([len(ref[0]) for ref in batch["refs"]]))
     tiny = jv.Capacities(caps.columns, caps.rows, caps.candidates, needs[small].voxels, caps.row_chunk)
@@ -149,8 +158,14 @@ def test_tiny_capacities_flag_items_and_only_those_are_rerun(batch):
     overflowing = tuple(b for b, bits in enumerate(expected_bits) if bits)
     assert 0 < len(overflowing) < len(meshes)
 
-    vox, tree, _ = jv.voxelize_build_trace(jv.stack_meshes(meshes), jv.stack_grids(grids), batch["origins"],
-                                           batch["directions"], capacities=tiny, tree_capacities=tiny_tree)
+    vox, tree, _ = jv.voxelize_build_trace(
+        jv.stack_meshes(meshes),
+        jv.stack_grids(grids),
+        batch["origins"],
+        batch["directions"],
+        capacities=tiny,
+        tree_capacities=tiny_tree,
+    )
     np.testing.assert_array_equal(np.asarray(vox.overflow), expected_bits)
     for b, bits in enumerate(expected_bits):
         flags = int(tree.overflow[b])
@@ -158,8 +173,9 @@ def test_tiny_capacities_flag_items_and_only_those_are_rerun(batch):
         if not bits:  # the tree of untruncated voxels overflows exactly when a level does not fit
             assert bool(flags & jv.OVERFLOW_NODES) == bool((sizes[b] > np.asarray(tiny_tree)).any())
 
-    result = jv.run_batch(meshes, grids, batch["origins"], batch["directions"], capacities=tiny,
-                          tree_capacities=tiny_tree)
+    result = jv.run_batch(
+        meshes, grids, batch["origins"], batch["directions"], capacities=tiny, tree_capacities=tiny_tree
+    )
     rerun = tuple(b for b in range(len(meshes)) if int(tree.overflow[b]))
     assert result.retried[0] == rerun
     assert all(set(later) <= set(earlier) for earlier, later in zip(result.retried, result.retried[1:]))
@@ -169,17 +185,26 @@ def test_tiny_capacities_flag_items_and_only_those_are_rerun(batch):
     assert len(result.trees[0].level_capacities) == depth
 
     with pytest.raises(jv.JaxvoxError, match="still overflow"):
-        jv.run_batch(meshes, grids, batch["origins"], batch["directions"], capacities=tiny,
-                     tree_capacities=tiny_tree, max_tries=1)
+        jv.run_batch(
+            meshes,
+            grids,
+            batch["origins"],
+            batch["directions"],
+            capacities=tiny,
+            tree_capacities=tiny_tree,
+            max_tries=1,
+        )
 
 
 def test_shared_grid_octrees_six_separating():
     """Procedural meshes in one shared grid, plain octrees, 6-separating mode."""
     import trimesh
 
-    shapes = [trimesh.creation.icosphere(subdivisions=2, radius=0.4),
-              trimesh.creation.torus(major_radius=0.3, minor_radius=0.1, major_sections=24, minor_sections=12),
-              trimesh.creation.box(extents=(0.5, 0.3, 0.7))]
+    shapes = [
+        trimesh.creation.icosphere(subdivisions=2, radius=0.4),
+        trimesh.creation.torus(major_radius=0.3, minor_radius=0.1, major_sections=24, minor_sections=12),
+        trimesh.creation.box(extents=(0.5, 0.3, 0.7)),
+    ]
     rng = np.random.default_rng(0)
     meshes = []
     for shape in shapes:
@@ -213,8 +238,20 @@ def test_bad_input_raises():
         jv.stack_meshes([tetra], num_faces=2)
     stacked = jv.stack_meshes([tetra, tetra])
     with pytest.raises(jv.JaxvoxError, match="leading batch axis"):
-        jv.voxelize_build_trace(stacked, grids[0], origins[:1], origins[:1] + 1,
-                                capacities=jv.Capacities(256, 256, 256, 256), tree_capacities=(1, 8, 64, 256))
+        jv.voxelize_build_trace(
+            stacked,
+            grids[0],
+            origins[:1],
+            origins[:1] + 1,
+            capacities=jv.Capacities(256, 256, 256, 256),
+            tree_capacities=(1, 8, 64, 256),
+        )
     with pytest.raises(jv.JaxvoxError, match="tree_capacities"):
-        jv.voxelize_build_trace(stacked, grids[0], origins, origins + 1,
-                                capacities=jv.Capacities(256, 256, 256, 256), tree_capacities=(2, 8, 64, 256))
+        jv.voxelize_build_trace(
+            stacked,
+            grids[0],
+            origins,
+            origins + 1,
+            capacities=jv.Capacities(256, 256, 256, 256),
+            tree_capacities=(2, 8, 64, 256),
+        )

@@ -15,14 +15,6 @@ from tests.reference import first_hit, mesh_distance, winding_number
 from tests.test_distance import BOUNDS, ISOLATED_SWEEP_BOUND, icosphere
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _fresh_jax_caches_here():
-    """Drops compiled programs after this module, as conftest's `_fresh_jax_caches` does
-    after test_distance, where these tests were until it was split."""
-    yield
-    jax.clear_caches()
-
-
 @pytest.mark.parametrize("method", ["exact", "band"])
 def test_clipmap_incremental_equals_scratch_after_moves(method):
     """After time-sliced moves (small, large, random), the incremental clipmap equals a
@@ -39,7 +31,9 @@ def test_clipmap_incremental_equals_scratch_after_moves(method):
     clip = jv.update_clipmap(clip, mesh, moves[-1])  # catch up every cascade
     scratch = jv.build_clipmap(mesh, moves[-1], **kw)
     np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(scratch.corner))
-    np.testing.assert_allclose(np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6 if method == "exact" else 1e-5)
+    np.testing.assert_allclose(
+        np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6 if method == "exact" else 1e-5
+    )
     # stored values are the signed distance at each voxel centre, clamped (exact, or within
     # the separable jump flooding's bound, never below)
     above = BOUNDS["exact"][0] if method == "exact" else BOUNDS["jfa-separable"][0]
@@ -74,8 +68,11 @@ def test_exposed_boxes_cover_the_new_window_once(r, moves):
         for g in np.ndindex(*(hi - lo)):
             key = tuple(lo + g)
             count[key] = count.get(key, 0) + 1
-    want = {g for g in (tuple(new + np.array(i)) for i in np.ndindex(r, r, r))
-            if np.any((np.array(g) < old) | (np.array(g) >= old + r))}
+    want = {
+        g
+        for g in (tuple(new + np.array(i)) for i in np.ndindex(r, r, r))
+        if np.any((np.array(g) < old) | (np.array(g) >= old + r))
+    }
     assert set(count) == want and all(c == 1 for c in count.values())
 
 
@@ -106,7 +103,9 @@ def test_clipmap_pipeline_within_method_bounds(method):
             err = np.abs(got) - np.abs(ref)
             assert err.max() <= above + 1e-4 and err.min() >= -below - 1e-4, (c, err.min(), err.max())
     # Kept slots hold values from older windows: incremental and scratch differ, within both bounds.
-    gap = np.abs(np.asarray(clip.fields) - np.asarray(scratch.fields)) / (0.05 * 2.0 ** np.arange(2))[:, None, None, None]
+    gap = (
+        np.abs(np.asarray(clip.fields) - np.asarray(scratch.fields)) / (0.05 * 2.0 ** np.arange(2))[:, None, None, None]
+    )
     assert gap.max() <= above + below + 1e-4
 
 

@@ -12,7 +12,8 @@ import jaxvox as jv
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 _compiles = []
 jax.monitoring.register_event_duration_secs_listener(
-    lambda name, secs, **kw: _compiles.append(secs) if name == COMPILE_EVENT else None)
+    lambda name, secs, **kw: _compiles.append(secs) if name == COMPILE_EVENT else None
+)
 
 
 @contextlib.contextmanager

@@ -130,8 +130,9 @@ def test_exact_against_float64_on_spot_sample(spot):
     mesh, grid, exact = spot
     idx = np.random.default_rng(0).choice(exact.size, 300, replace=False)
     ref = mesh_distance(mesh.vertices, mesh.faces, voxel_centres(grid)[idx])
-    np.testing.assert_allclose(exact.reshape(-1)[idx] / float(grid.voxel_size),
-                               ref / float(grid.voxel_size), atol=BOUNDS["exact"][0])
+    np.testing.assert_allclose(
+        exact.reshape(-1)[idx] / float(grid.voxel_size), ref / float(grid.voxel_size), atol=BOUNDS["exact"][0]
+    )
 
 
 def test_more_band_and_sweeps_options(spot):
@@ -152,7 +153,6 @@ def test_more_band_and_sweeps_options(spot):
     assert err[exact / h < 2.0].max() <= BOUNDS["jfa-separable"][0]
     signed = np.asarray(jv.distance_field(mesh, grid, method="jfa"))
     np.testing.assert_array_equal(np.sign(band), np.sign(signed))
-
 
 
 def test_bad_input_and_memory_limit():

@@ -17,8 +17,9 @@ def test_environment_lookup(tmp_path):
     out = np.asarray(env.radiance(np.array([[0, 1, 0], [0.01, -0.2, -1.0], [0, -1, 0]], np.float32)))
     np.testing.assert_array_equal(out, [[1, 1, 1], [0, 5, 0], [0, 0, 0]])
     uniform = jv.uniform_environment(rgb=(0.1, 0.2, 0.3))
-    np.testing.assert_allclose(np.asarray(uniform.radiance(np.eye(3, dtype=np.float32))),
-                               np.tile([0.1, 0.2, 0.3], (3, 1)), rtol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(uniform.radiance(np.eye(3, dtype=np.float32))), np.tile([0.1, 0.2, 0.3], (3, 1)), rtol=1e-7
+    )
     sky = jv.sky_environment(sun_direction=(0, 1, 0))
     assert np.asarray(sky.camera_radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] > 1e3  # the sun disc
     assert np.asarray(sky.radiance(np.array([[0, 1, 0]], np.float32)))[0, 0] < 1.0
@@ -45,8 +46,20 @@ def test_environment_importance_sampling(tmp_path):
     for importance in (False, True):
         env = jv.load_environment(tmp_path / "patch.npy", importance=importance)
         assert env.sampled == importance
-        result = jv.render(tree, (0.0, 3.0, 0.01), (0.0, 0.0, 0.0), env=env, albedo=(0.5, 0.5, 0.5), bounces=1,
-                           key=1, width=48, height=48, spp=4, batch_rays=48 * 48 * 4, fov=30.0)
+        result = jv.render(
+            tree,
+            (0.0, 3.0, 0.01),
+            (0.0, 0.0, 0.0),
+            env=env,
+            albedo=(0.5, 0.5, 0.5),
+            bounces=1,
+            key=1,
+            width=48,
+            height=48,
+            spp=4,
+            batch_rays=48 * 48 * 4,
+            fov=30.0,
+        )
         top = np.asarray(result.radiance)[..., 0][(np.asarray(result.normal) == [0, 1, 0]).all(-1)]
         assert len(top) > 2000
         spread[importance] = top.std()

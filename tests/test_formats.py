@@ -168,20 +168,23 @@ def _binvox(body: bytes = b"", dims: bytes = b"2 2 2") -> bytes:
     return b"#binvox 1\ndim " + dims + b"\ntranslate 0 0 0\nscale 1\ndata\n" + body
 
 
-@pytest.mark.parametrize("content, message", [
-    (None, "file not found"),
-    (b"", "empty"),
-    (b"ply\nformat ascii 1.0\n", "not a binvox file"),
-    (b"#binvox 1\ndim 2 2 2\n", "'data' line"),
-    (_binvox(bytes([0, 4, 1])), "odd length"),
-    (_binvox(bytes([0, 4, 1, 3])), "truncated"),
-    (_binvox(), "truncated"),
-    (_binvox(bytes([0, 255, 1, 3])), "too much data"),
-    (_binvox(bytes([0, 8]), b"2 2 4"), "cubic"),
-    (_binvox(bytes([0, 8]), b"2 x 2"), "bad binvox header line"),
-    (b"#binvox 1\ntranslate 0 0 0\ndata\n", "no 'dim'"),
-    (b"#binvox 1\ndim 2 2 2\ncolour 1\ndata\n", "unknown binvox header"),
-])
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (None, "file not found"),
+        (b"", "empty"),
+        (b"ply\nformat ascii 1.0\n", "not a binvox file"),
+        (b"#binvox 1\ndim 2 2 2\n", "'data' line"),
+        (_binvox(bytes([0, 4, 1])), "odd length"),
+        (_binvox(bytes([0, 4, 1, 3])), "truncated"),
+        (_binvox(), "truncated"),
+        (_binvox(bytes([0, 255, 1, 3])), "too much data"),
+        (_binvox(bytes([0, 8]), b"2 2 4"), "cubic"),
+        (_binvox(bytes([0, 8]), b"2 x 2"), "bad binvox header line"),
+        (b"#binvox 1\ntranslate 0 0 0\ndata\n", "no 'dim'"),
+        (b"#binvox 1\ndim 2 2 2\ncolour 1\ndata\n", "unknown binvox header"),
+    ],
+)
 def test_bad_binvox_files_are_refused_by_name(tmp_path, content, message):
     path = tmp_path / "bad.binvox"
     if content is not None:
@@ -236,16 +239,19 @@ def test_npz_keeps_the_mode(tmp_path):
     np.testing.assert_array_equal(back.to_numpy(), vox.to_numpy())
 
 
-@pytest.mark.parametrize("change, message", [
-    (None, "file not found"),
-    (b"", "empty"),
-    (b"hello", "zip signature"),
-    (b"PK\x03\x04 and then nothing", "not a readable .npz"),
-    ({"ijk": None}, "lacks the arrays ijk"),
-    ({"ijk": [[0, 0, 8]]}, "outside"),
-    ({"mode": "solid"}, "holds mode"),
-    ({"resolution": 100}, "power of two"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (None, "file not found"),
+        (b"", "empty"),
+        (b"hello", "zip signature"),
+        (b"PK\x03\x04 and then nothing", "not a readable .npz"),
+        ({"ijk": None}, "lacks the arrays ijk"),
+        ({"ijk": [[0, 0, 8]]}, "outside"),
+        ({"mode": "solid"}, "holds mode"),
+        ({"resolution": 100}, "power of two"),
+    ],
+)
 def test_bad_npz_files_are_refused_by_name(tmp_path, change, message):
     path = tmp_path / "bad.npz"
     if isinstance(change, bytes):
@@ -294,11 +300,14 @@ def test_single_voxel_is_a_cube():
     assert t.euler_number == 2
 
 
-@pytest.mark.parametrize("other, vertices, triangles, euler", [
-    ((2, 1, 1), 12, 20, 2),  # sharing a face: it is removed, its corners welded
-    ((2, 2, 1), 22, 36, 4),  # sharing an edge: two cubes, the edge split with one midpoint each
-    ((2, 2, 2), 16, 24, 4),  # sharing a corner: two cubes, the corner not welded
-])
+@pytest.mark.parametrize(
+    "other, vertices, triangles, euler",
+    [
+        ((2, 1, 1), 12, 20, 2),  # sharing a face: it is removed, its corners welded
+        ((2, 2, 1), 22, 36, 4),  # sharing an edge: two cubes, the edge split with one midpoint each
+        ((2, 2, 2), 16, 24, 4),  # sharing a corner: two cubes, the corner not welded
+    ],
+)
 def test_two_voxels(other, vertices, triangles, euler):
     ijk = np.array([[1, 1, 1], other])
     mesh = jv.voxels_to_mesh(_voxels(ijk))
@@ -310,8 +319,9 @@ def test_voxels_touching_along_an_edge_inside_one_surface():
     """Two voxels meeting along an edge between two full layers: at both ends of that edge
     the surface has one vertex, so only the midpoints keep the edge's two copies apart.
     The empty cells beside the edge join through it: a handle (Euler characteristic 0)."""
-    ijk = np.array([[3, 3, 3], [4, 4, 3], [3, 3, 4], [4, 4, 4], [3, 4, 4], [4, 3, 4], [3, 3, 2], [4, 4, 2],
-                    [3, 4, 2], [4, 3, 2]])
+    ijk = np.array(
+        [[3, 3, 3], [4, 4, 3], [3, 3, 4], [4, 4, 4], [3, 4, 4], [4, 3, 4], [3, 3, 2], [4, 4, 2], [3, 4, 2], [4, 3, 2]]
+    )
     mesh = jv.voxels_to_mesh(_voxels(ijk))
     assert _check_closed_surface(mesh, ijk, _grid(8)).euler_number == 0
     units = (np.asarray(mesh.vertices) - np.asarray(ORIGIN, np.float32)) / H

@@ -217,8 +217,9 @@ def test_load_mesh_reads_a_texture_and_voxels_sample_it(textured_quad):
     n = int(vox.count)
     colour = np.asarray(jv.voxel_attributes(mesh, vox)["color"])[:n, :3]
     # The plane point nearest a voxel centre is its (x, y) clipped to the quad, and uv = (x, y).
-    xy = np.clip(np.asarray(vox.grid.origin)[:2] + (np.asarray(vox.coords)[:n, :2] + 0.5) * float(vox.grid.voxel_size),
-                 0.0, 1.0)
+    xy = np.clip(
+        np.asarray(vox.grid.origin)[:2] + (np.asarray(vox.coords)[:n, :2] + 0.5) * float(vox.grid.voxel_size), 0.0, 1.0
+    )
     np.testing.assert_allclose(colour, _bilinear_reference(texels, xy), atol=1e-5)
     padded = jv.pad_mesh(mesh, mesh.num_vertices + 3, mesh.num_faces + 2)
     assert padded.texture.shape == mesh.texture.shape and padded.uvs.shape == (mesh.num_vertices + 3, 2)
@@ -236,8 +237,14 @@ def _hand_made_sets():
     corners = [[x, y, z] for x in (0, r - 1) for y in (0, r - 1) for z in (0, r - 1)]
     block = [[x, y, z] for x in (2, 3) for y in (4, 5) for z in (6, 7)]
     cube = np.argwhere(np.ones((4, 4, 4), bool)) + 4
-    return {"empty": np.zeros((0, 3)), "one": [[5, 9, 1]], "corners": corners, "block": block,
-            "cube": cube, "full": np.argwhere(np.ones((r, r, r), bool))}
+    return {
+        "empty": np.zeros((0, 3)),
+        "one": [[5, 9, 1]],
+        "corners": corners,
+        "block": block,
+        "cube": cube,
+        "full": np.argwhere(np.ones((r, r, r), bool)),
+    }
 
 
 @pytest.mark.parametrize("name", list(_hand_made_sets()))
@@ -363,8 +370,9 @@ def test_bad_input_is_refused():
     outside = jv.Voxels(jnp.asarray(coords), jnp.int32(3), jnp.int32(0), None, grid, jv.CONSERVATIVE)
     with pytest.raises(jv.JaxvoxError, match="outside"):
         jv.build_dag(outside)
-    overflowed = jv.Voxels(jnp.asarray(coords), jnp.int32(2), jnp.int32(jv.OVERFLOW_VOXELS), None, grid,
-                           jv.CONSERVATIVE)
+    overflowed = jv.Voxels(
+        jnp.asarray(coords), jnp.int32(2), jnp.int32(jv.OVERFLOW_VOXELS), None, grid, jv.CONSERVATIVE
+    )
     with pytest.raises(jv.JaxvoxError, match="overflowed"):
         jv.build_dag(overflowed)
     with pytest.raises(jv.JaxvoxError, match="capacities"):
@@ -491,8 +499,8 @@ def _rewrite(data: bytes, edit_header=None, edit_arrays=None) -> bytes:
     import zlib
 
     magic, version, head_len = struct.unpack_from("<8sII", data)
-    header = json.loads(data[16:16 + head_len])
-    body = bytearray(data[16 + head_len:-4])
+    header = json.loads(data[16 : 16 + head_len])
+    body = bytearray(data[16 + head_len : -4])
     if edit_header:
         edit_header(header)
     if edit_arrays:
@@ -514,7 +522,8 @@ def test_invalid_trees_with_valid_checksums_are_refused(saved, tmp_path):
             view = np.frombuffer(body, np.dtype(e["dtype"]), int(np.prod(e["shape"])), e["offset"])
             view = view.copy()
             view.reshape(-1)[index] = value
-            body[e["offset"]:e["offset"] + view.nbytes] = view.tobytes()
+            body[e["offset"] : e["offset"] + view.nbytes] = view.tobytes()
+
         return edit
 
     edits = {

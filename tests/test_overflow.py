@@ -19,7 +19,12 @@ def test_bits_are_distinct_and_named():
     bits = [int(b) for b in jv.Overflow]
     assert len(set(bits)) == len(bits) and all(b & (b - 1) == 0 for b in bits)
     assert (jv.OVERFLOW_COLUMNS, jv.OVERFLOW_ROWS, jv.OVERFLOW_CANDIDATES, jv.OVERFLOW_VOXELS, jv.OVERFLOW_NODES) == (
-        jv.Overflow.COLUMNS, jv.Overflow.ROWS, jv.Overflow.CANDIDATES, jv.Overflow.VOXELS, jv.Overflow.NODES)
+        jv.Overflow.COLUMNS,
+        jv.Overflow.ROWS,
+        jv.Overflow.CANDIDATES,
+        jv.Overflow.VOXELS,
+        jv.Overflow.NODES,
+    )
     assert describe(jv.Overflow.COLUMNS | jv.Overflow.NODES) == "COLUMNS|NODES" and describe(0) == "none"
     with pytest.raises(jv.JaxvoxError, match=r"result: overflowed \(VOXELS\|EXPANDED;"):
         check_overflow("result", np.array([8, 0, 32]), "do better")

@@ -41,7 +41,7 @@ def _interior(mask):
     out = np.ones_like(mask)
     for di in (0, 1, 2):
         for dj in (0, 1, 2):
-            out &= m[di:di + mask.shape[0], dj:dj + mask.shape[1]]
+            out &= m[di : di + mask.shape[0], dj : dj + mask.shape[1]]
     return out
 
 
@@ -79,16 +79,18 @@ def test_aovs_match_primary_trace(scene):
 def test_white_furnace(scene):
     """Albedo 1 under a uniform environment of radiance 1: every path carries exactly 1 out."""
     tree, eye, target, _ = scene
-    result = jv.render(tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0), bounces=48,
-                       key=1, **SETTINGS)
+    result = jv.render(
+        tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0), bounces=48, key=1, **SETTINGS
+    )
     rgb = np.asarray(result.radiance)
     hits = np.isfinite(np.asarray(result.depth))
     assert hits.mean() > 0.3  # the scene covers much of the image
     assert rgb.max() <= 1.0 + 1e-6
     assert abs(rgb.mean() - 1.0) < 1e-3
     # Grey albedo: energy is lost at every bounce, nothing gains any.
-    grey = jv.render(tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(0.5, 0.5, 0.5), bounces=48,
-                     key=1, **SETTINGS)
+    grey = jv.render(
+        tree, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(0.5, 0.5, 0.5), bounces=48, key=1, **SETTINGS
+    )
     g = np.asarray(grey.radiance)
     assert g.max() <= 1.0 + 1e-6 and (g[_interior(hits)] < 1.0).all()
     np.testing.assert_array_equal(g[_interior(~hits)], 1.0)
@@ -100,8 +102,9 @@ def test_black_environment_and_emission(scene):
     dark = jv.render(tree, eye, target, env=black, bounces=4, key=2, **SETTINGS)
     np.testing.assert_array_equal(np.asarray(dark.radiance), 0.0)
     # Every voxel emits, nothing reflects: surface pixels show exactly the emission.
-    glow = jv.render(tree, eye, target, env=black, albedo=(0, 0, 0), emission=(1.0, 2.0, 3.0), bounces=4, key=2,
-                     **SETTINGS)
+    glow = jv.render(
+        tree, eye, target, env=black, albedo=(0, 0, 0), emission=(1.0, 2.0, 3.0), bounces=4, key=2, **SETTINGS
+    )
     rgb = np.asarray(glow.radiance)
     hits = np.isfinite(np.asarray(glow.depth))
     inner = _interior(hits)
@@ -112,8 +115,9 @@ def test_black_environment_and_emission(scene):
     n = int(tree.voxel_count)
     emission = np.zeros((n, 3), np.float32)
     emission[::7] = 4.0
-    lit = jv.render(tree, eye, target, env=black, albedo=(0.8, 0.8, 0.8), emission=emission, bounces=4, key=2,
-                    **SETTINGS)
+    lit = jv.render(
+        tree, eye, target, env=black, albedo=(0.8, 0.8, 0.8), emission=emission, bounces=4, key=2, **SETTINGS
+    )
     rgb = np.asarray(lit.radiance)
     assert np.isfinite(rgb).all() and rgb.max() > 0
     np.testing.assert_array_equal(rgb[_interior(~hits)], 0.0)
@@ -183,7 +187,7 @@ def test_read_hdr_flat_and_run_length_encoded(tmp_path):
                     x += run
                 else:
                     n = min(2, 40 - x)
-                    rle += bytes([n]) + values[x:x + n].tobytes()
+                    rle += bytes([n]) + values[x : x + n].tobytes()
                     x += n
     (tmp_path / "rle.hdr").write_bytes(bytes(rle))
     for name in ("flat.hdr", "rle.hdr"):
@@ -237,15 +241,25 @@ def test_bounce_origins_never_start_inside_a_voxel():
     direction = np.array([[1.0, 1.0, 0.2]], np.float32) / np.float32(np.sqrt(2.04))
     t = np.float32(np.sqrt(2.04) / 2)  # from (0.5, 0.5, 0.4) to the edge point (1, 1, 0.5)
     origin = np.array([[0.5, 0.5, 0.4]], np.float32)
-    hit = jv.Hit(t=jnp.full(1, t), voxel=jnp.array([[1, 1, 0]], jnp.int32), normal=jnp.array([[0.0, -1.0, 0.0]]),
-                 index=jnp.zeros(1, jnp.int32), status=jnp.full(1, jv.HIT))
+    hit = jv.Hit(
+        t=jnp.full(1, t),
+        voxel=jnp.array([[1, 1, 0]], jnp.int32),
+        normal=jnp.array([[0.0, -1.0, 0.0]]),
+        index=jnp.zeros(1, jnp.int32),
+        status=jnp.full(1, jv.HIT),
+    )
     point = np.asarray(surface(tree, jnp.asarray(origin), jnp.asarray(direction), hit).point)[0]
     cell = np.floor(point).astype(int)
     assert int(jv.voxel_index(tree, cell)) == jv.MISSING, (point, cell)
     np.testing.assert_array_equal(cell, [0, 0, 0])  # the voxel the ray came from
     # Away from edges nothing changes: the point is just across the reported face.
-    hit = jv.Hit(t=jnp.full(1, t), voxel=jnp.array([[1, 1, 0]], jnp.int32), normal=jnp.array([[-1.0, 0.0, 0.0]]),
-                 index=jnp.zeros(1, jnp.int32), status=jnp.full(1, jv.HIT))
+    hit = jv.Hit(
+        t=jnp.full(1, t),
+        voxel=jnp.array([[1, 1, 0]], jnp.int32),
+        normal=jnp.array([[-1.0, 0.0, 0.0]]),
+        index=jnp.zeros(1, jnp.int32),
+        status=jnp.full(1, jv.HIT),
+    )
     point = np.asarray(surface(tree, jnp.asarray(origin), jnp.asarray(direction), hit).point)[0]
     np.testing.assert_array_equal(np.floor(point).astype(int), [0, 1, 0])
 
@@ -283,9 +297,15 @@ def test_voxel_albedo():
 def test_bad_inputs(scene, tmp_path):
     tree, eye, target, _ = scene
     env = jv.uniform_environment(rgb=1.0)
-    for bad, match in ((dict(width=0), "width"), (dict(spp=0), "spp"), (dict(bounces=-1), "bounces"),
-                       (dict(fov=180.0), "fov"), (dict(albedo=np.ones((3, 3))), "albedo"),
-                       (dict(emission=(1.0, -1.0, 0.0)), "emission"), (dict(env="sky"), "Environment")):
+    for bad, match in (
+        (dict(width=0), "width"),
+        (dict(spp=0), "spp"),
+        (dict(bounces=-1), "bounces"),
+        (dict(fov=180.0), "fov"),
+        (dict(albedo=np.ones((3, 3))), "albedo"),
+        (dict(emission=(1.0, -1.0, 0.0)), "emission"),
+        (dict(env="sky"), "Environment"),
+    ):
         with pytest.raises(jv.JaxvoxError, match=match):
             jv.render(tree, eye, target, **{"env": env, **bad})
     with pytest.raises(jv.JaxvoxError, match="differ"):
@@ -314,9 +334,32 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "levels: 5" in out and "bits per voxel" in out and f"voxels: {int(tree.voxel_count):,}" in out
     out_exr = tmp_path / "from_tree.exr"
-    assert main(["render", str(path), "--size", f"{W}x{H}", "--spp", "2", "--bounces", "0", "--batch-rays",
-                 str(W * H * 2), "--camera", "30,35,1.6", "--albedo", "0.5,0.6,0.7", "--env", "black",
-                 "--emit=-9,-9,-9,9,9,9:1,2,3", "--out", str(out_exr)]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(path),
+                "--size",
+                f"{W}x{H}",
+                "--spp",
+                "2",
+                "--bounces",
+                "0",
+                "--batch-rays",
+                str(W * H * 2),
+                "--camera",
+                "30,35,1.6",
+                "--albedo",
+                "0.5,0.6,0.7",
+                "--env",
+                "black",
+                "--emit=-9,-9,-9,9,9,9:1,2,3",
+                "--out",
+                str(out_exr),
+            ]
+        )
+        == 0
+    )
     assert str(tmp_path / "from_tree.png") in capsys.readouterr().out
     channels = jv.read_exr(out_exr)
     rgb, hits = np.stack([channels[c] for c in "RGB"], -1), np.isfinite(channels["Z"])
@@ -326,19 +369,24 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
     assert main(["info", str(tmp_path / "missing.jvx")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.jvx" in err[0]
-    for argv, match in ((["render", "--size", "64by48"], "WIDTHxHEIGHT"), (["render", "--camera", "1,2,3,4"], "camera"),
-                        (["render", "--env", str(tmp_path / "nope.exr")], "not found"),
-                        (["render", "--resolution", "100"], "power of two"),
-                        (["render", "--emit", "0,0,0,1,1,1"], "--emit: takes"),
-                        (["render", "--emit", "0,0,0,1,1:1"], "emit box"),
-                        (["render", "nope.obj"], "not found")):
+    for argv, match in (
+        (["render", "--size", "64by48"], "WIDTHxHEIGHT"),
+        (["render", "--camera", "1,2,3,4"], "camera"),
+        (["render", "--env", str(tmp_path / "nope.exr")], "not found"),
+        (["render", "--resolution", "100"], "power of two"),
+        (["render", "--emit", "0,0,0,1,1,1"], "--emit: takes"),
+        (["render", "--emit", "0,0,0,1,1:1"], "emit box"),
+        (["render", "nope.obj"], "not found"),
+    ):
         assert main(argv + ["--out", str(tmp_path / "x.exr")]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)
-    for argv, match in ((["render", "--out", str(tmp_path / "x.png")], "--out extension: expected one of '.exr'"),
-                        (["render", "--spp", "0", "--out", str(tmp_path / "x.exr")], "spp"),
-                        (["render", "--fov", "180", "--out", str(tmp_path / "x.exr")], "fov"),
-                        (["render", "--camera", "0,0,0,0,0,0", "--out", str(tmp_path / "x.exr")], "differ from the eye")):
+    for argv, match in (
+        (["render", "--out", str(tmp_path / "x.png")], "--out extension: expected one of '.exr'"),
+        (["render", "--spp", "0", "--out", str(tmp_path / "x.exr")], "spp"),
+        (["render", "--fov", "180", "--out", str(tmp_path / "x.exr")], "fov"),
+        (["render", "--camera", "0,0,0,0,0,0", "--out", str(tmp_path / "x.exr")], "differ from the eye"),
+    ):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)
@@ -352,9 +400,29 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
 def test_cli_render_subprocess(tmp_path):
     out = tmp_path / "tiny.exr"
     env = dict(os.environ, JAXVOX_CACHE_DIR="")
-    result = subprocess.run([sys.executable, "-m", "jaxvox", "render", "--resolution", "16", "--size", "24x16",
-                             "--spp", "1", "--bounces", "1", "--out", str(out)], capture_output=True, text=True,
-                            env=env, timeout=600, cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "jaxvox",
+            "render",
+            "--resolution",
+            "16",
+            "--size",
+            "24x16",
+            "--spp",
+            "1",
+            "--bounces",
+            "1",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     assert out.exists() and (tmp_path / "tiny.png").exists()
     assert str(tmp_path / "tiny.png") in result.stdout
@@ -365,8 +433,9 @@ def test_cli_render_subprocess(tmp_path):
 def test_mesh_renderer_furnace_and_agreement_with_voxels(scene):
     pytest.importorskip("embreex")
     tree, eye, target, mesh = scene
-    furnace = jv.render_mesh(mesh, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0),
-                             bounces=48, key=1, **SETTINGS)
+    furnace = jv.render_mesh(
+        mesh, eye, target, env=jv.uniform_environment(rgb=1.0), albedo=(1.0, 1.0, 1.0), bounces=48, key=1, **SETTINGS
+    )
     rgb = np.asarray(furnace.radiance)
     assert rgb.max() <= 1.0 + 1e-6 and abs(rgb.mean() - 1.0) < 1e-3
     assert np.isfinite(np.asarray(furnace.depth)).mean() > 0.3
@@ -391,8 +460,9 @@ def test_mesh_renderer_samples_the_texture(textured_quad):
     path, texels = textured_quad
     mesh = jv.load_mesh(path)
     env = jv.sky_environment(sun_direction=(0, 0, 1), sun_irradiance=(2.0, 2.0, 2.0), zenith=0, horizon=0, ground=0)
-    result = jv.render_mesh(mesh, (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), env=env, albedo="mesh", bounces=0, key=0,
-                            fov=20.0, **SETTINGS)
+    result = jv.render_mesh(
+        mesh, (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), env=env, albedo="mesh", bounces=0, key=0, fov=20.0, **SETTINGS
+    )
     rgb = np.asarray(result.radiance)
     # Pixel rows run top to bottom, as do texture rows (v = 1, y = 1 on top). Quadrant
     # centres, x and y = 0.25 and 0.75, lie where the bilinear lookup blends one colour.
@@ -404,8 +474,7 @@ def test_mesh_renderer_samples_the_texture(textured_quad):
             expected = srgb_to_linear(texels[2 * row, 2 * col]) / np.pi * 2.0
             np.testing.assert_allclose(rgb[i, j], expected, atol=1e-4)
     with pytest.raises(jv.JaxvoxError, match="neither a texture nor vertex colours"):
-        jv.render_mesh(jv.Mesh(mesh.vertices, mesh.faces), (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), albedo="mesh",
-                       **SETTINGS)
+        jv.render_mesh(jv.Mesh(mesh.vertices, mesh.faces), (0.5, 0.5, 2.0), (0.5, 0.5, 0.0), albedo="mesh", **SETTINGS)
 
 
 def test_cosine_sampling_moments():
@@ -431,7 +500,8 @@ def test_cosine_sampling_moments():
 def test_empty_tree_shows_the_environment():
     mesh = jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     tree = jv.build_dag(jv.voxelize(mesh, jv.Grid(origin=(-1, -1, -1), voxel_size=2 / 16, resolution=16)))
-    result = jv.render(tree, (0, 0, 3), (0, 0, 0), env=jv.uniform_environment(rgb=(0.25, 0.5, 1.0)), bounces=2, key=0,
-                       **SETTINGS)
+    result = jv.render(
+        tree, (0, 0, 3), (0, 0, 0), env=jv.uniform_environment(rgb=(0.25, 0.5, 1.0)), bounces=2, key=0, **SETTINGS
+    )
     np.testing.assert_array_equal(np.asarray(result.radiance), np.broadcast_to(np.float32([0.25, 0.5, 1.0]), (H, W, 3)))
     assert np.isinf(np.asarray(result.depth)).all() and (np.asarray(result.normal) == 0).all()

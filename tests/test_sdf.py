@@ -88,7 +88,7 @@ def sample_points(rng, n, scale=1.5):
     """Points inside, near the surface of unit-sized shapes, and far away."""
     p = rng.uniform(-scale, scale, (n, 3))
     p[: n // 8] *= 60.0
-    p[n // 8: n // 4] = rng.normal(0, 0.2, (n // 8, 3))
+    p[n // 8 : n // 4] = rng.normal(0, 0.2, (n // 8, 3))
     return p
 
 
@@ -159,8 +159,9 @@ def test_nonuniform_scale_is_a_sign_consistent_bound():
     assert (np.abs(bound) >= sampled * s.min() / s.max() - 1e-3).all()  # not a trivial bound
     assert not sdf.is_exact(ellipsoid) and sdf.lipschitz_bound(ellipsoid) == 1.0
     raw = sdf.scale(sdf.sphere(1.0), s, correct=False)
-    np.testing.assert_allclose(np.asarray(raw(jnp.asarray(p, jnp.float32))),
-                               np.linalg.norm(p / s, axis=-1) - 1, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(raw(jnp.asarray(p, jnp.float32))), np.linalg.norm(p / s, axis=-1) - 1, rtol=1e-5, atol=1e-5
+    )
     assert sdf.lipschitz_bound(raw) == 2.0
 
 
@@ -193,7 +194,9 @@ def test_csg_identities():
 def test_jit_vmap_eager_agree_and_retrace_only_on_structure():
     rng = np.random.default_rng(4)
     p = jnp.asarray(sample_points(rng, 128), jnp.float32)
-    make = lambda r: sdf.smooth_union(sdf.sphere(r), sdf.rotate(sdf.torus(0.8, r / 3), sdf.rotation((1, 0, 0), 0.5)), 0.2)
+    make = lambda r: sdf.smooth_union(
+        sdf.sphere(r), sdf.rotate(sdf.torus(0.8, r / 3), sdf.rotation((1, 0, 0), 0.5)), 0.2
+    )
     scene = make(0.5)
     traces = []
 
@@ -292,10 +295,30 @@ def test_sphere_trace_single_rays_property(target, jitter):
 
 def test_sphere_trace_edge_cases():
     ball = sdf.sphere(1.0)
-    o = np.array([[0.2, 0.1, 0.0], [0.5, 0.0, 0.0], [-3.0, 1.0 + 1e-6, 0.0], [-3.0, 0.0, 0.0],
-                  [-3.0, 0.0, 0.0], [-3.0, 0.0, 0.0], [np.nan, 0.0, 0.0]], np.float32)
-    d = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0],
-                  [0.0, 0.0, 0.0], [np.nan, 1.0, 0.0], [1.0, 0.0, 0.0]], np.float32)
+    o = np.array(
+        [
+            [0.2, 0.1, 0.0],
+            [0.5, 0.0, 0.0],
+            [-3.0, 1.0 + 1e-6, 0.0],
+            [-3.0, 0.0, 0.0],
+            [-3.0, 0.0, 0.0],
+            [-3.0, 0.0, 0.0],
+            [np.nan, 0.0, 0.0],
+        ],
+        np.float32,
+    )
+    d = np.array(
+        [
+            [1.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [np.nan, 1.0, 0.0],
+            [1.0, 0.0, 0.0],
+        ],
+        np.float32,
+    )
     # epsilon 1e-7: the hit tolerance near t = 3 is 3e-7, below the 1e-6 miss distance of ray 2.
     hit = jv.sphere_trace(ball, o, d, t_max=10.0, max_steps=64, epsilon=1e-7, t_min=0.1)
     status, t = np.asarray(hit.status), np.asarray(hit.t)
@@ -308,8 +331,11 @@ def test_sphere_trace_edge_cases():
 
 
 def test_relaxation_batch_shapes_and_jit():
-    scene = sdf.union(sdf.sphere(0.6, center=(-0.5, 0.0, 0.0)), sdf.box((0.4, 0.3, 0.5), center=(0.6, 0.2, 0.0)),
-                      sdf.plane((0.0, 1.0, 0.0), offset=1.0))
+    scene = sdf.union(
+        sdf.sphere(0.6, center=(-0.5, 0.0, 0.0)),
+        sdf.box((0.4, 0.3, 0.5), center=(0.6, 0.2, 0.0)),
+        sdf.plane((0.0, 1.0, 0.0), offset=1.0),
+    )
     s, v = np.meshgrid(np.linspace(-1.2, 1.2, 16), np.linspace(-1.2, 1.2, 12))
     d = np.stack([s, v, np.full_like(s, 3.0)], -1).astype(np.float32)  # [12, 16, 3]
     origin = np.array([0.0, 0.5, -4.0], np.float32)  # broadcast against directions
@@ -392,26 +418,29 @@ def test_to_mesh_sphere_and_empty():
 # ----------------------------------------------------------------------------- bad input
 
 
-@pytest.mark.parametrize("build, message", [
-    (lambda: sdf.sphere(-1.0), "sphere radius: must be >= 0"),
-    (lambda: sdf.sphere(np.nan), "finite"),
-    (lambda: sdf.sphere(1.0, center=(0, 0)), r"shape \(3,\)"),
-    (lambda: sdf.box((1.0, 2.0)), r"shape \(3,\)"),
-    (lambda: sdf.rounded_box((0.5, 0.5, 0.1), 0.2), "must be <= the smallest half extent"),
-    (lambda: sdf.torus(1.0, -0.1), "minor_radius"),
-    (lambda: sdf.plane((0, 0, 0), offset=1.0), "nonzero"),
-    (lambda: sdf.rotate(sdf.sphere(1.0), np.diag([1.0, 1.0, -1.0])), "must be a rotation"),
-    (lambda: sdf.scale(sdf.sphere(1.0), (1.0, 0.0, 1.0)), "must be > 0"),
-    (lambda: sdf.union(), "at least one"),
-    (lambda: sdf.union(sdf.sphere(1.0), 2.0), "SDF scene"),
-    (lambda: sdf.smooth_union(sdf.sphere(1.0), sdf.sphere(1.0), -0.1), "smooth_union k: must be >= 0"),
-    (lambda: sdf.normal(sdf.sphere(1.0), np.zeros((4, 3)), method="forward"), "normal method: expected one of"),
-    (lambda: sdf.sphere(1.0)(np.zeros((4, 2))), r"\[\.\.\., 3\]"),
-    (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros((4, 3)), np.ones((5, 3))), "broadcast"),
-    (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), relaxation=2.0), "relaxation"),
-    (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), max_steps=0), "max_steps"),
-    (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), t_max=np.nan), "NaN"),
-])
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: sdf.sphere(-1.0), "sphere radius: must be >= 0"),
+        (lambda: sdf.sphere(np.nan), "finite"),
+        (lambda: sdf.sphere(1.0, center=(0, 0)), r"shape \(3,\)"),
+        (lambda: sdf.box((1.0, 2.0)), r"shape \(3,\)"),
+        (lambda: sdf.rounded_box((0.5, 0.5, 0.1), 0.2), "must be <= the smallest half extent"),
+        (lambda: sdf.torus(1.0, -0.1), "minor_radius"),
+        (lambda: sdf.plane((0, 0, 0), offset=1.0), "nonzero"),
+        (lambda: sdf.rotate(sdf.sphere(1.0), np.diag([1.0, 1.0, -1.0])), "must be a rotation"),
+        (lambda: sdf.scale(sdf.sphere(1.0), (1.0, 0.0, 1.0)), "must be > 0"),
+        (lambda: sdf.union(), "at least one"),
+        (lambda: sdf.union(sdf.sphere(1.0), 2.0), "SDF scene"),
+        (lambda: sdf.smooth_union(sdf.sphere(1.0), sdf.sphere(1.0), -0.1), "smooth_union k: must be >= 0"),
+        (lambda: sdf.normal(sdf.sphere(1.0), np.zeros((4, 3)), method="forward"), "normal method: expected one of"),
+        (lambda: sdf.sphere(1.0)(np.zeros((4, 2))), r"\[\.\.\., 3\]"),
+        (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros((4, 3)), np.ones((5, 3))), "broadcast"),
+        (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), relaxation=2.0), "relaxation"),
+        (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), max_steps=0), "max_steps"),
+        (lambda: jv.sphere_trace(sdf.sphere(1.0), np.zeros(3), np.ones(3), t_max=np.nan), "NaN"),
+    ],
+)
 def test_bad_input_raises(build, message):
     with pytest.raises(jv.JaxvoxError, match=message):
         build()

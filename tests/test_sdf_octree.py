@@ -21,9 +21,13 @@ GRID = jv.Grid(origin=(-1.0, -1.0, -1.0), voxel_size=2.0 / R, resolution=R)
 SCENES = {
     "sphere": jv.sdf.sphere(0.55, center=(0.05, -0.02, 0.01)),
     "csg": jv.sdf.difference(
-        jv.sdf.union(jv.sdf.box((0.4, 0.3, 0.35)), jv.sdf.sphere(0.3, center=(0.45, 0.2, 0.0)),
-                     jv.sdf.capsule((-0.6, -0.5, 0.0), (0.2, 0.6, 0.3), 0.12)),
-        jv.sdf.cylinder(0.15, 0.8)),
+        jv.sdf.union(
+            jv.sdf.box((0.4, 0.3, 0.35)),
+            jv.sdf.sphere(0.3, center=(0.45, 0.2, 0.0)),
+            jv.sdf.capsule((-0.6, -0.5, 0.0), (0.2, 0.6, 0.3), 0.12),
+        ),
+        jv.sdf.cylinder(0.15, 0.8),
+    ),
     "thin torus": jv.sdf.rotate(jv.sdf.torus(0.6, 0.03), jv.sdf.rotation((1.0, 0.0, 0.2), 0.7)),
     "mix k=3": jv.sdf.mix(jv.sdf.sphere(0.5), jv.sdf.box((0.35, 0.35, 0.35)), 3.0),
 }
@@ -39,7 +43,7 @@ def _dense_crossed(scene, grid) -> np.ndarray:
         ijk = np.stack(np.meshgrid([i], np.arange(r), np.arange(r), indexing="ij"), -1).reshape(-1, 3)
         p = (ijk[:, None, :] + sub[None]) * float(grid.voxel_size) + np.asarray(grid.origin)
         v = np.asarray(f(jnp.asarray(p, jnp.float32)))
-        out[i * r * r:(i + 1) * r * r] = (v.min(1) <= 0) & (v.max(1) >= 0)
+        out[i * r * r : (i + 1) * r * r] = (v.min(1) <= 0) & (v.max(1) >= 0)
     return out
 
 
@@ -131,7 +135,8 @@ def test_octree_tracing_matches_plain(trees, name):
     hit_voxels = np.asarray(fast.voxel)[b == jv.HIT]
     np.testing.assert_array_equal(np.asarray(jv.voxel_index(tree, hit_voxels)), np.asarray(fast.index)[b == jv.HIT])
     p = o[b == jv.HIT] + np.asarray(fast.t)[b == jv.HIT, None] * d[b == jv.HIT] / np.linalg.norm(
-        d[b == jv.HIT], axis=1, keepdims=True)
+        d[b == jv.HIT], axis=1, keepdims=True
+    )
     cell = np.floor((p - np.asarray(GRID.origin)) / float(GRID.voxel_size))
     assert (np.abs(cell - hit_voxels) <= 1).all()  # the hit point lies in (or on) its leaf
     assert np.asarray(fast_steps).mean() < np.asarray(plain_steps).mean()
@@ -161,7 +166,9 @@ def test_against_analytic_sphere_and_edge_cases(trees):
     cos = np.abs(np.sum((oc + t_ref[:, None] * u) / radius * u, 1))
     assert (np.abs(t[both] - t_ref[both]) <= 1.5e-4 * np.maximum(t_ref[both], 1) / cos[both] + 1e-5).all()
     # t_max (traced, same program), any batch shape of the same size, the leaf and step caps.
-    short, _ = jv.sphere_trace_octree(scene, tree, o.reshape(3, -1, 3), d.reshape(3, -1, 3), **(TRACE | dict(t_max=0.1)))
+    short, _ = jv.sphere_trace_octree(
+        scene, tree, o.reshape(3, -1, 3), d.reshape(3, -1, 3), **(TRACE | dict(t_max=0.1))
+    )
     assert short.t.shape == (3, N_RAYS // 3)
     assert (np.asarray(short.status).reshape(-1)[5:] == jv.MISS).all()
     capped = jv.sphere_trace_octree(scene, tree, o[both][:50], d[both][:50], max_leaves=1, max_steps=2)
@@ -173,6 +180,7 @@ def test_hit_distance_gradient_through_octree_tracing(trees):
     """d t / d radius = -1 for a ray toward the centre, as for plain sphere tracing; under
     the caller's jit."""
     o, d = jnp.array([0.05, -0.02, 2.0]), jnp.array([0.0, 0.0, -1.0])
-    t = lambda r: jv.sphere_trace_octree(jv.sdf.sphere(r, center=(0.05, -0.02, 0.01)), trees["sphere"], o, d,
-                                         t_max=5.0).t
+    t = lambda r: (
+        jv.sphere_trace_octree(jv.sdf.sphere(r, center=(0.05, -0.02, 0.01)), trees["sphere"], o, d, t_max=5.0).t
+    )
     np.testing.assert_allclose(float(jax.jit(jax.grad(t))(0.55)), -1.0, atol=1e-4)

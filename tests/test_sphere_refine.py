@@ -188,8 +188,10 @@ def test_refinement_brackets_both_ways_keeps_unbracketed_hits():
     n = _unit64(np.array([-1.0, 0.3, 0.0]))
     plane = _Plane(n, -1.0)  # surface x . n = -1
     o = jnp.zeros((5, 3))
-    u = jnp.asarray(_unit64(np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 1.0, 0.0], [1.0, 0.0, 0.0],
-                                      [1.0, 0.0, 0.0]])), jnp.float32)
+    u = jnp.asarray(
+        _unit64(np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.3, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])),
+        jnp.float32,
+    )
     root = 1.0 / float(-n @ np.asarray(u[0]))  # where ray 0 crosses
     t0 = jnp.array([root - 2e-4, root + 2e-4, 1.0, root, root - 2e-4], jnp.float32)  # ray 3: |f| ~ rounding
     f0 = jax.vmap(plane._distance)(o + t0[:, None] * u)
@@ -269,16 +271,21 @@ def _measure():  # pragma: no cover - run by hand
     for name, (scene, o, u, t_ref) in cases.items():
         hit, steps = jv.sphere_trace(scene, o, u, t_max=20.0, max_steps=4096, return_steps=True)
         loop = jax.vmap(lambda sc, oo, uu: trace_ray(sc, oo, uu, 0.0, 20.0, 1e-4, 1.0, 4096), in_axes=(None, 0, 0))(
-            scene, jnp.asarray(o), unit_directions(jnp.asarray(u)))
+            scene, jnp.asarray(o), unit_directions(jnp.asarray(u))
+        )
         extra = np.asarray(steps) - np.asarray(loop.steps)
-        print(f"{name}: {len(o)} rays, incidence 1-90 degrees, epsilon 1e-4; extra evaluations per hit: "
-              f"mean {extra.mean():.2f}, max {extra.max()} (cap {REFINE_STEPS})")
+        print(
+            f"{name}: {len(o)} rays, incidence 1-90 degrees, epsilon 1e-4; extra evaluations per hit: "
+            f"mean {extra.mean():.2f}, max {extra.max()} (cap {REFINE_STEPS})"
+        )
         for lo, hi in [(1, 2), (2, 10), (10, 90)]:
             band = (degrees >= lo) & (degrees <= hi)
             old, new = np.abs(np.asarray(loop.t) - t_ref)[band], np.abs(np.asarray(hit.t) - t_ref)[band]
-            print(f"  {lo:>2}-{hi:<2} deg: max |dt| old {old.max():.2e} new {new.max():.2e}; max relative old "
-                  f"{(old / t_ref[band]).max():.2e} new {(new / t_ref[band]).max():.2e}; extra evaluations "
-                  f"mean {extra[band].mean():.2f}")
+            print(
+                f"  {lo:>2}-{hi:<2} deg: max |dt| old {old.max():.2e} new {new.max():.2e}; max relative old "
+                f"{(old / t_ref[band]).max():.2e} new {(new / t_ref[band]).max():.2e}; extra evaluations "
+                f"mean {extra[band].mean():.2f}"
+            )
 
 
 if __name__ == "__main__":

@@ -63,11 +63,11 @@ def rays(rng, n, resolution, ijk):
     d = (rng.uniform(0, resolution, (n, 3)) - o).astype(np.float32)
     k = n // 8
     d[np.arange(k), rng.integers(0, 3, k)] = 0  # zero components
-    d[k:2 * k] = np.eye(3, dtype=np.float32)[rng.integers(0, 3, k)] * rng.choice([-1, 1], (k, 1))
-    o[2 * k:3 * k] = ijk[rng.integers(0, len(ijk), k)] + 0.5  # inside occupied voxels
-    o[3 * k:4 * k] = np.round(o[3 * k:4 * k])  # on voxel corners
-    o[4 * k:5 * k, 0] = np.round(o[4 * k:5 * k, 0])  # in voxel planes, moving along them
-    d[4 * k:5 * k, 0] = 0
+    d[k : 2 * k] = np.eye(3, dtype=np.float32)[rng.integers(0, 3, k)] * rng.choice([-1, 1], (k, 1))
+    o[2 * k : 3 * k] = ijk[rng.integers(0, len(ijk), k)] + 0.5  # inside occupied voxels
+    o[3 * k : 4 * k] = np.round(o[3 * k : 4 * k])  # on voxel corners
+    o[4 * k : 5 * k, 0] = np.round(o[4 * k : 5 * k, 0])  # in voxel planes, moving along them
+    d[4 * k : 5 * k, 0] = 0
     return o, d
 
 
@@ -98,7 +98,7 @@ def test_trace_matches_brute_force(scene, trees, kind, method):
     hit = jv.trace(tree, o, d, method=method)
     assert_matches(hit, ijk, o, d)
     k = len(o) // 8
-    assert (np.asarray(hit.status)[2 * k:3 * k] == HIT).all() and (np.asarray(hit.t)[2 * k:3 * k] == 0).all()
+    assert (np.asarray(hit.status)[2 * k : 3 * k] == HIT).all() and (np.asarray(hit.t)[2 * k : 3 * k] == 0).all()
     hits = np.asarray(hit.status) == HIT
     voxel = np.asarray(hit.voxel)
     np.testing.assert_array_equal(np.asarray(hit.index)[hits], np.asarray(jv.voxel_index(tree, voxel[hits])))

@@ -174,8 +174,9 @@ def test_morton_helper_matches_python_ints(points):
 
 
 def _ref1(tri, resolution=8, mode=CONSERVATIVE) -> Reference:
-    return reference_voxelize(np.asarray(tri, np.float32), [[0, 1, 2]], np.zeros(3, np.float32),
-                              np.float32(1.0), resolution, mode)
+    return reference_voxelize(
+        np.asarray(tri, np.float32), [[0, 1, 2]], np.zeros(3, np.float32), np.float32(1.0), resolution, mode
+    )
 
 
 def _as_set(voxels):
@@ -195,8 +196,18 @@ def test_reference_points_and_segments():
     assert _as_set(ref.voxels) == {(i, j, k) for i in (1, 2) for j in (2, 3) for k in range(0, 5)}
     # a diagonal segment through voxel corners in the xy plane
     ref = _ref1([(1, 1, 0.5), (3, 3, 0.5), (3, 3, 0.5)])
-    assert _as_set(ref.voxels) == {(0, 0, 0), (1, 1, 0), (2, 2, 0), (3, 3, 0), (0, 1, 0), (1, 0, 0),
-                                   (1, 2, 0), (2, 1, 0), (2, 3, 0), (3, 2, 0)}
+    assert _as_set(ref.voxels) == {
+        (0, 0, 0),
+        (1, 1, 0),
+        (2, 2, 0),
+        (3, 3, 0),
+        (0, 1, 0),
+        (1, 0, 0),
+        (1, 2, 0),
+        (2, 1, 0),
+        (2, 3, 0),
+        (3, 2, 0),
+    }
 
 
 def test_reference_triangle_in_voxel_plane_sets_both_layers():
@@ -273,13 +284,15 @@ def _brute_force(tri: np.ndarray, resolution: int, mode: str) -> np.ndarray:
 
 
 def _coord(lo, hi):
-    return st.one_of(st.integers(lo, hi).map(float), st.integers(8 * lo, 8 * hi).map(lambda x: x / 8),
-                     st.floats(lo, hi, width=32))
+    return st.one_of(
+        st.integers(lo, hi).map(float), st.integers(8 * lo, 8 * hi).map(lambda x: x / 8), st.floats(lo, hi, width=32)
+    )
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.tuples(*[_coord(-1, 5)] * 3), min_size=3, max_size=3),
-       st.sampled_from(["general", "repeat", "point"]))
+@given(
+    st.lists(st.tuples(*[_coord(-1, 5)] * 3), min_size=3, max_size=3), st.sampled_from(["general", "repeat", "point"])
+)
 def test_reference_matches_brute_force_clipping(tri, kind):
     tri = np.array(tri, np.float32)
     if kind == "repeat":
@@ -297,8 +310,10 @@ def test_reference_matches_brute_force_clipping(tri, kind):
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.tuples(*[st.floats(-2, 10, width=32)] * 3), min_size=3, max_size=3),
-       st.tuples(*[st.floats(-0.05, 0.05)] * 3))
+@given(
+    st.lists(st.tuples(*[st.floats(-2, 10, width=32)] * 3), min_size=3, max_size=3),
+    st.tuples(*[st.floats(-0.05, 0.05)] * 3),
+)
 @example(tri=[(0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.96875)], shift=(0.0, 0.0, 0.03125))
 def test_reference_margin_bounds_translation(tri, shift):
     """Translating the triangle by s cannot flip a voxel whose margin exceeds |s|.
@@ -348,7 +363,7 @@ def _rotation(seed: int = 20240601) -> np.ndarray:
     return q
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _rotated_mesh(meshes_dir, name: str):
     path = meshes_dir / f"{name}.obj"
     if not path.is_file():
@@ -360,7 +375,7 @@ def _rotated_mesh(meshes_dir, name: str):
     return v, np.asarray(m.faces, np.int32)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _mesh_case(meshes_dir, name: str, resolution: int, mode: str):
     v, f = _rotated_mesh(meshes_dir, name)
     grid = jv.Grid.fit(jv.Mesh(v, f), resolution=resolution)
@@ -435,7 +450,8 @@ def test_six_separating_closed_mesh_flood_fill(meshes_dir, name):
         leaked = np.argwhere(outside & inside)
         assert count >= 2, f"{name} ({label}): empty space is a single 6-connected component"
         assert len(leaked) == 0, (
-            f"{name} ({label}): flood from outside reaches {len(leaked)} inside voxels, e.g. {leaked[:5].tolist()}")
+            f"{name} ({label}): flood from outside reaches {len(leaked)} inside voxels, e.g. {leaked[:5].tolist()}"
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -548,8 +564,9 @@ def _check_triangle(tri, grid, *, exact: bool):
         got = _impl(tri, faces, grid, mode)
         _assert_matches(ref, got, f"{mode}, triangle {tri.tolist()}, grid {_grid_params(grid)}", exact=exact)
         results[mode] = (ref, got)
-    _assert_subset(results[SIX_SEP][1], results[CONSERVATIVE][1], results[CONSERVATIVE][0],
-                   f"triangle {tri.tolist()}", exact=exact)
+    _assert_subset(
+        results[SIX_SEP][1], results[CONSERVATIVE][1], results[CONSERVATIVE][0], f"triangle {tri.tolist()}", exact=exact
+    )
 
 
 @_HYPO
@@ -565,8 +582,11 @@ def test_exact_degenerate_and_sliver_triangles_match_exactly(tri):
 
 
 @_HYPO
-@given(st.one_of(float_general(), float_sliver(), exact_degenerate()), st.tuples(*[st.floats(-5, 5, width=32)] * 3),
-       st.floats(0.125, 4.0, width=32))
+@given(
+    st.one_of(float_general(), float_sliver(), exact_degenerate()),
+    st.tuples(*[st.floats(-5, 5, width=32)] * 3),
+    st.floats(0.125, 4.0, width=32),
+)
 def test_float_triangles_match_up_to_near_ties(tri, origin, voxel_size):
     """Random, sliver and degenerate triangles (grid units) under a random grid placement."""
     origin, h = np.array(origin, np.float32), np.float32(voxel_size)

@@ -37,8 +37,9 @@ def test_shared_meshes_against_brute_force(meshes_dir, name, block):
 
 
 @hypothesis.settings(deadline=None, max_examples=8)
-@hypothesis.given(st.lists(st.tuples(*[st.floats(-0.5, 1.5, width=32)] * 9), min_size=1, max_size=40),
-                  st.sampled_from([1, 2, 8]))
+@hypothesis.given(
+    st.lists(st.tuples(*[st.floats(-0.5, 1.5, width=32)] * 9), min_size=1, max_size=40), st.sampled_from([1, 2, 8])
+)
 def test_random_soups_against_brute_force(corners, block):
     """Random triangles, degenerate ones and ones outside the grid included."""
     v = np.array(corners, np.float32).reshape(-1, 3)
@@ -58,8 +59,11 @@ def test_huge_beta_is_the_brute_force_and_orientation_flips_the_sign(meshes_dir)
     exact = np.asarray(jv.winding_numbers(mesh, grid, beta=1e6)).reshape(-1)
     np.testing.assert_allclose(exact, ref, atol=1e-5)
     flipped = jv.Mesh(mesh.vertices, np.asarray(mesh.faces)[:, ::-1])
-    np.testing.assert_allclose(np.asarray(jv.winding_numbers(flipped, grid)).reshape(-1),
-                               -np.asarray(jv.winding_numbers(mesh, grid)).reshape(-1), atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(jv.winding_numbers(flipped, grid)).reshape(-1),
+        -np.asarray(jv.winding_numbers(mesh, grid)).reshape(-1),
+        atol=1e-6,
+    )
 
 
 def test_empty_mesh_and_bad_arguments():

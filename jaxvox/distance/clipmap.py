@@ -25,8 +25,8 @@ from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.solid import grid_triangles, open_edges, padded_mesh, solid_inside
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
+from jaxvox.trace.hit import RUNNING
 
-_RUNNING = -1  # `trace_clipmap` status while marching (statuses are `jaxvox.trace`'s)
 _CORNERS = tuple(np.ndindex(2, 2, 2))  # corner offsets of a trilinear cell
 
 
@@ -157,11 +157,11 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
     the power of two above it (`bucket`).
     """
     origin = np.asarray(clip.origin, np.float64)
-    size = tuple(int(n) for n in hi - lo)
+    size: tuple[int, int, int] = tuple(int(n) for n in hi - lo)  # type: ignore[assignment]
     margin = math.ceil(clip.truncation) + 1
     r = clip.resolution
     side = lambda n, pad: r + pad if 2 * n > r else bucket(n + pad, 4)
-    shape = tuple(side(n, 2 * margin) for n in size)
+    shape: tuple[int, int, int] = tuple(side(n, 2 * margin) for n in size)  # type: ignore[assignment]
     corner = origin + (lo - margin) * h
     limit = np.float32(clip.truncation * h)
     near = _near_faces(mesh, bounds, corner - h, corner + (np.asarray(shape) + 1) * h)
@@ -169,10 +169,17 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
         d = jnp.full(size, limit)
     else:
         band = margin if clip.method == "band" else int(clip.method == "jfa+sweep")
-        d = box_distance(near, box_grid(corner, h, shape), shape, method=clip.method, band=band, sweeps=3,
-                          clamped=clip.method != "band")
-        d = jnp.minimum(d[margin: margin + size[0], margin: margin + size[1], margin: margin + size[2]] * h, limit)
-    sign_shape = tuple(side(n, 0) for n in size)
+        d = box_distance(
+            near,
+            box_grid(corner, h, shape),
+            shape,
+            method=clip.method,
+            band=band,
+            sweeps=3,
+            clamped=clip.method != "band",
+        )
+        d = jnp.minimum(d[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]] * h, limit)
+    sign_shape: tuple[int, int, int] = tuple(side(n, 0) for n in size)  # type: ignore[assignment]
     grid = box_grid(origin + lo * h, h, sign_shape)
     inside = solid_inside(mesh, grid_triangles(padded, grid), grid, sign_shape, sign, 2.0)
     return jnp.where(inside[: size[0], : size[1], : size[2]], -d, d)
@@ -205,8 +212,17 @@ def _refresh(fields, mesh: Mesh, padded: Mesh | None, cascade: int, old, new, cl
     return fields
 
 
-def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, voxel_size: float,
-                  origin=(0.0, 0.0, 0.0), truncation: float = 8.0, method: str = "band") -> Clipmap:
+def build_clipmap(
+    mesh: Mesh,
+    camera,
+    *,
+    resolution: int,
+    num_cascades: int,
+    voxel_size: float,
+    origin=(0.0, 0.0, 0.0),
+    truncation: float = 8.0,
+    method: str = "band",
+) -> Clipmap:
     """A clipmap around `camera` built from scratch (every voxel of every cascade).
 
     Host-side. With ``method="exact"`` exposed voxels get brute-force point-triangle
@@ -241,9 +257,14 @@ def build_clipmap(mesh: Mesh, camera, *, resolution: int, num_cascades: int, vox
     check_vector("build_clipmap camera", camera, 3)
     truncation = check_number("build_clipmap truncation", truncation, above=0.0)
     far = np.full((num_cascades, 3), np.iinfo(np.int32).min // 2, np.int32)  # nothing in common
-    empty = Clipmap(jnp.zeros((num_cascades, r, r, r), jnp.float32), jnp.asarray(far),
-                    jnp.asarray(origin, jnp.float32), jnp.float32(voxel_size), float(truncation),
-                    check_choice("build_clipmap method", method, METHODS))
+    empty = Clipmap(
+        jnp.zeros((num_cascades, r, r, r), jnp.float32),
+        jnp.asarray(far),
+        jnp.asarray(origin, jnp.float32),
+        jnp.float32(voxel_size),
+        float(truncation),
+        check_choice("build_clipmap method", method, METHODS),
+    )
     return update_clipmap(empty, mesh, camera)
 
 
@@ -314,8 +335,7 @@ def union_clipmaps(a: Clipmap, b: Clipmap) -> Clipmap:
     if a.fields.shape != b.fields.shape:
         raise refuse("union_clipmaps b", f"must have fields of a's shape {a.fields.shape}", b.fields.shape)
     if is_concrete(a.corner) and is_concrete(b.corner) and np.any(np.asarray(a.corner) != np.asarray(b.corner)):
-        raise refuse("union_clipmaps b", f"must have a's windows (corners {np.asarray(a.corner).tolist()})",
-                     b.corner)
+        raise refuse("union_clipmaps b", f"must have a's windows (corners {np.asarray(a.corner).tolist()})", b.corner)
     return dataclasses.replace(a, fields=jnp.minimum(a.fields, b.fields))
 
 
@@ -350,18 +370,25 @@ def _normal(clip: Clipmap, c, p):
     """Unit gradient [3] of cascade c's trilinear field at world point p [3] (the
     outward normal near a surface; zero where the field is flat, e.g. clamped)."""
     values, f, _, _ = _cell(clip, c, p)
-    g = [0.0, 0.0, 0.0]
+    g: list = [0.0, 0.0, 0.0]
     for corner, v in zip(_CORNERS, values):
         w = [f[a] if corner[a] else 1.0 - f[a] for a in range(3)]
         for a in range(3):  # d/df_a of the corner's weight times its value
             g[a] = g[a] + (1.0 if corner[a] else -1.0) * w[(a + 1) % 3] * w[(a + 2) % 3] * v
-    g = jnp.stack(g)
-    length = jnp.sqrt(jnp.sum(g * g))
-    return jnp.where(length > 0, g / jnp.where(length > 0, length, 1.0), 0.0)  # safe where
+    gradient = jnp.stack(g)
+    length = jnp.sqrt(jnp.sum(gradient * gradient))
+    return jnp.where(length > 0, gradient / jnp.where(length > 0, length, 1.0), 0.0)  # safe where
 
 
-def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, max_steps: int = 512,
-                  t_max: float = np.inf, hit_voxels: float = 0.05) -> Hit:
+def trace_clipmap(
+    clip: Clipmap,
+    origins: jax.Array,
+    directions: jax.Array,
+    *,
+    max_steps: int = 512,
+    t_max: float = np.inf,
+    hit_voxels: float = 0.05,
+) -> Hit:
     """Sphere tracing through the cascades; pure and jittable.
 
     Each ray starts in the finest cascade and steps by the (trilinear) distance until
@@ -392,8 +419,11 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
     """
     check_type("trace_clipmap clip", clip, Clipmap)
     if np.ndim(origins) != 2 or np.shape(origins)[1] != 3 or np.shape(directions) != np.shape(origins):
-        raise refuse("trace_clipmap origins, directions", "must both have shape [n, 3]",
-                     (np.shape(origins), np.shape(directions)))
+        raise refuse(
+            "trace_clipmap origins, directions",
+            "must both have shape [n, 3]",
+            (np.shape(origins), np.shape(directions)),
+        )
     max_steps = check_int("trace_clipmap max_steps", max_steps, minimum=1)
     if is_concrete(t_max):
         check_number("trace_clipmap t_max", t_max, finite=False)
@@ -405,7 +435,7 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
         d = d / jnp.linalg.norm(d)
 
         def cond(state):
-            return (state[3] == _RUNNING) & (state[2] < max_steps)
+            return (state[3] == RUNNING) & (state[2] < max_steps)
 
         def body(state):
             t, c, steps, status = state
@@ -416,12 +446,12 @@ def trace_clipmap(clip: Clipmap, origins: jax.Array, directions: jax.Array, *, m
             coarser = (~inside | ~inside_next) & ~hit & (c < last)
             escaped = ~inside & ~hit & (c == last)
             t_new = jnp.where(hit | coarser | escaped, t, t + value)
-            status = jnp.where(hit, HIT, jnp.where(escaped | (t_new > t_max), MISS, _RUNNING))
+            status = jnp.where(hit, HIT, jnp.where(escaped | (t_new > t_max), MISS, RUNNING))
             return t_new, c + coarser.astype(jnp.int32), steps + 1, status
 
-        start = (jnp.float32(0.0), jnp.int32(0), jnp.int32(0), jnp.int32(_RUNNING))
+        start = (jnp.float32(0.0), jnp.int32(0), jnp.int32(0), jnp.int32(RUNNING))
         t, c, _, status = jax.lax.while_loop(cond, body, start)
-        status = jnp.where(status == _RUNNING, STEP_CAP, status)
+        status = jnp.where(status == RUNNING, STEP_CAP, status)
         hit = status == HIT
         normal = jnp.where(hit, _normal(clip, c, o + t * d), 0.0)
         return jnp.where(hit, t, jnp.inf), normal, jnp.where(hit, c, -1), status

@@ -51,4 +51,3 @@ def _pair_distance(p, t):
 def mesh_winding_numbers(points, tris):
     """Generalized winding number [n] at points [n, 3] by brute force over all triangles, chunked."""
     return _per_point(points, tris, lambda p, t: solid_angle(p, t).sum(1))
-

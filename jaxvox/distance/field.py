@@ -59,8 +59,9 @@ def distance_field_bytes(resolution: int, *, method: str = "jfa+sweep", signed: 
 
 
 @functools.partial(jax.jit, static_argnames=("shape", "method", "band", "sweeps", "clamped"))
-def _unsigned(tris, coords, triangle, *, shape: tuple[int, int, int], method: str, band: int, sweeps: int,
-              clamped: bool = True):
+def _unsigned(
+    tris, coords, triangle, *, shape: tuple[int, int, int], method: str, band: int, sweeps: int, clamped: bool = True
+):
     """Unsigned field of a box of `shape` voxels (triangles and seed voxels in its units):
     [nx, ny, nz] float32 in voxels (inf where no seed reached; `clamped`: see `seed`)."""
     if method == "exact":
@@ -75,9 +76,17 @@ def _unsigned(tris, coords, triangle, *, shape: tuple[int, int, int], method: st
     return dist
 
 
-def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed: bool = True,
-                   band: int | None = None, sweeps: int = 3, sign: str = "auto",
-                   max_bytes: int | None = None) -> jax.Array:
+def distance_field(
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    method: str = "jfa+sweep",
+    signed: bool = True,
+    band: int | None = None,
+    sweeps: int = 3,
+    sign: str = "auto",
+    max_bytes: int | None = None,
+) -> jax.Array:
     """Distance from every voxel centre to the mesh surface, in world units.
 
     Host-side (it sizes the voxelization and checks memory); the propagation and sign
@@ -131,8 +140,9 @@ def distance_field(mesh: Mesh, grid: Grid, *, method: str = "jfa+sweep", signed:
     return dist * grid.voxel_size
 
 
-def box_distance(mesh: Mesh, grid: Grid, shape: tuple[int, int, int], *, method: str, band: int,
-                 sweeps: int, clamped: bool = True) -> jax.Array:
+def box_distance(
+    mesh: Mesh, grid: Grid, shape: tuple[int, int, int], *, method: str, band: int, sweeps: int, clamped: bool = True
+) -> jax.Array:
     """Unsigned distance in voxels [nx, ny, nz] float32 at the centres of the box made of
     the first `shape` voxels of `grid`, by `method` (`mesh` has faces; `clamped`: seed
     the box with the clamped centroids and corners of triangles, see `seed`)."""
@@ -146,6 +156,7 @@ def box_distance(mesh: Mesh, grid: Grid, shape: tuple[int, int, int], *, method:
         cap = bucket(n, 4096)  # few shapes: similar meshes share the compiled field
         inside = jnp.all(vox.coords[:n] < jnp.asarray(shape), axis=1, keepdims=True)  # the box only
         coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(jnp.where(inside, vox.coords[:n], UNUSED))
+        assert vox.triangle is not None  # voxelized with triangle ids
         triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
     return _unsigned(tris, coords, triangle, shape=shape, method=method, band=band, sweeps=sweeps, clamped=clamped)
 
@@ -154,4 +165,3 @@ def box_grid(origin, voxel_size, shape: tuple[int, int, int]) -> Grid:
     """The cubic grid whose first `shape` voxels form a box: same origin and voxels,
     resolution the power of two >= the box's longest side."""
     return Grid(origin, voxel_size, max(2, 1 << (max(shape) - 1).bit_length()))
-

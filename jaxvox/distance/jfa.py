@@ -50,8 +50,7 @@ def seed(tris, coords, triangle, shape: tuple[int, int, int], clamped: bool = Tr
     bits = jax.lax.bitcast_convert_type(dist, jnp.int32)  # non-negative floats order as ints
     best = jnp.full(n, jnp.iinfo(jnp.int32).max, jnp.int32).at[flat].min(bits, mode="drop")
     winner = valid & (bits == best.at[flat].get(mode="fill", fill_value=0))
-    ids = jnp.full(n, jnp.iinfo(jnp.int32).max, jnp.int32).at[jnp.where(winner, flat, n)].min(
-        tri, mode="drop")
+    ids = jnp.full(n, jnp.iinfo(jnp.int32).max, jnp.int32).at[jnp.where(winner, flat, n)].min(tri, mode="drop")
     ids = jnp.where(ids == jnp.iinfo(jnp.int32).max, NO_TRIANGLE, ids)
     return ids, jax.lax.bitcast_convert_type(jnp.where(ids >= 0, best, 0x7F800000), jnp.float32)
 
@@ -118,4 +117,3 @@ def jfa_steps(shape: tuple[int, int, int]):
     """Steps P/2, ..., 1 for the power of two P >= the box's longest side."""
     p = 1 << (max(shape) - 1).bit_length()
     return [p >> s for s in range(1, p.bit_length())]
-

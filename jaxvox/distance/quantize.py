@@ -39,8 +39,9 @@ class QuantizedField:
         return self.values.astype(jnp.float32) / self.steps_per_voxel * self.voxel_size
 
 
-def quantize_field(field: jax.Array, grid: Grid, *, format: str = "fixed16",
-                   steps_per_voxel: int = 256) -> QuantizedField:
+def quantize_field(
+    field: jax.Array, grid: Grid, *, format: str = "fixed16", steps_per_voxel: int = 256
+) -> QuantizedField:
     """Stores a field [R, R, R] float32 (world units) in 16 bits per voxel; jittable.
 
     * "float16": distance in voxels as float16; error at most 2^-11 of the value
@@ -67,4 +68,3 @@ def quantize_field(field: jax.Array, grid: Grid, *, format: str = "fixed16",
     steps = jnp.float32(steps_per_voxel)
     codes = jnp.clip(jnp.round(jnp.clip(voxels, -1e9, 1e9) * steps), -32767, 32767).astype(jnp.int16)
     return QuantizedField(codes, grid.voxel_size, steps, format)
-

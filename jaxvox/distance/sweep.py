@@ -114,4 +114,3 @@ def fast_sweep(u, free, iterations: int):
             flip = lambda a: jnp.flip(a, axes) if axes else a
             u = flip(_sweep_pair(flip(u)))
     return jnp.abs(u)
-

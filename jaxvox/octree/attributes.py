@@ -36,14 +36,16 @@ def voxel_attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
     validate_mesh(mesh)
     check_type("voxel_attributes vox", vox, Voxels)
     if vox.triangle is None:
-        raise refuse("voxel_attributes vox.triangle", "must hold triangle ids (voxelize with triangle_ids=True)",
-                     vox.triangle)
+        raise refuse(
+            "voxel_attributes vox.triangle", "must hold triangle ids (voxelize with triangle_ids=True)", vox.triangle
+        )
     # Padded to the shape ladder, so that meshes of similar size share the program.
     return _attributes(pad_mesh(mesh, bucket(mesh.num_vertices), bucket(mesh.num_faces)), vox)
 
 
 @jax.jit
 def _attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
+    assert vox.triangle is not None  # checked by `voxel_attributes`
     valid = jnp.arange(vox.coords.shape[0]) < vox.count
     tri = jnp.where(valid, vox.triangle, 0)
     corners = mesh.vertices[mesh.faces[tri]]  # [C, 3, 3]
@@ -55,9 +57,9 @@ def _attributes(mesh: Mesh, vox: Voxels) -> dict[str, jax.Array]:
     if mesh.texture is not None or mesh.colors is not None:
         centre = vox.grid.origin + (vox.coords.astype(jnp.float32) + 0.5) * vox.grid.voxel_size
         weights = _barycentric(corners, centre, normal)
-        if mesh.texture is not None:
+        if mesh.texture is not None and mesh.uvs is not None:
             colour = sample_texture(mesh.texture, jnp.einsum("ck,ckd->cd", weights, mesh.uvs[mesh.faces[tri]]))
-        else:
+        elif mesh.colors is not None:
             colour = jnp.einsum("ck,ckd->cd", weights, mesh.colors[mesh.faces[tri]])
         out["color"] = jnp.where(valid[:, None], colour, 0.0)
     return out

@@ -55,8 +55,11 @@ def _unique_masks(mask: jax.Array, n: jax.Array):
     valid = jnp.arange(mask.shape[0]) < n
     present = jnp.zeros(256, jnp.int32).at[jnp.where(valid, mask.astype(jnp.int32), 256)].set(1, mode="drop")
     rank = jnp.cumsum(present) - present
-    table = jnp.zeros(mask.shape[0], jnp.uint8).at[jnp.where(present > 0, rank, mask.shape[0])].set(
-        jnp.arange(256, dtype=jnp.uint8), mode="drop")
+    table = (
+        jnp.zeros(mask.shape[0], jnp.uint8)
+        .at[jnp.where(present > 0, rank, mask.shape[0])]
+        .set(jnp.arange(256, dtype=jnp.uint8), mode="drop")
+    )
     return rank[mask.astype(jnp.int32)], table, jnp.sum(present)
 
 
@@ -117,7 +120,7 @@ class _Level(NamedTuple):
     mask: jax.Array  # [C] uint8
     child: jax.Array | None  # [C, 8] uint32 rows relative to the next level's start (None at level D - 1)
     prefix: jax.Array | None  # [C, 8] uint32
-    count: jax.Array  # [] int32 rows used (after deduplication in a DAG)
+    count: jax.Array  # type: ignore[assignment]  # [] int32 rows used (after deduplication in a DAG)
     cells: jax.Array  # [C, 3] int32 octree nodes of this level, Morton order (the next step's input)
     n_cells: jax.Array  # [] int32
     cell_counts: jax.Array  # [C] int32 voxels below each octree node
@@ -187,10 +190,18 @@ def _levels(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> list[_Level]:
 
 
 def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag) -> Octree:
-    return Octree(mask=mask, child=child, prefix=prefix, level_count=level_count,
-                  voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.int32),
-                  overflow=(vox.overflow | jnp.where(overflow, OVERFLOW_NODES, 0)).astype(jnp.int32),
-                  grid=vox.grid, level_capacity=jnp.asarray(capacity, jnp.int32), dag=dag, mode=vox.mode)
+    return Octree(
+        mask=mask,
+        child=child,
+        prefix=prefix,
+        level_count=level_count,
+        voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.int32),
+        overflow=(vox.overflow | jnp.where(overflow, OVERFLOW_NODES, 0)).astype(jnp.int32),
+        grid=vox.grid,
+        level_capacity=jnp.asarray(capacity, jnp.int32),
+        dag=dag,
+        mode=vox.mode,
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("capacity", "dag"))
@@ -198,12 +209,20 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     """Bottom-up build with static per-level capacities, as one jittable function."""
     levels = _levels(vox, capacity, dag)
     offsets = np.cumsum((0,) + tuple(capacity))
-    child = [jnp.where(lv.child == EMPTY, EMPTY, lv.child + jnp.uint32(offsets[i + 1]))
-             for i, lv in enumerate(levels[:-1])]
+    child = [
+        jnp.where(lv.child == EMPTY, EMPTY, lv.child + jnp.uint32(offsets[i + 1])) for i, lv in enumerate(levels[:-1])
+    ]
     rows = lambda parts: jnp.concatenate(parts) if parts else jnp.zeros((0, 8), jnp.uint32)
-    return _tree(vox, jnp.concatenate([lv.mask for lv in levels]), rows(child), rows([lv.prefix for lv in levels[:-1]]),
-                 jnp.stack([lv.count for lv in levels]), jnp.any(jnp.stack([lv.overflow for lv in levels])),
-                 capacity, dag)
+    return _tree(
+        vox,
+        jnp.concatenate([lv.mask for lv in levels]),
+        rows(child),
+        rows([lv.prefix for lv in levels[:-1]]),
+        jnp.stack([lv.count for lv in levels]),
+        jnp.any(jnp.stack([lv.overflow for lv in levels])),
+        capacity,
+        dag,
+    )
 
 
 def _schedule(counted) -> tuple[int, ...]:
@@ -217,8 +236,10 @@ def _schedule(counted) -> tuple[int, ...]:
     voxels) gets the bucket of its own count. Capped at ``8^l``.
     """
     depth, bottom = len(counted), bucket(int(counted[-1]), 64)
-    return tuple(min(8**level, max(bottom >> 2 * k << (k >= 3), bucket(int(n), 64)))
-                 for level, (k, n) in enumerate(zip(range(depth - 1, -1, -1), counted)))
+    return tuple(
+        min(8**level, max(bottom >> 2 * k << (k >= 3), bucket(int(n), 64)))
+        for level, (k, n) in enumerate(zip(range(depth - 1, -1, -1), counted))
+    )
 
 
 def _build_padded(vox: Voxels, counted: np.ndarray, dag: bool) -> Octree:
@@ -266,11 +287,14 @@ def _check_voxels(caller: str, vox: Voxels) -> np.ndarray:
         outside = ((ijk < 0) | (ijk >= resolution)).any(1)
         if outside.any():
             raise refuse(f"{caller} vox", f"holds voxel indices outside [0, {resolution})", ijk[outside][0])
-        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(ijk))
+        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(jnp.asarray(ijk)))
         codes = (hi << 30) | lo
         first = int(np.flatnonzero(codes[1:] <= codes[:-1])[0])
-        raise refuse(f"{caller} vox", "voxels must be unique and in Morton order (build them with "
-                     "jaxvox.voxelize or Voxels.from_coords)", ijk[first:first + 2])
+        raise refuse(
+            f"{caller} vox",
+            "voxels must be unique and in Morton order (build them with jaxvox.voxelize or Voxels.from_coords)",
+            ijk[first : first + 2],
+        )
     return sizes
 
 

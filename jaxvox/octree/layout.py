@@ -33,8 +33,13 @@ def _relayout(tree: Octree, sizes: tuple[int, ...]) -> Octree:
             out_child[dst] = np.where(part == EMPTY, EMPTY, (part + shift).astype(np.uint32))
             out_prefix[dst] = prefix[src]
     put = functools.partial(jax.device_put, may_alias=True)
-    return dataclasses.replace(tree, mask=put(out_mask), child=put(out_child), prefix=put(out_prefix),
-                               level_capacity=jnp.asarray(sizes, jnp.int32))
+    return dataclasses.replace(
+        tree,
+        mask=put(out_mask),
+        child=put(out_child),
+        prefix=put(out_prefix),
+        level_capacity=jnp.asarray(sizes, jnp.int32),
+    )
 
 
 def padded(tree: Octree) -> Octree:

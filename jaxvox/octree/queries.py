@@ -44,8 +44,11 @@ def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
     check_type("voxel_index tree", tree, Octree)
     dtype = ijk.dtype if hasattr(ijk, "dtype") else np.asarray(ijk).dtype
     if not jnp.issubdtype(dtype, jnp.integer) or np.shape(ijk)[-1:] != (3,):
-        raise refuse("voxel_index ijk", "must be integer indices [..., 3]",
-                     ijk if jnp.issubdtype(dtype, jnp.integer) else f"{dtype} indices of shape {np.shape(ijk)}")
+        raise refuse(
+            "voxel_index ijk",
+            "must be integer indices [..., 3]",
+            ijk if jnp.issubdtype(dtype, jnp.integer) else f"{dtype} indices of shape {np.shape(ijk)}",
+        )
     return _voxel_index(tree, ijk)
 
 

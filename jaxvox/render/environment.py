@@ -91,8 +91,11 @@ class Environment:
         row, col = self._pixel(d)
         up = jnp.sqrt(jnp.clip(y, 0.0, 1.0))[..., None]
         below = jnp.clip(-y / math.sin(math.radians(5.0)), 0.0, 1.0)[..., None]
-        sky = jnp.where(y[..., None] >= 0, self.horizon + (self.zenith - self.horizon) * up,
-                        self.horizon + (self.ground - self.horizon) * below)
+        sky = jnp.where(
+            y[..., None] >= 0,
+            self.horizon + (self.zenith - self.horizon) * up,
+            self.horizon + (self.ground - self.horizon) * below,
+        )
         return self.image[row, col] + sky
 
     def camera_radiance(self, directions: jax.Array) -> jax.Array:
@@ -143,9 +146,20 @@ def _image_cdf(image: np.ndarray) -> np.ndarray:
     return np.cumsum(luminance * (2 * np.pi / w * (edges[:-1] - edges[1:]))[:, None]).astype(np.float32)
 
 
-def _environment(caller: str, image, *, scale=1.0, zenith=0.0, horizon=0.0, ground=0.0,
-                 sun_direction=(0.0, 1.0, 0.0), sun_irradiance=0.0, sun_cos=_SUN_COS, sun=False,
-                 importance=False) -> Environment:
+def _environment(
+    caller: str,
+    image,
+    *,
+    scale=1.0,
+    zenith=0.0,
+    horizon=0.0,
+    ground=0.0,
+    sun_direction=(0.0, 1.0, 0.0),
+    sun_irradiance=0.0,
+    sun_cos=_SUN_COS,
+    sun=False,
+    importance=False,
+) -> Environment:
     """The `Environment` of a checked image (times `scale`) and sky; errors name `caller`."""
     try:
         image = np.asarray(image, np.float32) * np.float32(scale)
@@ -160,11 +174,17 @@ def _environment(caller: str, image, *, scale=1.0, zenith=0.0, horizon=0.0, grou
     if not s.any():
         raise refuse(f"{caller} sun_direction", "must be non-zero", sun_direction)
     env = Environment.__new__(Environment)
-    fields = dict(image=jnp.asarray(image), zenith=check_rgb(f"{caller} zenith", zenith),
-                  horizon=check_rgb(f"{caller} horizon", horizon), ground=check_rgb(f"{caller} ground", ground),
-                  sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
-                  sun_irradiance=check_rgb(f"{caller} sun_irradiance", sun_irradiance), sun_cos=np.float32(sun_cos),
-                  cdf=_image_cdf(image), sun=bool(sun))
+    fields = dict(
+        image=jnp.asarray(image),
+        zenith=check_rgb(f"{caller} zenith", zenith),
+        horizon=check_rgb(f"{caller} horizon", horizon),
+        ground=check_rgb(f"{caller} ground", ground),
+        sun_direction=(s / np.linalg.norm(s)).astype(np.float32),
+        sun_irradiance=check_rgb(f"{caller} sun_irradiance", sun_irradiance),
+        sun_cos=np.float32(sun_cos),
+        cdf=_image_cdf(image),
+        sun=bool(sun),
+    )
     fields["sampled"] = bool(importance and image.shape[0] * image.shape[1] > 1 and fields["cdf"][-1] > 0)
     for name, value in fields.items():
         object.__setattr__(env, name, value if name in ("sun", "sampled") else jnp.asarray(value))
@@ -180,9 +200,15 @@ def uniform_environment(*, rgb=(1.0, 1.0, 1.0)) -> Environment:
     return _environment("uniform_environment", check_rgb("uniform_environment rgb", rgb).reshape(1, 1, 3))
 
 
-def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1, 1.9),
-                    zenith=(0.10, 0.20, 0.45), horizon=(0.45, 0.50, 0.58), ground=(0.12, 0.11, 0.10),
-                    sun_radius_degrees: float = 0.53) -> Environment:
+def sky_environment(
+    *,
+    sun_direction=(0.45, 0.75, 0.5),
+    sun_irradiance=(2.2, 2.1, 1.9),
+    zenith=(0.10, 0.20, 0.45),
+    horizon=(0.45, 0.50, 0.58),
+    ground=(0.12, 0.11, 0.10),
+    sun_radius_degrees: float = 0.53,
+) -> Environment:
     """A built-in procedural sky: a blue gradient over a dim ground, and a sun.
 
     Args:
@@ -197,9 +223,17 @@ def sky_environment(*, sun_direction=(0.45, 0.75, 0.5), sun_irradiance=(2.2, 2.1
     """
     irradiance = check_rgb("sky_environment sun_irradiance", sun_irradiance)
     radius = check_number("sky_environment sun_radius_degrees", sun_radius_degrees, minimum=0.0, maximum=90.0)
-    return _environment("sky_environment", np.zeros((1, 1, 3), np.float32), zenith=zenith, horizon=horizon,
-                        ground=ground, sun_direction=sun_direction, sun_irradiance=irradiance,
-                        sun_cos=math.cos(math.radians(radius)), sun=bool(irradiance.any()))
+    return _environment(
+        "sky_environment",
+        np.zeros((1, 1, 3), np.float32),
+        zenith=zenith,
+        horizon=horizon,
+        ground=ground,
+        sun_direction=sun_direction,
+        sun_irradiance=irradiance,
+        sun_cos=math.cos(math.radians(radius)),
+        sun=bool(irradiance.any()),
+    )
 
 
 def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance: bool = True) -> Environment:
@@ -218,8 +252,11 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance:
     path = os.fspath(path)
     scale = check_number("load_environment scale", scale, minimum=0.0)
     if not os.path.isfile(path):
-        raise refuse("load_environment path", "is a directory, expected a file" if os.path.isdir(path)
-                     else "file not found", path)
+        raise refuse(
+            "load_environment path",
+            "is a directory, expected a file" if os.path.isdir(path) else "file not found",
+            path,
+        )
     ext = os.path.splitext(path)[1].lower()
     if ext == ".exr":
         channels = read_exr(path)
@@ -228,8 +265,11 @@ def load_environment(path: str | os.PathLike, *, scale: float = 1.0, importance:
         elif "Y" in channels:
             image = np.repeat(channels["Y"][..., None], 3, axis=-1)
         else:
-            raise refuse("load_environment path", f"an environment EXR needs channels R, G, B (or Y), has "
-                         f"{sorted(channels)}", path)
+            raise refuse(
+                "load_environment path",
+                f"an environment EXR needs channels R, G, B (or Y), has {sorted(channels)}",
+                path,
+            )
     elif ext == ".hdr":
         image = read_hdr(path)
     elif ext == ".npy":

@@ -107,14 +107,15 @@ class Surface(NamedTuple):
     stopped: jax.Array  # [N] bool neither: step cap, or the ray started inside a voxel
     point: jax.Array  # [N, 3] float32 hit point moved just off the surface, on the ray's side
     normal: jax.Array  # [N, 3] float32 unit normal facing the ray's side
-    index: jax.Array  # [N] int32 primitive index (voxel in Morton order, or triangle), 0 unless hit
+    index: jax.Array  # type: ignore[assignment]  # [N] int32 primitive index (voxel in Morton order, or triangle), 0 unless hit
 
 
 def camera_rays(camera, px, py, *, width: int, height: int):
     """Unit directions [N, 3] through continuous pixel positions (``px`` right, ``py`` down)."""
     eye, target, up, fov = camera
-    return pixel_directions(eye, target, up, px, py, width=width, height=height,
-                            tan_half_fov=jnp.tan(jnp.radians(fov) / 2))
+    return pixel_directions(
+        eye, target, up, px, py, width=width, height=height, tan_half_fov=jnp.tan(jnp.radians(fov) / 2)
+    )
 
 
 def _cosine_direction(normal, u):
@@ -156,9 +157,14 @@ def _voxel_surface(tree: Octree, origin, direction, hit) -> Surface:
     p = jnp.where(blocked[:, None], diagonal, across)
     point = grid.origin + p * grid.voxel_size
     live = valid_rays(origin, direction)
-    return Surface(hit=is_hit & entered, escaped=live & (hit.status != HIT) & (hit.status != STEP_CAP),
-                    stopped=live & ((hit.status == STEP_CAP) | (is_hit & ~entered)),
-                    point=point, normal=n, index=jnp.maximum(hit.index, 0))
+    return Surface(
+        hit=is_hit & entered,
+        escaped=live & (hit.status != HIT) & (hit.status != STEP_CAP),
+        stopped=live & ((hit.status == STEP_CAP) | (is_hit & ~entered)),
+        point=point,
+        normal=n,
+        index=jnp.maximum(hit.index, 0),
+    )
 
 
 def _lookup(table, index):
@@ -181,8 +187,9 @@ def environment_sample(env: Environment, surf: Surface, u, last):
     return jnp.where(use[:, None], d, 0.0), jnp.where(use, pdf, 0.0)
 
 
-def shade(path: PathState, surf: Surface, sun_visible, u, *, rho, emitted, env: Environment, first: bool,
-           last, light=None) -> PathState:
+def shade(
+    path: PathState, surf: Surface, sun_visible, u, *, rho, emitted, env: Environment, first: bool, last, light=None
+) -> PathState:
     """One path vertex: gathers emission, escape, the sun and the environment sample;
     samples the next direction.
 
@@ -209,9 +216,14 @@ def shade(path: PathState, surf: Surface, sun_visible, u, *, rho, emitted, env: 
     go_on = surf.hit & ~last & live
     normal = jnp.where(surf.hit[:, None], surf.normal, jnp.array([0.0, 0.0, 1.0]))
     direction = jnp.where(go_on[:, None], _cosine_direction(normal, u), 0.0)
-    return PathState(origin=jnp.where(go_on[:, None], surf.point, path.origin), direction=direction,
-                 throughput=path.throughput * jnp.where(go_on[:, None], rho, 1.0), radiance=radiance,
-                 stopped=path.stopped | surf.stopped, pdf=jnp.sum(normal * direction, -1) / jnp.pi)
+    return PathState(
+        origin=jnp.where(go_on[:, None], surf.point, path.origin),
+        direction=direction,
+        throughput=path.throughput * jnp.where(go_on[:, None], rho, 1.0),
+        radiance=radiance,
+        stopped=path.stopped | surf.stopped,
+        pdf=jnp.sum(normal * direction, -1) / jnp.pi,
+    )
 
 
 def uniforms(keys, stream: int, n: int):
@@ -228,14 +240,37 @@ def camera_path(camera, key, ids, *, width: int, height: int) -> tuple[PathState
     py = (pixel // width).astype(jnp.float32) + u[:, 1]
     d = camera_rays(camera, px, py, width=width, height=height)
     zeros = jnp.zeros_like(d)
-    path = PathState(origin=jnp.broadcast_to(camera[0], d.shape), direction=d, throughput=jnp.ones_like(d),
-                 radiance=zeros, stopped=jnp.zeros(d.shape[0], bool), pdf=jnp.zeros(d.shape[0], jnp.float32))
+    path = PathState(
+        origin=jnp.broadcast_to(camera[0], d.shape),
+        direction=d,
+        throughput=jnp.ones_like(d),
+        radiance=zeros,
+        stopped=jnp.zeros(d.shape[0], bool),
+        pdf=jnp.zeros(d.shape[0], jnp.float32),
+    )
     return path, keys
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "batch", "max_steps", "lanes"))
-def _render_batch(tree, albedo, emission, env, camera, key, start, total, bounces, image, stopped, *, width,
-                  height, batch, max_steps, lanes):
+def _render_batch(
+    tree,
+    albedo,
+    emission,
+    env,
+    camera,
+    key,
+    start,
+    total,
+    bounces,
+    image,
+    stopped,
+    *,
+    width,
+    height,
+    batch,
+    max_steps,
+    lanes,
+):
     """Traces pixel samples ``start .. start + batch`` (those below `total`) and adds them to `image`."""
     ids = start + jnp.arange(batch, dtype=jnp.int32)
     valid = ids < total
@@ -247,15 +282,26 @@ def _render_batch(tree, albedo, emission, env, camera, key, start, total, bounce
         surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction))
         visible = jnp.zeros(batch, jnp.float32)
         if env.sun:
-            towards = jnp.where((surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None],
-                                env.sun_direction, 0.0)
+            towards = jnp.where(
+                (surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None], env.sun_direction, 0.0
+            )
             visible = (go(surf.point, towards).status != HIT).astype(jnp.float32)
         light = None
         if env.sampled:
             d, pdf = environment_sample(env, surf, uniforms(keys, LIGHT_STREAM + k, 3), k >= bounces)
             light = (d, pdf, (go(surf.point, d).status != HIT).astype(jnp.float32))
-        return shade(path, surf, visible, uniforms(keys, k + 1, 2), rho=_lookup(albedo, surf.index),
-                      emitted=_lookup(emission, surf.index), env=env, first=first, last=k >= bounces, light=light)
+        return shade(
+            path,
+            surf,
+            visible,
+            uniforms(keys, k + 1, 2),
+            rho=_lookup(albedo, surf.index),
+            emitted=_lookup(emission, surf.index),
+            env=env,
+            first=first,
+            last=k >= bounces,
+            light=light,
+        )
 
     path = segment(0, path, True)
     path = jax.lax.fori_loop(1, bounces + 1, lambda k, p: segment(k, p, False), path)
@@ -276,12 +322,20 @@ def _aovs(tree, camera, *, width, height, max_steps, lanes):
 
 
 def check_settings(caller: str, width, height, spp, bounces, batch_rays) -> None:
-    for name, value, low in (("width", width, 1), ("height", height, 1), ("spp", spp, 1), ("bounces", bounces, 0),
-                             ("batch_rays", batch_rays, 1)):
+    for name, value, low in (
+        ("width", width, 1),
+        ("height", height, 1),
+        ("spp", spp, 1),
+        ("bounces", bounces, 0),
+        ("batch_rays", batch_rays, 1),
+    ):
         check_int(f"{caller} {name}", value, minimum=low)
     if width * height * spp >= 2**31:
-        raise refuse(f"{caller} width x height x spp", "must be below 2^31 samples; render fewer",
-                     f"{width}x{height} at {spp} spp")
+        raise refuse(
+            f"{caller} width x height x spp",
+            "must be below 2^31 samples; render fewer",
+            f"{width}x{height} at {spp} spp",
+        )
 
 
 def as_key(key):
@@ -303,10 +357,26 @@ def progress_bar(total: int, progress: bool | None, what: str):
     return tqdm(total=total, desc=what, unit="batch", disable=disable, leave=False)
 
 
-def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=None, emission=None,
-           width: int = 320, height: int = 240, fov: float = 40.0, up=(0.0, 1.0, 0.0), spp: int = 16,
-           bounces: int = 8, key=0, batch_rays: int = 1 << 18, max_steps: int | None = None,
-           lanes: int | None = 16384, progress: bool | None = None) -> RenderResult:
+def render(
+    tree: Octree,
+    eye,
+    target,
+    *,
+    env: Environment | None = None,
+    albedo=None,
+    emission=None,
+    width: int = 320,
+    height: int = 240,
+    fov: float = 40.0,
+    up=(0.0, 1.0, 0.0),
+    spp: int = 16,
+    bounces: int = 8,
+    key=0,
+    batch_rays: int = 1 << 18,
+    max_steps: int | None = None,
+    lanes: int | None = 16384,
+    progress: bool | None = None,
+) -> RenderResult:
     """Path-traces an image of a voxel octree or DAG (see the module docstring).
 
     Args:
@@ -345,8 +415,7 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
     albedo = rgb_table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7))
     emission = rgb_table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0))
     camera = checked_camera("render", eye, target, up, fov)
-    steps = (check_int("render max_steps", max_steps, minimum=1) if max_steps is not None
-             else default_max_steps(tree))
+    steps = check_int("render max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     if lanes is not None:
         lanes = check_int("render lanes", lanes, minimum=1)
     key = as_key(key)
@@ -357,10 +426,24 @@ def render(tree: Octree, eye, target, *, env: Environment | None = None, albedo=
     n_batches = -(-total // batch)
     with progress_bar(n_batches, progress, "render") as bar:
         for b in range(n_batches):
-            image, stopped = _render_batch(tree, albedo, emission, env, camera, key, jnp.int32(b * batch),
-                                           jnp.int32(total), jnp.int32(bounces), image, stopped, width=width,
-                                           height=height, batch=batch, max_steps=steps, lanes=lanes)
+            image, stopped = _render_batch(
+                tree,
+                albedo,
+                emission,
+                env,
+                camera,
+                key,
+                jnp.int32(b * batch),
+                jnp.int32(total),
+                jnp.int32(bounces),
+                image,
+                stopped,
+                width=width,
+                height=height,
+                batch=batch,
+                max_steps=steps,
+                lanes=lanes,
+            )
             bar.update(1)
     depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)
-    return RenderResult(radiance=(image / spp).reshape(height, width, 3), depth=depth, normal=normal,
-                        stopped=stopped)
+    return RenderResult(radiance=(image / spp).reshape(height, width, 3), depth=depth, normal=normal, stopped=stopped)

@@ -65,8 +65,18 @@ def _mesh_camera(camera, key, ids, valid, *, width, height):
 
 @functools.partial(jax.jit, static_argnames=("first",))
 def _mesh_shade(path, surf, visible, light, keys, k, rho, emitted, env, last, *, first):
-    return shade(path, surf, visible, uniforms(keys, k + 1, 2), rho=rho, emitted=emitted, env=env, first=first,
-                  last=last, light=light)
+    return shade(
+        path,
+        surf,
+        visible,
+        uniforms(keys, k + 1, 2),
+        rho=rho,
+        emitted=emitted,
+        env=env,
+        first=first,
+        last=last,
+        light=light,
+    )
 
 
 @jax.jit
@@ -82,8 +92,11 @@ def _mesh_tables(mesh, albedo, emission):
         if albedo != "mesh":
             raise refuse("render_mesh albedo", "must be an RGB triple, a [faces, 3] array or 'mesh'", albedo)
         if mesh.colors is None and mesh.texture is None:
-            raise refuse("render_mesh albedo", "'mesh' needs a texture or vertex colours, but the mesh has "
-                         "neither a texture nor vertex colours", albedo)
+            raise refuse(
+                "render_mesh albedo",
+                "'mesh' needs a texture or vertex colours, but the mesh has neither a texture nor vertex colours",
+                albedo,
+            )
         rho, per_vertex = None, True
     else:
         rho, per_vertex = np.asarray(rgb_table("render_mesh albedo", albedo, faces, "face", (0.7, 0.7, 0.7))), False
@@ -101,9 +114,24 @@ def _mesh_colour(mesh, face, weights):
     return srgb_to_linear(colour[:, :3]).astype(np.float32)
 
 
-def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=None, emission=None,
-                width: int = 320, height: int = 240, fov: float = 40.0, up=(0.0, 1.0, 0.0), spp: int = 16,
-                bounces: int = 8, key=0, batch_rays: int = 1 << 18, progress: bool | None = None) -> RenderResult:
+def render_mesh(
+    mesh,
+    eye,
+    target,
+    *,
+    env: Environment | None = None,
+    albedo=None,
+    emission=None,
+    width: int = 320,
+    height: int = 240,
+    fov: float = 40.0,
+    up=(0.0, 1.0, 0.0),
+    spp: int = 16,
+    bounces: int = 8,
+    key=0,
+    batch_rays: int = 1 << 18,
+    progress: bool | None = None,
+) -> RenderResult:
     """Path-traces a triangle mesh with Embree: `render`'s estimator on the exact surface.
 
     Needs embreex (the ``bench`` extra). The shading, the lighting and the random
@@ -147,8 +175,13 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
     def surface(o, d):
         live = np.asarray(valid_rays(o, d))
         n = len(o)
-        t, prim, u, v, ng = (np.full(n, np.inf, np.float32), np.full(n, -1, np.int32), np.zeros(n, np.float32),
-                             np.zeros(n, np.float32), np.zeros((n, 3), np.float32))
+        t, prim, u, v, ng = (
+            np.full(n, np.inf, np.float32),
+            np.full(n, -1, np.int32),
+            np.zeros(n, np.float32),
+            np.zeros(n, np.float32),
+            np.zeros((n, 3), np.float32),
+        )
         if live.any():
             t[live], prim[live], u[live], v[live], ng[live] = intersect(o[live], d[live])
         hit = prim >= 0
@@ -160,8 +193,7 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
         else:
             rho = rho_table[np.minimum(face, len(rho_table) - 1)]
         emitted = emit_table[np.minimum(face, len(emit_table) - 1)]
-        surf = Surface(hit=hit, escaped=live & ~hit, stopped=np.zeros(n, bool), point=point, normal=ng,
-                        index=face)
+        surf = Surface(hit=hit, escaped=live & ~hit, stopped=np.zeros(n, bool), point=point, normal=ng, index=face)
         return surf, t, rho.astype(np.float32), emitted
 
     n_batches = -(-total // batch)
@@ -190,15 +222,37 @@ def render_mesh(mesh, eye, target, *, env: Environment | None = None, albedo=Non
                     if use.any():
                         seen[use] = intersect(np.asarray(surf.point)[use], d[use])[1] < 0
                     light = (jnp.asarray(d), jnp.asarray(pdf), jnp.asarray(seen))
-                path = _mesh_shade(path, surf, jnp.asarray(visible), light, keys, k, jnp.asarray(rho),
-                                   jnp.asarray(emitted), env, jnp.asarray(k >= bounces), first=k == 0)
+                path = _mesh_shade(
+                    path,
+                    surf,
+                    jnp.asarray(visible),
+                    light,
+                    keys,
+                    k,
+                    jnp.asarray(rho),
+                    jnp.asarray(emitted),
+                    env,
+                    jnp.asarray(k >= bounces),
+                    first=k == 0,
+                )
             np.add.at(image, ids[valid] % (width * height), np.asarray(path.radiance, np.float64)[valid])
             bar.update(1)
     j, i = np.meshgrid(np.arange(width), np.arange(height))
-    d = np.asarray(camera_rays(camera, jnp.asarray(j.reshape(-1) + 0.5, jnp.float32),
-                                jnp.asarray(i.reshape(-1) + 0.5, jnp.float32), width=width, height=height))
+    d = np.asarray(
+        camera_rays(
+            camera,
+            jnp.asarray(j.reshape(-1) + 0.5, jnp.float32),
+            jnp.asarray(i.reshape(-1) + 0.5, jnp.float32),
+            width=width,
+            height=height,
+        )
+    )
     surf, t, _, _ = surface(np.broadcast_to(np.asarray(camera[0]), d.shape).astype(np.float32), d)
     depth = np.where(surf.hit, t, np.inf).astype(np.float32).reshape(height, width)
     normal = np.where(surf.hit[:, None], surf.normal, 0.0).astype(np.float32).reshape(height, width, 3)
-    return RenderResult(radiance=jnp.asarray((image / spp).astype(np.float32).reshape(height, width, 3)),
-                        depth=jnp.asarray(depth), normal=jnp.asarray(normal), stopped=jnp.int32(0))
+    return RenderResult(
+        radiance=jnp.asarray((image / spp).astype(np.float32).reshape(height, width, 3)),
+        depth=jnp.asarray(depth),
+        normal=jnp.asarray(normal),
+        stopped=jnp.int32(0),
+    )

@@ -31,8 +31,9 @@ def param(value, name: str, shape: tuple, *, minimum: float | None = None, stric
         if not np.isfinite(a).all():
             raise refuse(name, "must be finite", a)
         if (np.abs(a) > _MAX_PARAM).any():
-            raise refuse(name, f"must be at most {_MAX_PARAM:.0e} in magnitude (squared distances must fit in "
-                         "float32)", a)
+            raise refuse(
+                name, f"must be at most {_MAX_PARAM:.0e} in magnitude (squared distances must fit in float32)", a
+            )
         if minimum is not None and ((a <= minimum).any() if strict else (a < minimum).any()):
             relation = ">" if strict else ">="
             raise refuse(name, f"must be {relation} {minimum}", a)

@@ -229,11 +229,15 @@ def mix(a: SDF, b: SDF, k) -> Mix:
 
 def smooth_union(a: SDF, b: SDF, k) -> SmoothUnion:
     """Smooth union with blend width `k` >= 0 in world units (k = 0 is `union`). A bound."""
-    return SmoothUnion(check_scene(a, "smooth_union a"), check_scene(b, "smooth_union b"),
-                       param(k, "smooth_union k", (), minimum=0.0))
+    return SmoothUnion(
+        check_scene(a, "smooth_union a"), check_scene(b, "smooth_union b"), param(k, "smooth_union k", (), minimum=0.0)
+    )
 
 
 def smooth_intersection(a: SDF, b: SDF, k) -> SmoothIntersection:
     """Smooth intersection with blend width `k` >= 0 in world units (k = 0 is `intersection`). A bound."""
-    return SmoothIntersection(check_scene(a, "smooth_intersection a"), check_scene(b, "smooth_intersection b"),
-                              param(k, "smooth_intersection k", (), minimum=0.0))
+    return SmoothIntersection(
+        check_scene(a, "smooth_intersection a"),
+        check_scene(b, "smooth_intersection b"),
+        param(k, "smooth_intersection k", (), minimum=0.0),
+    )

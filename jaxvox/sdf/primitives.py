@@ -137,21 +137,27 @@ def rounded_box(half_extents, radius, *, center=(0.0, 0.0, 0.0)) -> RoundedBox:
 
 def torus(major_radius, minor_radius, *, center=(0.0, 0.0, 0.0)) -> Torus:
     """Torus in the xz-plane (axis y): ring radius `major_radius`, tube radius `minor_radius`. Exact."""
-    return Torus(param(major_radius, "torus major_radius", (), minimum=0.0),
-                 param(minor_radius, "torus minor_radius", (), minimum=0.0), param(center, "torus center", (3,)))
+    return Torus(
+        param(major_radius, "torus major_radius", (), minimum=0.0),
+        param(minor_radius, "torus minor_radius", (), minimum=0.0),
+        param(center, "torus center", (3,)),
+    )
 
 
 def capsule(a, b, radius) -> Capsule:
     """Capsule: points within `radius` of the segment from `a` [3] to `b` [3]. Exact."""
-    return Capsule(param(a, "capsule a", (3,)), param(b, "capsule b", (3,)),
-                   param(radius, "capsule radius", (), minimum=0.0))
+    return Capsule(
+        param(a, "capsule a", (3,)), param(b, "capsule b", (3,)), param(radius, "capsule radius", (), minimum=0.0)
+    )
 
 
 def cylinder(radius, half_height, *, center=(0.0, 0.0, 0.0)) -> Cylinder:
     """Capped cylinder, axis y, of `radius` and height ``2 * half_height`` around `center`. Exact."""
-    return Cylinder(param(radius, "cylinder radius", (), minimum=0.0),
-                    param(half_height, "cylinder half_height", (), minimum=0.0),
-                    param(center, "cylinder center", (3,)))
+    return Cylinder(
+        param(radius, "cylinder radius", (), minimum=0.0),
+        param(half_height, "cylinder half_height", (), minimum=0.0),
+        param(center, "cylinder center", (3,)),
+    )
 
 
 def plane(normal, *, offset=0.0) -> Plane:

@@ -45,8 +45,9 @@ def lipschitz_bound(scene: SDF) -> float:
     if isinstance(scene, Scale):
         inner = lipschitz_bound(scene.child)
         return inner if scene.correct else inner / float(jnp.min(scene.factor))
-    children = [c for c in jax.tree.leaves(scene, is_leaf=lambda x: x is not scene and isinstance(x, SDF))
-                if isinstance(c, SDF)]
+    children = [
+        c for c in jax.tree.leaves(scene, is_leaf=lambda x: x is not scene and isinstance(x, SDF)) if isinstance(c, SDF)
+    ]
     return max((lipschitz_bound(c) for c in children), default=1.0)
 
 
@@ -118,12 +119,19 @@ def to_mesh(scene: SDF, grid: Grid, *, level: float = 0.0) -> Mesh:
     check_type("to_mesh grid", grid, Grid)
     level = check_number("to_mesh level", level)
     if grid.resolution > MAX_MESH_RESOLUTION:
-        raise refuse("to_mesh grid", f"resolution must be at most {MAX_MESH_RESOLUTION} "
-                     f"(the field alone would take {grid.resolution ** 3 * 4 / 2 ** 30:.1f} GiB)", grid.resolution)
+        raise refuse(
+            "to_mesh grid",
+            f"resolution must be at most {MAX_MESH_RESOLUTION} "
+            f"(the field alone would take {grid.resolution**3 * 4 / 2**30:.1f} GiB)",
+            grid.resolution,
+        )
     field = np.array(_sample(scene, grid))  # writable: marching_cubes needs it
     if np.isnan(field).any():
-        raise refuse("to_mesh scene", f"must not be NaN at a voxel centre (NaN at {int(np.isnan(field).sum())} "
-                     f"of {field.size})", scene)
+        raise refuse(
+            "to_mesh scene",
+            f"must not be NaN at a voxel centre (NaN at {int(np.isnan(field).sum())} of {field.size})",
+            scene,
+        )
     if not field.min() < level < field.max():
         return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     verts, faces, _, _ = marching_cubes(field, level, gradient_direction="descent")

@@ -44,11 +44,11 @@ from jaxvox.trace.hit import HIT, INVALID, MISS, STEP_CAP, Hit, default_max_step
 
 __all__ = [
     "HIT",
+    "Hit",
     "INVALID",
     "MISS",
     "STEP_CAP",
     "TRACE_METHODS",
-    "Hit",
     "default_max_steps",
     "trace",
     "trace_dense",

@@ -36,8 +36,9 @@ def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None) -> Hit
     shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], t.shape)
     n = int(np.prod(shape, dtype=np.int64))
     pad = bucket(n) - n
-    flat = lambda a, tail: np.concatenate([np.broadcast_to(a, shape + tail).reshape((n,) + tail),
-                                           np.zeros((pad,) + tail, np.float32)])
+    flat = lambda a, tail: np.concatenate(
+        [np.broadcast_to(a, shape + tail).reshape((n,) + tail), np.zeros((pad,) + tail, np.float32)]
+    )
     hit = call(flat(o, (3,)), flat(d, (3,)), flat(t, ()), shard=shard)
     return jax.tree.map(lambda x: jax.device_put(np.asarray(x)[:n].reshape(shape + x.shape[1:])), hit)
 
@@ -62,23 +63,33 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
     try:
         np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
     except ValueError:
-        raise refuse(f"{caller} origins, directions, t_max", "batch shapes must broadcast",
-                     (np.shape(origins), np.shape(directions), np.shape(t_max))) from None
+        raise refuse(
+            f"{caller} origins, directions, t_max",
+            "batch shapes must broadcast",
+            (np.shape(origins), np.shape(directions), np.shape(t_max)),
+        ) from None
     if lanes is not None:
         check_int(f"{caller} lanes", lanes, minimum=1)
 
 
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
-    hit = trace_rays(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes,
-               shard=shard)
+    hit = trace_rays(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes, shard=shard)
     index = voxel_index(tree, jnp.maximum(hit.voxel, 0))
     return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
 
 
-def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=float("inf"),
-          method: str = "esvo", max_steps: int | None = None, lanes: int | None = 16384,
-          shard: bool | None = None) -> Hit:
+def trace(
+    tree: Octree,
+    origins: jax.Array,
+    directions: jax.Array,
+    *,
+    t_max=float("inf"),
+    method: str = "esvo",
+    max_steps: int | None = None,
+    lanes: int | None = 16384,
+    shard: bool | None = None,
+) -> Hit:
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
     Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
@@ -110,25 +121,32 @@ def trace(tree: Octree, origins: jax.Array, directions: jax.Array, *, t_max=floa
     check_type("trace tree", tree, Octree)
     check_choice("trace method", method, TRACE_METHODS)
     _check_rays("trace", origins, directions, t_max, lanes)
-    steps = (check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None
-             else default_max_steps(tree))
-    return _rays_on_ladder(functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes),
-                           origins, directions, t_max, shard)
+    steps = check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
+    return _rays_on_ladder(
+        functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes), origins, directions, t_max, shard
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
 def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
-    hit = trace_rays(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes,
-               shard=shard)
+    hit = trace_rays(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes, shard=shard)
     res = dense.grid.resolution
     v = jnp.maximum(hit.voxel, 0)
     index = (v[..., 0] * res + v[..., 1]) * res + v[..., 2]
     return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
 
 
-def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions: jax.Array, *,
-                t_max=float("inf"), max_steps: int | None = None, lanes: int | None = 16384,
-                shard: bool | None = None) -> Hit:
+def trace_dense(
+    occupancy: jax.Array,
+    grid: Grid,
+    origins: jax.Array,
+    directions: jax.Array,
+    *,
+    t_max=float("inf"),
+    max_steps: int | None = None,
+    lanes: int | None = 16384,
+    shard: bool | None = None,
+) -> Hit:
     """First voxel hit along each ray in a dense occupancy grid (Amanatides-Woo DDA).
 
     Same conventions and driver as `trace`; meant for small grids and as a reference.
@@ -152,5 +170,6 @@ def trace_dense(occupancy: jax.Array, grid: Grid, origins: jax.Array, directions
     _check_rays("trace_dense", origins, directions, t_max, lanes)
     steps = check_int("trace_dense max_steps", max_steps, minimum=1) if max_steps is not None else 3 * res + 8
     dense = DenseGrid(occupancy.astype(bool).reshape(-1), grid)
-    return _rays_on_ladder(functools.partial(_trace_dense, dense, max_steps=steps, lanes=lanes),
-                           origins, directions, t_max, shard)
+    return _rays_on_ladder(
+        functools.partial(_trace_dense, dense, max_steps=steps, lanes=lanes), origins, directions, t_max, shard
+    )

@@ -5,6 +5,7 @@ flattening, sharding over devices); see `jaxvox.trace`."""
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -17,7 +18,7 @@ from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
 from jaxvox.trace.ray import AXES, Ray, setup_ray
 from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
 
-_METHODS = {
+_METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
     "esvo": (esvo_init, esvo_step, esvo_voxel),
     "stack": (stacked_init, stacked_step, stacked_voxel),
     "dda": (dda_init, dda_step, dda_voxel),
@@ -32,15 +33,15 @@ def _vmapped(structure, rays: Ray, t_start, status, method: str, max_steps: int)
         def cond(c):
             return (c[0].status == RUNNING) & (c[1] < max_steps)
 
-        s, _ = jax.lax.while_loop(cond, lambda c: (step(structure, ray, c[0]), c[1] + 1),
-                                  (init(structure, ray, t0, st), jnp.int32(0)))
+        s, _ = jax.lax.while_loop(
+            cond, lambda c: (step(structure, ray, c[0]), c[1] + 1), (init(structure, ray, t0, st), jnp.int32(0))
+        )
         return jnp.where(s.status == RUNNING, STEP_CAP, s.status), jnp.stack(voxel(structure, s))
 
     return jax.vmap(one)(rays, t_start, status)
 
 
-def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, lanes: int,
-           steps_per_refill: int = 4):
+def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 4):
     """Persistent lanes fed from a queue of the rays that enter the grid box.
 
     Returns (status [N], voxel [N, 3] mirrored).
@@ -48,8 +49,11 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
     init, step, voxel = _METHODS[method]
     n = status.shape[0]
     running = status == RUNNING
-    queue = jnp.zeros(n + 1, jnp.int32).at[jnp.where(running, jnp.cumsum(running) - 1, n)].set(
-        jnp.arange(n, dtype=jnp.int32))[:n]
+    queue = (
+        jnp.zeros(n + 1, jnp.int32)
+        .at[jnp.where(running, jnp.cumsum(running) - 1, n)]
+        .set(jnp.arange(n, dtype=jnp.int32))[:n]
+    )
     queued = jnp.sum(running)
     lane_init = jax.vmap(lambda ray, t0, st: init(structure, ray, t0, st))
     lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
@@ -72,9 +76,15 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
     valid = first < queued
     ids0 = queue[jnp.minimum(first, n - 1)]
     ray0, state0 = fetch(ids0, valid)
-    carry = Carry(jnp.where(valid, ids0, n), ray0, state0,
-                  jnp.zeros(lanes, jnp.int32), jnp.minimum(queued, lanes),
-                  jnp.where(running, RUNNING, status), jnp.full((n, 3), -1, jnp.int32))
+    carry = Carry(
+        jnp.where(valid, ids0, n),
+        ray0,
+        state0,
+        jnp.zeros(lanes, jnp.int32),
+        jnp.minimum(queued, lanes),
+        jnp.where(running, RUNNING, status),
+        jnp.full((n, 3), -1, jnp.int32),
+    )
 
     def body(c: Carry) -> Carry:
         # a loop, not unrolled: XLA would fuse consecutive steps and recompute each one
@@ -92,9 +102,15 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
         new_ids = queue[jnp.clip(pos, 0, n - 1)]
         new_ray, new_state = fetch(new_ids, fresh)
         refill = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
-        return Carry(jnp.where(fresh, new_ids, jnp.where(done, n, c.ids)),
-                     jax.tree.map(refill, new_ray, c.ray), jax.tree.map(refill, new_state, state),
-                     jnp.where(done, 0, steps), c.next + jnp.sum(ended), out_status, out_voxel)
+        return Carry(
+            jnp.where(fresh, new_ids, jnp.where(done, n, c.ids)),
+            jax.tree.map(refill, new_ray, c.ray),
+            jax.tree.map(refill, new_state, state),
+            jnp.where(done, 0, steps),
+            c.next + jnp.sum(ended),
+            out_status,
+            out_voxel,
+        )
 
     c = jax.lax.while_loop(lambda c: jnp.any(c.ids < n), body, carry)
     return c.out_status, c.out_voxel
@@ -107,18 +123,20 @@ def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes):
     if lanes is None or o.shape[0] == 0:
         status, cell = _vmapped(structure, rays, t_start, status, method, max_steps)
     else:
-        status, cell = _lanes(structure, rays, t_start, status, method, max_steps,
-                              min(lanes, o.shape[0]))
+        status, cell = _lanes(structure, rays, t_start, status, method, max_steps, min(lanes, o.shape[0]))
     hit = status == HIT
     t0 = (cell - jnp.stack(rays.o, -1)) * jnp.stack(rays.inv, -1)
     t_in = jnp.max(t0, axis=-1)
     flip = ((rays.flip[:, None] >> AXES) & 1) == 1
     entry = jnp.where(t_in > 0, jnp.argmax(t0, axis=-1), -1)
     normal = jnp.where(AXES == entry[:, None], jnp.where(flip, 1.0, -1.0), 0.0)
-    return Hit(t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
-               voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
-               normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
-               index=jnp.zeros_like(status), status=status)
+    return Hit(
+        t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
+        voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
+        normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
+        index=jnp.zeros_like(status),
+        status=status,
+    )
 
 
 def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard):
@@ -138,8 +156,13 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
         o, d, t_max = (jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) for x in (o, d, t_max))
         mesh = jax.sharding.Mesh(np.array(devices), ("rays",))
         spec = jax.sharding.PartitionSpec("rays")
-        hits = jax.shard_map(lambda a, b, c: run(structure, a, b, c), mesh=mesh,
-                             in_specs=(spec, spec, spec), out_specs=spec, check_vma=False)(o, d, t_max)
+        hits = jax.shard_map(
+            lambda a, b, c: run(structure, a, b, c),
+            mesh=mesh,
+            in_specs=(spec, spec, spec),
+            out_specs=spec,
+            check_vma=False,
+        )(o, d, t_max)
         hits = jax.tree.map(lambda x: x[:n], hits)
     else:
         hits = run(structure, o, d, t_max)

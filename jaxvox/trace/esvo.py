@@ -57,8 +57,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     status = step_status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
     row = child_row(tree, s.parent, slot)
     # XLA would otherwise recompute these in the fusion of every output.
-    t_in, axis, before, push, status, row = jax.lax.optimization_barrier(
-        (t_in, axis, before, push, status, row))
+    t_in, axis, before, push, status, row = jax.lax.optimization_barrier((t_in, axis, before, push, status, row))
     # PUSH: the cell is an occupied node; enter its child the ray is in at entry.
     pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, 0.0))
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
@@ -71,7 +70,8 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
         corner=vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
         parent=jnp.where(push, row, pick(s.stack, pop_level - 1)),
         stack=stack_set(s.stack, s.level, row, push),
-        status=status)
+        status=status,
+    )
     return select(status == RUNNING, stepped, s._replace(status=status))
 
 

@@ -7,6 +7,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.octree import Octree
@@ -39,6 +40,11 @@ class Hit:
       status: [...] int32 `HIT`, `MISS`, `STEP_CAP` (gave up after ``max_steps``) or
         `INVALID` (NaN origin or direction, zero direction, NaN ``t_max``).
 
+    Every tracer returns one: `trace`, `trace_dense`, `sphere_trace` and
+    `sphere_trace_octree` (``t`` along the unit direction, ``normal`` the scene's
+    gradient), and `trace_clipmap` (``t`` along the unit direction, ``normal`` the field
+    gradient, ``index`` the cascade hit, ``voxel`` -1).
+
     `jaxvox.sphere_trace` returns the same type: there ``t`` is the distance along the
     unit direction, ``normal`` the unit SDF gradient, and ``voxel`` and ``index`` are -1.
     """
@@ -50,15 +56,18 @@ class Hit:
     status: jax.Array  # [...] int32
 
 
-def valid_rays(origins: jax.Array, directions: jax.Array) -> jax.Array:
+def valid_rays(origins: jax.Array | np.ndarray, directions: jax.Array | np.ndarray) -> jax.Array:
     """Which rays can be traced: [...] bool, for origins and directions [..., 3] (jittable).
 
     A ray is valid when neither its origin nor its direction holds a NaN and its direction
     is not zero. `trace` and `trace_dense` give the others status `INVALID` (as they do
     rays with a NaN ``t_max``); the renderer ends a path by zeroing its direction.
     """
-    return ~(jnp.any(jnp.isnan(origins), axis=-1) | jnp.any(jnp.isnan(directions), axis=-1)
-             | jnp.all(directions == 0, axis=-1))
+    return ~(
+        jnp.any(jnp.isnan(origins), axis=-1)
+        | jnp.any(jnp.isnan(directions), axis=-1)
+        | jnp.all(directions == 0, axis=-1)
+    )
 
 
 def default_max_steps(tree: Octree) -> int:

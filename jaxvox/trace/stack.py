@@ -62,11 +62,9 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
     # the moved bit: the child across the nearest exit plane, if still inside this node
     exit_bit = jnp.left_shift(1, argmin3(t1))
     next_child = jnp.where((c & exit_bit) == 0, c | exit_bit, -1)
-    status = step_status((~popping & (t_in > ray.t_max)) | (popping & (s.level == 0)),
-                     live & (s.level == depth - 1))
+    status = step_status((~popping & (t_in > ray.t_max)) | (popping & (s.level == 0)), live & (s.level == depth - 1))
     row = child_row(tree, s.node, slot)
-    t_in, next_child, descend, status, row = jax.lax.optimization_barrier(
-        (t_in, next_child, descend, status, row))
+    t_in, next_child, descend, status, row = jax.lax.optimization_barrier((t_in, next_child, descend, status, row))
     # save the parent with its next child, go down; or pop one level
     first = slot_bits(first_cell(ray, child_corner, half >> 1, jnp.maximum(t_in, 0.0)), shift - 1)
     up = jnp.maximum(s.level - 1, 0)
@@ -75,13 +73,12 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
     stepped = _Stacked(
         level=jnp.where(descend, s.level + 1, jnp.where(pop, up, s.level)),
         node=jnp.where(descend, row, jnp.where(pop, pick(s.stack_node, up), s.node)),
-        corner=vec(lambda a, b: jnp.where(descend, a, jnp.where(pop, b & up_mask, b)),
-                    child_corner, s.corner),
-        child=jnp.where(descend, first, jnp.where(pop, pick(s.stack_child, up),
-                                                  jnp.where(live, s.child, next_child))),
+        corner=vec(lambda a, b: jnp.where(descend, a, jnp.where(pop, b & up_mask, b)), child_corner, s.corner),
+        child=jnp.where(descend, first, jnp.where(pop, pick(s.stack_child, up), jnp.where(live, s.child, next_child))),
         stack_node=stack_set(s.stack_node, s.level, s.node, descend),
         stack_child=stack_set(s.stack_child, s.level, next_child, descend),
-        status=status)
+        status=status,
+    )
     return select(status == RUNNING, stepped, s._replace(status=status))
 
 

@@ -1,0 +1,332 @@
+"""The host-side voxelizer: `voxelize` streams triangle chunks through fixed work windows
+into page buffers, region by region, and `voxel_capacities` sizes `voxelize_fixed`."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox import morton
+from jaxvox._checks import check_choice, check_int, check_type, refuse
+from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket
+from jaxvox.grid import Grid
+from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.voxelize.pipeline import sort_unique
+from jaxvox.voxelize.triangles import expand_candidates, expand_columns, expand_rows, setup_triangles
+from jaxvox.voxelize.voxels import (
+    CONSERVATIVE,
+    MODES,
+    REGION_SIZE,
+    ROW_CHUNK,
+    SIX_SEPARATING,
+    UNUSED,
+    Capacities,
+    Mode,
+    Voxels,
+)
+
+# ------------------------------------------------------------------ host-side API
+
+# The host path walks fixed work windows, so that every mesh at every resolution runs the
+# same few compiled programs whatever its counts: triangles in chunks of `_CHUNK`,
+# expanded into windows of columns, row slots and candidates, written into fixed pages.
+# Only the sort of a region's candidates (a whole number of pages, on the shape ladder)
+# changes shape.
+_CHUNK = 4096
+_WINDOW_COLUMNS = 1 << 15
+_WINDOW_ROWS = 1 << 16
+_WINDOW_CANDIDATES = 1 << 17
+_PAGE = 1 << 18  # slots per page of a region's sort buffer (the emit program writes two)
+
+
+def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
+    """Calls ``carry = visit(rows, carry)`` on every row window of a chunk of triangles.
+
+    Returns:
+      (columns [] int32, row slots [] int32, final carry).
+    """
+    tris = setup_triangles(tris_grid, region_lo, region_hi, six_sep)
+
+    def columns_step(state):
+        start, slots, carry = state
+        columns = expand_columns(tris, _WINDOW_COLUMNS, start)
+        n_slots = jnp.sum((columns.n_rows + ROW_CHUNK - 1) // ROW_CHUNK)
+
+        def rows_step(state):
+            row_start, carry = state
+            rows = expand_rows(columns, _WINDOW_ROWS, ROW_CHUNK, row_start)
+            return row_start + _WINDOW_ROWS // ROW_CHUNK, visit(rows, carry)
+
+        _, carry = jax.lax.while_loop(lambda s: s[0] < n_slots, rows_step, (jnp.int32(0), carry))
+        return start + _WINDOW_COLUMNS, slots + n_slots * ROW_CHUNK, carry
+
+    n_cols = jnp.sum(tris.n_cols)
+    _, n_slots, carry = jax.lax.while_loop(lambda s: s[0] < n_cols, columns_step, (jnp.int32(0), jnp.int32(0), carry))
+    return n_cols, n_slots, carry
+
+
+@functools.partial(jax.jit, static_argnames=("six_sep",))
+def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
+    """[3] int32 (columns, row slots, candidates) of a chunk [_CHUNK, 3, 3] in a region."""
+    visit = lambda rows, n: n + jnp.sum(rows.n_depth)
+    n_cols, n_slots, n_cand = _walk(tris_grid, region_lo, region_hi, six_sep, visit, jnp.int32(0))
+    return jnp.stack([n_cols, n_slots, n_cand])
+
+
+@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("pages",))
+def _emit_chunk(tris_grid, ids, region_lo, region_hi, pages, offset, *, six_sep, with_ids):
+    """Writes the candidates of a chunk that fall in two consecutive pages of the region's
+    sort buffer (a chunk holds fewer candidates than a page, so one call usually writes
+    all of them).
+
+    Args:
+      tris_grid: [_CHUNK, 3, 3] float32 triangles in grid units (NaN rows are skipped).
+      ids: [_CHUNK] int32 triangle ids to record.
+      pages: two pages, each (keys,) or (keys, distance bits, triangle ids) of uint32
+        [_PAGE] (donated).
+      offset: [] int32 slot of the chunk's first candidate relative to the first page's
+        first slot (negative when the chunk started in an earlier page); candidates
+        outside the two pages are skipped.
+
+    Returns:
+      The two pages.
+    """
+
+    def visit(rows, carry):
+        pages, offset = carry
+        n = jnp.sum(rows.n_depth)
+
+        def step(state):
+            start, pages = state
+            keys, payload, _ = expand_candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
+            slot = start + jnp.arange(_WINDOW_CANDIDATES, dtype=jnp.int32)
+            pos = jnp.where((slot < n) & (offset + slot >= 0), offset + slot, 2 * _PAGE)
+            return start + _WINDOW_CANDIDATES, tuple(
+                tuple(b.at[pos - first].set(v, mode="drop") for b, v in zip(page, keys + payload))
+                for first, page in zip((0, _PAGE), pages)
+            )  # slots outside a page are dropped
+
+        # Only the windows that overlap the pages: from the one holding their first slot.
+        first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
+        _, pages = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < 2 * _PAGE), step, (first, pages))
+        return pages, offset + n
+
+    return _walk(tris_grid, region_lo, region_hi, six_sep, visit, (pages, offset))[2][0]
+
+
+@jax.jit
+def _sort_region(pages, region_lo):
+    """Sorts and deduplicates a region's candidates, given as pages of sort operands.
+
+    Returns:
+      (coords [K, 3] int32, triangle [K] int32 or None, count [] int32), K the pages' total.
+    """
+    buffers = tuple(jnp.concatenate(parts) for parts in zip(*pages))
+    coords, triangle, count, _ = sort_unique(buffers[:1], buffers[1:], 1, region_lo, buffers[0].shape[0])
+    return coords, triangle, count
+
+
+def _grid_triangles(mesh: Mesh, grid: Grid) -> np.ndarray:
+    """Host float32 [F, 3, 3] triangle corners in grid units (the same float32 operations
+    as `Grid.to_grid_units`; numpy, so a new mesh size compiles nothing)."""
+    v = np.asarray(mesh.vertices, np.float32)[np.asarray(mesh.faces)]
+    return (v - np.asarray(grid.origin, np.float32)) / np.asarray(grid.voxel_size, np.float32)
+
+
+def _chunks(tris: np.ndarray, idx: np.ndarray):
+    """Device arrays (triangles [_CHUNK, 3, 3] NaN-padded, ids [_CHUNK] int32) per chunk of `idx`."""
+    out = []
+    for start in range(0, len(idx), _CHUNK):
+        part = idx[start : start + _CHUNK]
+        t = np.full((_CHUNK, 3, 3), np.nan, np.float32)
+        t[: len(part)] = tris[part]
+        ids = np.zeros(_CHUNK, np.int32)
+        ids[: len(part)] = part
+        out.append((jax.device_put(t), jax.device_put(ids)))
+    return out
+
+
+def _region_bounds(region_lo, region_size: int):
+    lo = np.asarray(region_lo, np.int32)
+    return jax.device_put(lo), jax.device_put(lo + np.int32(region_size - 1))
+
+
+def _count_chunks(chunks, lo, hi, six_sep: bool) -> np.ndarray:
+    """Host int64 [chunks, 3] (columns, row slots, candidates) of a region's chunks."""
+    counts = [_count_chunk(t, lo, hi, six_sep=six_sep) for t, _ in chunks]
+    return np.asarray(jax.device_get(counts), np.int64).reshape(-1, 3)
+
+
+def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
+    """Host-side passes for one region: a counting pass places every chunk's candidates
+    in the sort buffer, the chunks write them page by page and one sort makes them
+    unique.
+
+    Returns:
+      (coords [n, 3] int32, triangle [n] int32 ids or None) host arrays.
+    """
+    lo, hi = _region_bounds(region_lo, region_size)
+    chunks = _chunks(tris, idx)
+    ends = np.cumsum(_count_chunks(chunks, lo, hi, six_sep)[:, 2])
+    starts = ends - np.diff(ends, prepend=0)
+    total = int(ends[-1])
+    n_pages = bucket(total, _PAGE) // _PAGE
+    pages: list = []
+    for _ in range(n_pages + 1):  # and a spare page past the end, written as the last pair's second
+        page = [np.full(_PAGE, morton.EMPTY, np.uint32)] + [np.zeros(_PAGE, np.uint32) for _ in range(2 * with_ids)]
+        pages.append(tuple(jax.device_put(b, may_alias=False) for b in page))
+    for (t, ids), start, end in zip(chunks, starts, ends):
+        at = int(start) // _PAGE
+        while at * _PAGE < end:  # two pages per call: once, unless a chunk spans more
+            pages[at], pages[at + 1] = _emit_chunk(
+                t,
+                ids,
+                lo,
+                hi,
+                (pages[at], pages[at + 1]),
+                np.int32(start - at * _PAGE),
+                six_sep=six_sep,
+                with_ids=with_ids,
+            )
+            at += 2
+    pages = pages[:n_pages]
+    coords, triangle, count = _sort_region(pages, lo)
+    count = int(count)
+    # The pages were sized by the exact count of the same walk, so nothing is dropped
+    # (a count past the buffer would show as a missing sentinel, never silently).
+    if count > total:
+        raise JaxvoxError(f"internal error: {count} voxels from {total} candidates")
+    return np.asarray(coords)[:count], (np.asarray(triangle)[:count] if with_ids else None)
+
+
+def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
+    """Aligned regions touched by any triangle's bounding box, in Morton order.
+
+    Returns a list of (region_lo int32[3], triangle indices) pairs.
+    """
+    n = resolution // region_size
+    if n == 1:
+        return [(np.zeros(3, np.int32), np.arange(len(tris_np)))]
+    lo = np.clip(np.floor((tris_np.min(1) - 1.0) / region_size), 0, n - 1).astype(np.int64)
+    hi = np.clip(np.floor(tris_np.max(1) / region_size), 0, n - 1).astype(np.int64)
+    inside = (tris_np.max(1) >= 0).all(1) & (tris_np.min(1) <= resolution).all(1)
+    touched: set[tuple[int, ...]] = set()
+    for a, b in {(tuple(l), tuple(h)) for l, h in zip(lo[inside], hi[inside])}:
+        first = np.array(a)
+        touched.update(tuple(first + c) for c in np.ndindex(*(np.array(b) - first + 1)))
+    cells = np.array(sorted(touched), np.int64).reshape(-1, 3)
+    order = np.argsort(morton.encode_word_host(cells), kind="stable")
+    out = []
+    for c in cells[order]:
+        hit = inside & (lo <= c).all(1) & (hi >= c).all(1)
+        out.append(((c * region_size).astype(np.int32), np.flatnonzero(hit)))
+    return out
+
+
+def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
+    """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED`.
+
+    Empties `parts` as it goes, and the buffer's pages are only touched as they are
+    filled, so the parts and the whole buffer are never held at once.
+    """
+    out = np.empty(shape, np.int32)
+    start = 0
+    parts.reverse()
+    while parts:
+        part = parts.pop()
+        out[start : start + len(part)] = part
+        start += len(part)
+    out[start:] = UNUSED
+    return out
+
+
+def voxelize(
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    mode: Mode = CONSERVATIVE,
+    triangle_ids: bool = False,
+    region_size: int = REGION_SIZE,
+    progress: bool | None = None,
+) -> Voxels:
+    """Voxelizes a triangle mesh exactly; capacities are sized by counting passes.
+
+    Triangles go through fixed-size chunks and fixed work windows, so every mesh runs
+    the same compiled programs; a counting pass over the same windows sizes each
+    region's candidate buffer (on the shape ladder), so nothing is ever dropped and no
+    retry is needed. The count is checked against what was written, and a mismatch
+    raises instead of returning a truncated set.
+
+    Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
+    regions, visited in Morton order, each voxelized from the triangles whose bounding
+    boxes touch it, so working memory follows the surface inside one region and the
+    concatenated result is already in Morton order.
+
+    Args:
+      mesh: the `Mesh` (validated: NaN/inf vertices or bad face indices raise).
+      grid: the `Grid`; geometry outside it is clipped.
+      mode: "conservative" (every voxel whose closed box touches the closed triangle)
+        or "6-separating" (Schwarz & Seidel's thin, 6-separating subset).
+      triangle_ids: also record, per voxel, the id of the triangle closest to its
+        centre among those that set it (ties to the lower id).
+      region_size: edge of the streaming regions, a power of two <= 1024.
+      progress: show a progress bar over regions (default: when on a terminal).
+
+    Returns:
+      `Voxels` with ``overflow == 0`` and capacity rounded up to a few buckets.
+
+    Raises:
+      JaxvoxError: not a `Grid`, a bad mode, region size or mesh.
+    """
+    check_type("voxelize grid", grid, Grid)
+    six_sep = check_choice("voxelize mode", mode, MODES) == SIX_SEPARATING
+    validate_mesh(mesh)
+    region_size = check_int("voxelize region_size", region_size, minimum=1, maximum=REGION_SIZE)
+    if region_size & (region_size - 1):
+        raise refuse("voxelize region_size", f"must be a power of two <= {REGION_SIZE}", region_size)
+    region_size = min(region_size, grid.resolution)
+    tris = _grid_triangles(mesh, grid)
+    regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
+    from tqdm.auto import tqdm
+
+    parts, tri_parts = [], []
+    disable = len(regions) < 2 if progress is None else not progress
+    for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
+        coords, triangle = _voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+        parts.append(coords)  # on the host as we go: device memory holds one region
+        if triangle_ids:
+            tri_parts.append(triangle)
+    total = sum(len(p) for p in parts)
+    cap = bucket(total)
+    coords = _pad_rows(parts, (cap, 3))
+    triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
+    to_device = functools.partial(jax.device_put, may_alias=True)  # one copy, not jnp.asarray's two
+    return Voxels(
+        to_device(coords), jnp.int32(total), jnp.int32(0), None if triangle is None else to_device(triangle), grid, mode
+    )
+
+
+def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: Mode = CONSERVATIVE) -> Capacities:
+    """Capacities with which `voxelize_fixed` does not overflow for this mesh and grid.
+
+    Found by the host-side counting pass over the whole grid as one region (and the
+    voxel count of `voxelize`), each rounded up on the shape ladder so that similar
+    inputs share a compiled function.
+
+    Raises:
+      JaxvoxError: not a `Grid`, a bad mode or mesh.
+    """
+    check_type("voxel_capacities grid", grid, Grid)
+    six_sep = check_choice("voxel_capacities mode", mode, MODES) == SIX_SEPARATING
+    validate_mesh(mesh)
+    if mesh.num_faces == 0:
+        return Capacities(*(bucket(0),) * 4, ROW_CHUNK)
+    lo, hi = _region_bounds(np.zeros(3, np.int32), grid.resolution)
+    chunks = _chunks(_grid_triangles(mesh, grid), np.arange(mesh.num_faces))
+    columns, rows, candidates = (bucket(n) for n in _count_chunks(chunks, lo, hi, six_sep).sum(0))
+    voxels = bucket(int(voxelize(mesh, grid, mode=mode).count))
+    return Capacities(columns, rows, candidates, voxels, ROW_CHUNK)
