@@ -14,16 +14,17 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 FLOOR = 256  # smallest bucket
 
 
-def bucket(n: int, minimum: int = FLOOR) -> int:
+def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
     """The ladder: the smallest power of two >= max(n, minimum)."""
     return 1 << (max(int(n), int(minimum), 1) - 1).bit_length()
 
 
-def key_bits(n: int) -> int:
+def key_bits(n: int | np.integer) -> int:
     """Bits for ids below `n` (plus one `EMPTY` value), rounded to 8, 10, 16 or 32.
 
     Eight child ids pack into 2, 3, 4 or 8 uint32 sort keys at those widths; a width in

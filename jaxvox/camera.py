@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Float32, Real
 
 from jaxvox._checks import check_int, check_number, check_vector, is_concrete, refuse
 
@@ -68,7 +71,15 @@ def check_view(caller: str, eye, target, up, fov) -> tuple[np.ndarray, np.ndarra
     return e, t, u, fov
 
 
-def pinhole_rays(eye, target, *, width: int, height: int, fov: float = 40.0, up=(0.0, 1.0, 0.0)):
+def pinhole_rays(
+    eye: Real[ArrayLike, 3] | Sequence[float],
+    target: Real[ArrayLike, 3] | Sequence[float],
+    *,
+    width: int,
+    height: int,
+    fov: float = 40.0,
+    up: Real[ArrayLike, 3] | Sequence[float] = (0.0, 1.0, 0.0),
+) -> tuple[Float32[Array, "H W 3"], Float32[Array, "H W 3"]]:
     """Primary rays through pixel centres of a pinhole camera (jittable; sizes are static).
 
     Args:

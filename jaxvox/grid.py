@@ -7,6 +7,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_number, refuse
 from jaxvox._pytree import pytree_dataclass
@@ -55,8 +56,8 @@ class Grid:
       resolution: static int R, a power of two.
     """
 
-    origin: jax.Array  # [3] float32
-    voxel_size: jax.Array  # [] float32
+    origin: Float32[Array, "*batch 3"]  # [3] float32
+    voxel_size: Float32[Array, " *batch"]  # [] float32
     resolution: int = dataclasses.field(metadata=dict(static=True))
 
     def __init__(self, origin, voxel_size, resolution):

@@ -9,6 +9,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float32, Int32
 
 from jaxvox._checks import check_choice, check_output_path, is_concrete, refuse
 from jaxvox._pytree import pytree_dataclass
@@ -35,11 +36,11 @@ class Mesh:
         `sample_texture`) and takes precedence over `colors`.
     """
 
-    vertices: jax.Array  # [V, 3] float32
-    faces: jax.Array  # [F, 3] int32
-    colors: jax.Array | None = None  # [V, C] float32
-    uvs: jax.Array | None = None  # [V, 2] float32
-    texture: jax.Array | None = None  # [H, W, C] float32
+    vertices: Float32[Array, "*batch V 3"]  # [V, 3] float32
+    faces: Int32[Array, "*batch F 3"]  # [F, 3] int32
+    colors: Float32[Array, "*batch V C"] | None = None  # [V, C] float32
+    uvs: Float32[Array, "*batch V 2"] | None = None  # [V, 2] float32
+    texture: Float32[Array, "*batch H W C"] | None = None  # [H, W, C] float32
 
     def __init__(self, vertices, faces, *, colors=None, uvs=None, texture=None):
         optional = lambda name, a: None if a is None else _numeric(f"Mesh {name}", a, jnp.float32)

@@ -25,6 +25,7 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool
 
 from jaxvox._checks import check_choice, check_number, check_type, refuse
 from jaxvox._shapes import bucket, expand_counts
@@ -164,7 +165,7 @@ def solid_inside(mesh: Mesh, tris, grid: Grid, shape: tuple[int, int, int], meth
     )
 
 
-def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> jax.Array:
+def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> Bool[Array, "R R R"]:
     """Voxels whose centre lies inside the mesh: [R, R, R] bool (True inside).
 
     Args:

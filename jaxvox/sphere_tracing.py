@@ -38,6 +38,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Real
 
 from jaxvox._checks import is_concrete
 from jaxvox._errors import JaxvoxError
@@ -259,8 +260,8 @@ def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation,
 
 def sphere_trace(
     scene: SDF,
-    origins,
-    directions,
+    origins: Real[ArrayLike, "*o 3"],
+    directions: Real[ArrayLike, "*d 3"],
     *,
     t_max=np.inf,
     max_steps: int = 256,

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_int, check_number, check_type, refuse
 from jaxvox._geometry import solid_angle
@@ -186,7 +187,7 @@ def _level(
     return w, jnp.where(ok, blocks[owner], 0), jnp.where(ok, tree.first[nodes[owner]] + rank, 0)
 
 
-def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4) -> jax.Array:
+def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4) -> Float32[Array, "R R R"]:
     """Generalized winding number of `mesh` at every voxel centre of `grid`, fast.
 
     Host-side (each tree level's frontier is sized on the host); see the module

@@ -16,6 +16,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_choice, check_int, check_type
 from jaxvox._shapes import bucket
@@ -86,7 +87,7 @@ def distance_field(
     sweeps: int = 3,
     sign: str = "auto",
     max_bytes: int | None = None,
-) -> jax.Array:
+) -> Float32[Array, "R R R"]:
     """Distance from every voxel centre to the mesh surface, in world units.
 
     Host-side (it sizes the voxelization and checks memory); the propagation and sign

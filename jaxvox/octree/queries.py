@@ -8,6 +8,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, ArrayLike, Int32, Integer
 
 from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._shapes import bucket, expand_counts
@@ -23,7 +24,7 @@ for _m in range(256):
     _SELECT[_m, : len(_bits)] = _bits
 
 
-def voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
+def voxel_index(tree: Octree, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Array, " *batch"]:
     """Morton-order index of each voxel in the tree, `MISSING` (-1) where empty.
 
     A root-to-leaf walk adding the stored prefix sums; the index addresses attribute

@@ -9,6 +9,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Int32, UInt8, UInt32
 
 from jaxvox import morton
 from jaxvox._pytree import pytree_dataclass
@@ -54,14 +55,14 @@ class Octree:
       mode: static str, the voxelization mode of the source voxels.
     """
 
-    mask: jax.Array  # [N] uint8
-    child: jax.Array  # [M, 8] uint32
-    prefix: jax.Array  # [M, 8] uint32
-    level_count: jax.Array  # [D] int32
-    voxel_count: jax.Array  # [] int32
-    overflow: jax.Array  # [] int32
+    mask: UInt8[Array, "*batch N"]  # [N] uint8
+    child: UInt32[Array, "*batch M 8"]  # [M, 8] uint32
+    prefix: UInt32[Array, "*batch M 8"]  # [M, 8] uint32
+    level_count: Int32[Array, "*batch D"]  # [D] int32
+    voxel_count: Int32[Array, " *batch"]  # [] int32
+    overflow: Int32[Array, " *batch"]  # [] int32
     grid: Grid
-    level_capacity: jax.Array  # [D] int32
+    level_capacity: Int32[Array, "*batch D"]  # [D] int32
     dag: bool = dataclasses.field(metadata=dict(static=True))
     mode: str = dataclasses.field(metadata=dict(static=True))
 

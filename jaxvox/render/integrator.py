@@ -53,6 +53,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float32, Int32
 
 from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
@@ -82,10 +83,10 @@ class RenderResult:
         started inside a voxel (see the module docstring).
     """
 
-    radiance: jax.Array  # [H, W, 3] float32
-    depth: jax.Array  # [H, W] float32
-    normal: jax.Array  # [H, W, 3] float32
-    stopped: jax.Array  # [] int32
+    radiance: Float32[Array, "H W 3"]  # [H, W, 3] float32
+    depth: Float32[Array, "H W"]  # [H, W] float32
+    normal: Float32[Array, "H W 3"]  # [H, W, 3] float32
+    stopped: Int32[Array, ""]  # [] int32
 
 
 class PathState(NamedTuple):
@@ -226,7 +227,7 @@ def shade(
     )
 
 
-def uniforms(keys, stream: int, n: int):
+def uniforms(keys, stream: int | jax.Array, n: int):
     """[N, n] float32 uniforms, one draw per path key for the given stream number."""
     return jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, stream), (n,)))(keys)
 

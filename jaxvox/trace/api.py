@@ -9,6 +9,7 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import ArrayLike, Real, Shaped
 
 from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
 from jaxvox._shapes import bucket
@@ -81,10 +82,10 @@ def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard)
 
 def trace(
     tree: Octree,
-    origins: jax.Array,
-    directions: jax.Array,
+    origins: Real[ArrayLike, "*o 3"],
+    directions: Real[ArrayLike, "*d 3"],
     *,
-    t_max=float("inf"),
+    t_max: Real[ArrayLike, "*t"] = float("inf"),
     method: str = "esvo",
     max_steps: int | None = None,
     lanes: int | None = 16384,
@@ -137,12 +138,12 @@ def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
 
 
 def trace_dense(
-    occupancy: jax.Array,
+    occupancy: Shaped[ArrayLike, "R R R"],
     grid: Grid,
-    origins: jax.Array,
-    directions: jax.Array,
+    origins: Real[ArrayLike, "*o 3"],
+    directions: Real[ArrayLike, "*d 3"],
     *,
-    t_max=float("inf"),
+    t_max: Real[ArrayLike, "*t"] = float("inf"),
     max_steps: int | None = None,
     lanes: int | None = 16384,
     shard: bool | None = None,

@@ -8,6 +8,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float32, Int32
 
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.octree import Octree
@@ -49,11 +50,11 @@ class Hit:
     unit direction, ``normal`` the unit SDF gradient, and ``voxel`` and ``index`` are -1.
     """
 
-    t: jax.Array  # [...] float32
-    voxel: jax.Array  # [..., 3] int32
-    normal: jax.Array  # [..., 3] float32
-    index: jax.Array  # [...] int32
-    status: jax.Array  # [...] int32
+    t: Float32[Array, " *rays"]  # [...] float32
+    voxel: Int32[Array, "*rays 3"]  # [..., 3] int32
+    normal: Float32[Array, "*rays 3"]  # [..., 3] float32
+    index: Int32[Array, " *rays"]  # [...] int32
+    status: Int32[Array, " *rays"]  # [...] int32
 
 
 def valid_rays(origins: jax.Array | np.ndarray, directions: jax.Array | np.ndarray) -> jax.Array:

@@ -6,9 +6,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Final, Literal, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Int32
 
 from jaxvox import morton
 from jaxvox._checks import check_choice, check_int, check_type, refuse
@@ -87,10 +87,10 @@ class Voxels:
       mode: "conservative" or "6-separating".
     """
 
-    coords: jax.Array  # [capacity, 3] int32
-    count: jax.Array  # [] int32
-    overflow: jax.Array  # [] int32
-    triangle: jax.Array | None  # [capacity] int32
+    coords: Int32[Array, "*batch capacity 3"]  # [capacity, 3] int32
+    count: Int32[Array, " *batch"]  # [] int32
+    overflow: Int32[Array, " *batch"]  # [] int32
+    triangle: Int32[Array, "*batch capacity"] | None  # [capacity] int32
     grid: Grid
     mode: str = dataclasses.field(metadata=dict(static=True))
 
