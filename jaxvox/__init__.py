@@ -68,6 +68,7 @@ from jaxvox.render import (
 from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
 from jaxvox.solid import open_edges, solid_voxelize
+from jaxvox.sparse_field import SparseField, sample, sparse_distance_field
 from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import (
     HIT,
@@ -125,6 +126,7 @@ __all__ = [
     "RenderResult",
     "SIX_SEPARATING",
     "STEP_CAP",
+    "SparseField",
     "TRACE_METHODS",
     "UNUSED",
     "Voxels",
@@ -159,6 +161,7 @@ __all__ = [
     "render",
     "render_mesh",
     "run_batch",
+    "sample",
     "sample_texture",
     "save",
     "save_binvox",
@@ -168,6 +171,7 @@ __all__ = [
     "sdf",
     "sky_environment",
     "solid_voxelize",
+    "sparse_distance_field",
     "sphere_trace",
     "sphere_trace_octree",
     "stack_grids",

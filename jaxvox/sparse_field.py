@@ -1,0 +1,486 @@
+"""Sparse narrow-band signed distance fields: exact distances at the voxels near the surface.
+
+`sparse_distance_field` keeps only the *band voxels*, those whose centre lies within
+``band`` voxel edges of the surface (distance ``<= band * h``), with their exact float32
+distance to the mesh, and `sample` interpolates them trilinearly under `jax.jit`.
+
+Method (no propagation, so no propagation error):
+
+* **Pairs.** A band voxel's centre lies within ``band`` of its closest triangle, so it lies
+  in that triangle's bounding box dilated by ``band`` (grid units). Space is cut into
+  aligned bricks of ``BRICK^3`` voxels. The host splits each triangle's dilated,
+  grid-clipped box at brick boundaries (one *item* per (triangle, brick)), orders the
+  items by the Morton code of their brick and packs consecutive bricks into groups of
+  `BRICKS` (the counting pass). A jitted kernel walks a group's (triangle, voxel) pairs,
+  `TRIANGLE_CHUNK` items at a time, in fixed windows of `WINDOW` pairs
+  (`jaxvox._shapes.expand_counts`), evaluates the float32 point-triangle distance in grid
+  units relative to the brick (`jaxvox._geometry.point_triangle_dist2`), keeps pairs
+  within ``band`` and scatter-mins their distance bits (non-negative float32 bits order
+  like the floats) into the brick cell, with the triangle id of the minimum (lowest id on
+  ties). Cells are laid out in Morton order within each brick, so compacting a group's
+  set cells yields its band voxels in global Morton order: no merge is needed, and every
+  voxel is final when its brick is. The group's bricks are local scratch (8 MiB), not a
+  grid-sized array; all shapes are fixed, so a new mesh compiles nothing new.
+* **Sign.** For a watertight mesh (`jaxvox.open_edges` is 0) without zero-area faces,
+  the angle-weighted pseudo-normal (Baerentzen & Aanaes 2005) of the closest feature of the
+  voxel's closest triangle: the face normal when the closest point is interior to the
+  face, the sum of the two face normals for an edge, the angle-weighted normal sum for a
+  vertex (precomputed on the host, vertices welded by position); negative inside. Otherwise
+  the generalized winding number at the band voxel centres (inside where > 1/2), brute
+  force over all triangles in chunks: O(band voxels x F) work, e.g. about 6e10
+  solid angles for the bunny (0.9 M band voxels, 69 k faces) at 256^3, so open meshes
+  are slow at high resolution (a tree-accelerated point query is future work).
+
+Nothing of size R^3 is allocated; the work is O(sum over triangles of their dilated
+boxes), at least ``(2 band + 1)^3`` pairs per triangle. Host memory: about 32 bytes per
+band voxel while the groups' results are gathered, then the `SparseField` itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Float32
+
+from jaxvox import morton
+from jaxvox._checks import check_int, check_type, refuse
+from jaxvox._geometry import point_triangle_dist2, solid_angle
+from jaxvox._pytree import pytree_dataclass
+from jaxvox._shapes import bucket, expand_counts
+from jaxvox.grid import Grid
+from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.octree import Octree, build_octree, voxel_index
+from jaxvox.solid import open_edges
+from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
+
+WINDOW = 1 << 17  # (triangle, voxel) pairs evaluated per call of the pair kernel
+TRIANGLE_CHUNK = 1 << 12  # triangle boxes per chunk of the pair kernel
+BRICK = 32  # edge of a chunk's scratch brick of voxels (BRICK^3 cells, 8 bytes each)
+BRICKS = 32  # bricks (chunks) handled together by one group of kernel calls
+_CELLS = BRICK**3
+_GROUP_CELLS = BRICKS * _CELLS
+_FAR_BITS = np.uint32(0x7F800000)  # float32 bits of +inf: a brick cell without a pair
+_NO_TRIANGLE = np.int32(np.iinfo(np.int32).max)
+POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
+WINDING_BLOCK = 1 << 10  # triangles per step of the brute-force winding number
+MAX_BAND = 64  # largest accepted `band` (voxels)
+UNUSED_VALUE = np.float32(np.inf)  # `SparseField.values` past `count`
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class SparseField:
+    """A narrow-band signed distance field: the band voxels and their distances.
+
+    Attributes:
+      voxels: the band voxels (`Voxels`, Morton order, mode "conservative"): every voxel
+        whose centre lies within ``band * h`` of the surface. ``voxels.triangle`` holds
+        each voxel's closest triangle (ties to the lower id).
+      values: [capacity] float32 distances in world units aligned with ``voxels.coords``
+        (negative inside when signed); slots past `count` hold `UNUSED_VALUE` (+inf).
+      tree: `Octree` of the band voxels (`build_octree`), for `voxel_index` lookups.
+      grid: the `Grid`.
+      band: static int, the half width in voxels (changing it recompiles consumers).
+    """
+
+    voxels: Voxels
+    values: Float32[Array, " capacity"]  # [capacity] float32
+    tree: Octree
+    grid: Grid
+    band: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def count(self) -> jax.Array:
+        """[] int32 number of band voxels."""
+        return self.voxels.count
+
+
+# --------------------------------------------------------------------------------------
+# Jitted cores (static shapes: WINDOW, TRIANGLE_CHUNK, BRICKS * BRICK^3, POINT_CHUNK,
+# bucketed face counts)
+# --------------------------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, donate_argnums=(0, 1))
+def _pair_window(bits, tri, tris, ids, slot, lo, ext, counts, start, band):
+    """Scatter-min of one window of (triangle, voxel) pairs into a group's bricks.
+
+    Args:
+      bits: [BRICKS * BRICK^3] uint32 float32 bits of the smallest squared distance per
+        brick cell (`_FAR_BITS` where none); tri: [BRICKS * BRICK^3] int32 its triangle
+        (lowest id on ties).
+      tris: [T, 3, 3] float32 triangles in grid units relative to their brick's origin;
+      ids: [T] int32 their mesh ids; slot: [T] int32 their brick; lo, ext: [T, 3] int32
+      first voxel (in the brick) and extent of each item's box; counts: [T] int32
+      ``prod(ext)``; start: [] int32 first pair of the window; band: [] float32.
+
+    Returns:
+      The updated (bits, tri).
+    """
+    owner, rank, valid, _ = expand_counts(counts, WINDOW, start)
+    e = ext[owner]
+    k = rank % e[:, 2]
+    j = (rank // e[:, 2]) % e[:, 1]
+    i = rank // (e[:, 2] * e[:, 1])
+    ijk = lo[owner] + jnp.stack([i, j, k], -1)
+    t = tris[owner]
+    d2 = point_triangle_dist2(ijk.astype(jnp.float32) + 0.5, t[:, 0], t[:, 1], t[:, 2])
+    keep = valid & (d2 <= band * band)
+    local = morton.encode_word(ijk).astype(jnp.int32)  # Morton order within the brick
+    cell = jnp.where(keep, slot[owner] * _CELLS + local, _GROUP_CELLS)
+    b = jax.lax.bitcast_convert_type(jnp.maximum(d2, 0.0), jnp.uint32)  # sorts like the float
+    new = bits.at[cell].min(b, mode="drop")
+    at = jnp.minimum(cell, _GROUP_CELLS - 1)
+    smaller = new[at] < bits[at]  # a smaller distance arrived: forget the cell's old id
+    tri = tri.at[jnp.where(smaller, cell, _GROUP_CELLS)].set(_NO_TRIANGLE, mode="drop")
+    mine = jnp.where(b == new[at], ids[owner], _NO_TRIANGLE)
+    return new, tri.at[cell].min(mine, mode="drop")
+
+
+@jax.jit
+def _extract(bits, tri):
+    """The set cells of a group's bricks, compacted: (cell [G] int32, d2 [G] float32,
+    tri [G] int32, n [] int32), ``G = BRICKS * BRICK^3``; slots past n are padding."""
+    keep = bits != _FAR_BITS
+    slot = jnp.where(keep, jnp.cumsum(keep) - 1, _GROUP_CELLS)
+    cells = jnp.arange(_GROUP_CELLS, dtype=jnp.int32)
+    cell = jnp.zeros(_GROUP_CELLS + 1, jnp.int32).at[slot].set(cells)[:_GROUP_CELLS]
+    return cell, jax.lax.bitcast_convert_type(bits[cell], jnp.float32), tri[cell], jnp.sum(keep)
+
+
+@functools.partial(jax.jit, static_argnames="size")
+def _head(arrays, size: int):
+    """The first `size` entries of each array (`size` on the shape ladder)."""
+    return tuple(a[:size] for a in arrays)
+
+
+@jax.jit
+def _fresh_brick():
+    return jnp.full(_GROUP_CELLS, _FAR_BITS, jnp.uint32), jnp.full(_GROUP_CELLS, _NO_TRIANGLE, jnp.int32)
+
+
+def closest_feature(p, a, b, c):
+    """Closest point region of triangles (a, b, c) to points p (Ericson), all [..., 3] float32.
+
+    Returns:
+      [...] int32: 0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a,
+      5 vertex b, 6 vertex c; and the closest points [..., 3].
+    """
+    dot = lambda x, y: jnp.sum(x * y, -1)
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    bp = p - b
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    cp = p - c
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    safe = lambda x: jnp.where(x != 0, x, 1.0)
+    den = va + vb + vc
+    v_face, w_face = vb / safe(den), vc / safe(den)
+    face = a + v_face[..., None] * ab + w_face[..., None] * ac
+    t_ab = d1 / safe(d1 - d3)
+    t_ac = d2 / safe(d2 - d6)
+    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+    cases = [  # (condition, region, point), first match wins (Ericson's order)
+        ((d1 <= 0) & (d2 <= 0), 4, a),
+        ((d3 >= 0) & (d4 <= d3), 5, b),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1, a + t_ab[..., None] * ab),
+        ((d6 >= 0) & (d5 <= d6), 6, c),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 3, a + t_ac[..., None] * ac),
+        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 2, b + t_bc[..., None] * (c - b)),
+    ]
+    region = jnp.zeros(p.shape[:-1], jnp.int32)
+    point = face
+    for cond, r, q in reversed(cases):
+        region = jnp.where(cond, r, region)
+        point = jnp.where(cond[..., None], q, point)
+    return region, point
+
+
+@jax.jit
+def _pseudo_normal_sign(points, tri_ids, tris, normals):
+    """-1 inside, +1 outside, by the pseudo-normal of the closest feature.
+
+    points [P, 3] float32 grid units, tri_ids [P] int32, tris [F, 3, 3] float32 grid
+    units, normals [F, 7, 3] float32 (face, edges ab bc ca, vertices a b c).
+    """
+    t = tris[jnp.maximum(tri_ids, 0)]
+    region, q = closest_feature(points, t[:, 0], t[:, 1], t[:, 2])
+    n = jnp.take_along_axis(normals[jnp.maximum(tri_ids, 0)], region[:, None, None], axis=1)[:, 0]
+    return jnp.where(jnp.sum((points - q) * n, -1) < 0, -1.0, 1.0).astype(jnp.float32)
+
+
+@jax.jit
+def _winding(points, tris):
+    """Generalized winding numbers [P] of triangles tris [F, 3, 3] (F a multiple of
+    `WINDING_BLOCK`) at points [P, 3], brute force in blocks of triangles."""
+    blocks = tris.reshape(-1, WINDING_BLOCK, 3, 3)
+
+    def step(w, block):
+        return w + jnp.sum(solid_angle(points[:, None], block[None]), -1), None
+
+    w, _ = jax.lax.scan(step, jnp.zeros(points.shape[0], jnp.float32), blocks)
+    return w
+
+
+# --------------------------------------------------------------------------------------
+# Host side
+# --------------------------------------------------------------------------------------
+
+
+def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Angle-weighted pseudo-normals per face corner feature (host, float64 in, float32 out).
+
+    Args:
+      vertices: [V, 3] float; faces: [F, 3] int (consistently oriented, watertight).
+
+    Returns:
+      [F, 7, 3] float32: the unit face normal, the edge normals of ab, bc, ca (sum of the
+      adjacent faces' unit normals) and the vertex normals of a, b, c (sum of the incident
+      faces' unit normals weighted by their corner angles). Vertices are welded by position.
+    """
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    order = np.lexsort(v.T[::-1])
+    new_group = np.concatenate([[True], np.any(v[order[1:]] != v[order[:-1]], axis=1)])
+    weld = np.empty(len(v), np.int64)
+    weld[order] = np.cumsum(new_group) - 1
+    f = weld[f]
+    tri = v[np.asarray(faces, np.int64)]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    vertex_n = np.zeros((int(weld.max()) + 1 if len(weld) else 0, 3))
+    for corner in range(3):
+        e1 = tri[:, (corner + 1) % 3] - tri[:, corner]
+        e2 = tri[:, (corner + 2) % 3] - tri[:, corner]
+        cos = np.einsum("ij,ij->i", e1, e2) / np.maximum(
+            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300
+        )
+        np.add.at(vertex_n, f[:, corner], np.arccos(np.clip(cos, -1, 1))[:, None] * n)
+    edges = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1)  # [F, 3, 2]
+    key = np.sort(edges, axis=2)
+    key = key[..., 0] * (len(vertex_n) + 1) + key[..., 1]
+    uniq, inverse = np.unique(key.reshape(-1), return_inverse=True)
+    edge_n = np.zeros((len(uniq), 3))
+    np.add.at(edge_n, inverse, np.repeat(n, 3, axis=0))
+    out = np.concatenate([n[:, None], edge_n[inverse].reshape(-1, 3, 3), vertex_n[f]], axis=1)
+    return out.astype(np.float32)
+
+
+def _pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
+    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+def _items(tris: np.ndarray, resolution: int, band: int):
+    """Every triangle's dilated, grid-clipped voxel box split at brick boundaries: (triangle
+    id [n] int64, brick [n, 3] int64, lo [n, 3] int64, hi [n, 3] int64 inclusive voxel
+    bounds), in Morton order of the bricks."""
+    lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
+    hi = np.minimum(np.floor(tris.max(1) + band - 0.5), resolution - 1).astype(np.int64)
+    ids = np.flatnonzero((hi >= lo).all(1))
+    lo, hi = lo[ids], hi[ids]
+    first, last = lo // BRICK, hi // BRICK
+    per_axis = last - first + 1
+    counts = per_axis.prod(1)
+    owner = np.repeat(np.arange(len(ids)), counts)
+    rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
+    n = per_axis[owner]
+    brick = first[owner] + np.stack([rank // (n[:, 1] * n[:, 2]), (rank // n[:, 2]) % n[:, 1], rank % n[:, 2]], -1)
+    order = np.argsort(_codes(brick), kind="stable")
+    brick, owner = brick[order], owner[order]
+    tile_lo = np.maximum(lo[owner], brick * BRICK)
+    tile_hi = np.minimum(hi[owner], brick * BRICK + BRICK - 1)
+    return ids[owner], brick, tile_lo, tile_hi
+
+
+def _codes(ijk: np.ndarray) -> np.ndarray:
+    """uint64 [n] Morton codes of voxel indices [n, 3] (< 2^20), host-side."""
+    ijk = np.asarray(ijk, np.int64)
+    hi = morton.encode_word_host(ijk >> morton.WORD_BITS).astype(np.uint64)
+    return (hi << np.uint64(3 * morton.WORD_BITS)) | morton.encode_word_host(ijk & morton.WORD_MASK).astype(np.uint64)
+
+
+def _decode_word_host(word: np.ndarray) -> np.ndarray:
+    """Inverse of `morton.encode_word_host`: int [n] (< 2^30) -> int64 [n, 3]."""
+
+    def compact(x):
+        x = x & 0x09249249
+        x = (x | (x >> 2)) & 0x030C30C3
+        x = (x | (x >> 4)) & 0x0300F00F
+        x = (x | (x >> 8)) & 0x030000FF
+        return (x | (x >> 16)) & 0x3FF
+
+    w = np.asarray(word, np.int64)
+    return np.stack([compact(w), compact(w >> 1), compact(w >> 2)], -1)
+
+
+def _band_pairs(tris: np.ndarray, resolution: int, band: int):
+    """Per-voxel minima over all triangles: (ijk int64 [n, 3], d2 float32 [n] squared
+    distance in grid units, tri int32 [n]), in Morton order (see the module docstring)."""
+    ids, brick, lo, hi = _items(tris, resolution, band)
+    starts = np.flatnonzero(np.concatenate([[True], (brick[1:] != brick[:-1]).any(1)])) if len(ids) else ids
+    bounds = np.append(starts, len(ids))  # items of brick b: bounds[b] .. bounds[b + 1]
+    parts = []
+    bits, tri = _fresh_brick()
+    for g in range(0, len(starts), BRICKS):
+        s, e = int(bounds[g]), int(bounds[min(g + BRICKS, len(starts))])
+        origins = brick[starts[g : g + BRICKS]] * BRICK
+        slot = np.searchsorted(bounds[g : g + BRICKS + 1], np.arange(s, e), side="right") - 1
+        for c in range(s, e, TRIANGLE_CHUNK):
+            rows = np.arange(c, min(c + TRIANGLE_CHUNK, e))
+            origin = origins[slot[rows - s]]
+            ext = hi[rows] - lo[rows] + 1
+            counts = ext.prod(1)
+            pad = lambda a, fill=0: jnp.asarray(_pad_rows(a, TRIANGLE_CHUNK, fill))
+            args = (
+                pad((tris[ids[rows]] - origin[:, None]).astype(np.float32)),
+                pad(ids[rows].astype(np.int32)),
+                pad(slot[rows - s].astype(np.int32)),
+                pad((lo[rows] - origin).astype(np.int32)),
+                pad(ext.astype(np.int32), 1),
+                pad(counts.astype(np.int32)),
+            )
+            for start in range(0, int(counts.sum()), WINDOW):
+                bits, tri = _pair_window(bits, tri, *args, jnp.int32(start), jnp.float32(band))
+        cell, d2, t, n = _extract(bits, tri)
+        bits, tri = _fresh_brick()
+        n = int(n)
+        if n:  # sliced to the ladder on the device, exactly on the host: no program per n
+            cell, d2, t = (np.asarray(x)[:n] for x in _head((cell, d2, t), size=bucket(n)))
+            k, local = np.divmod(cell, _CELLS)
+            parts.append((origins[k] + _decode_word_host(local), d2, t))
+    if not parts:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32)
+    ijk, d2, t = (np.concatenate(x) for x in zip(*parts))
+    return ijk, d2, t
+
+
+def _chunked(fn, points: np.ndarray, *rest) -> np.ndarray:
+    """``fn(points chunk [POINT_CHUNK, ...], *rest)`` over all rows of `points`, host loop."""
+    out = []
+    for s in range(0, len(points), POINT_CHUNK):
+        part = points[s : s + POINT_CHUNK]
+        out.append(np.asarray(fn(jnp.asarray(_pad_rows(part, POINT_CHUNK)), *rest))[: len(part)])
+    return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+
+def _signs(mesh: Mesh, tris_grid: np.ndarray, centres: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """+-1 per band voxel (see the module docstring for the two methods)."""
+    f = np.asarray(mesh.faces)
+    cross = np.cross(tris_grid[:, 1] - tris_grid[:, 0], tris_grid[:, 2] - tris_grid[:, 0])
+    degenerate = bool((np.linalg.norm(cross, axis=1) == 0).any())
+    rows = bucket(len(f))
+    if open_edges(mesh) == 0 and not degenerate:
+        normals = jnp.asarray(_pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows))
+        t = jnp.asarray(_pad_rows(tris_grid.astype(np.float32), rows))
+        both = np.concatenate([centres, tri[:, None].astype(np.float32)], 1)
+        fn = lambda pt, t, normals: _pseudo_normal_sign(pt[:, :3], pt[:, 3].astype(jnp.int32), t, normals)
+        return _chunked(fn, both, t, normals)
+    t = jnp.asarray(_pad_rows(tris_grid.astype(np.float32), max(rows, WINDING_BLOCK)))
+    w = _chunked(_winding, centres, t)
+    return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)
+
+
+def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool = True) -> SparseField:
+    """The narrow-band distance field of `mesh`: exact distances at the band voxels.
+
+    Host-side (counting passes size the work; see the module docstring for the method and
+    its cost). Band voxels are those whose centre lies within ``band * h`` of the surface
+    (``h = grid.voxel_size``; in float32 grid units, ``d <= band``).
+
+    Args:
+      mesh: `Mesh` (validated); for the sign, outward (counter-clockwise) orientation.
+      grid: `Grid` of R^3 voxels (geometry outside it is clipped: only voxels in the grid
+        exist).
+      band: half width in voxels, an int in ``[0, MAX_BAND]``. ``band=0`` keeps only
+        voxels whose centre lies on the surface (usually none).
+      signed: negative inside (pseudo-normals for watertight meshes, winding numbers
+        otherwise); False gives unsigned distances.
+
+    Returns:
+      A `SparseField` (empty, ``count == 0``, for a mesh without faces).
+
+    Raises:
+      JaxvoxError: a malformed mesh, not a `Grid`, a bad `band` or `signed`, or a
+        triangle whose dilated box holds more than about 2^31 voxels.
+    """
+    validate_mesh(mesh)
+    check_type("sparse_distance_field grid", grid, Grid)
+    band = check_int("sparse_distance_field band", band, minimum=0, maximum=MAX_BAND)
+    if not isinstance(signed, (bool, np.bool_)):
+        raise refuse("sparse_distance_field signed", "must be True or False", signed)
+    origin = np.asarray(grid.origin, np.float64)
+    h = float(grid.voxel_size)
+    tris = (np.asarray(mesh.triangles(), np.float64).reshape(-1, 3, 3) - origin) / h
+    ijk, d2, tri = _band_pairs(tris, grid.resolution, band)
+    n = len(ijk)
+    capacity = bucket(n)
+    dist = np.sqrt(d2.astype(np.float64))
+    if signed and n:
+        dist = dist * _signs(mesh, tris, ijk.astype(np.float64) + 0.5, tri)
+    values = _pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
+    voxels = Voxels(
+        jnp.asarray(_pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
+        jnp.int32(n),
+        jnp.int32(0),
+        jnp.asarray(_pad_rows(tri.astype(np.int32), capacity, UNUSED)),
+        grid,
+        CONSERVATIVE,
+    )
+    return SparseField(voxels, jnp.asarray(values), build_octree(voxels), grid, band)
+
+
+_CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.int32)  # [8, 3] xyz bits
+
+
+def sample(
+    field: SparseField, points: Float[ArrayLike, "*batch 3"]
+) -> tuple[Float32[Array, " *batch"], Bool[Array, " *batch"]]:
+    """Trilinear interpolation of a sparse field at world points; pure and jittable.
+
+    The 8 voxel centres around each point are looked up in ``field.tree``. A neighbour
+    outside the band (or the grid) takes ``s * band * h``, where ``s`` is -1 if the sum of
+    the present neighbours' values is negative and +1 otherwise (also when none is
+    present): the clamp of a truncated field, with the sign known from the band.
+    Differentiable with respect to `points` (piecewise trilinear) and ``field.values``.
+
+    Args:
+      field: a `SparseField`.
+      points: [..., 3] float world coordinates.
+
+    Returns:
+      (values [...] float32 world units, inside_band [...] bool: all 8 neighbours present,
+      so the value is the exact trilinear interpolation of band values).
+
+    Raises:
+      JaxvoxError: not a `SparseField`, or `points` without a last axis of 3.
+    """
+    check_type("sample field", field, SparseField)
+    if np.shape(points)[-1:] != (3,):
+        raise refuse("sample points", "must have shape [..., 3]", np.shape(points))
+    return _sample(field, jnp.asarray(points, jnp.float32))
+
+
+@jax.jit
+def _sample(field: SparseField, points: jax.Array):
+    g = field.grid.to_grid_units(points) - 0.5
+    base = jnp.floor(jax.lax.stop_gradient(g))
+    frac = g - base
+    ijk = base.astype(jnp.int32)[..., None, :] + _CORNERS  # [..., 8, 3]
+    idx = voxel_index(field.tree, ijk)
+    present = idx >= 0
+    v = field.values[jnp.maximum(idx, 0)]
+    v = jnp.where(present, v, 0.0)
+    far = jnp.float32(field.band) * field.grid.voxel_size
+    s = jnp.where(jnp.sum(jax.lax.stop_gradient(v), -1) < 0, -1.0, 1.0)
+    v = jnp.where(present, v, (s * far)[..., None])
+    w = jnp.where(_CORNERS == 1, frac[..., None, :], 1.0 - frac[..., None, :]).prod(-1)
+    return jnp.sum(w * v, -1), jnp.all(present, -1)

@@ -1,0 +1,219 @@
+"""Sparse narrow-band distance fields against the float64 references of tests/reference.py.
+
+Every band voxel's value is within `TOL` voxel of the float64 point-mesh distance, signed by
+the float64 winding number (inside where > 1/2); the band is complete (every voxel centre
+within ``band - TOL`` voxels of the surface is present, none beyond ``band + TOL``).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import jaxvox as jv
+from jaxvox.sparse_field import BRICK, UNUSED_VALUE, pseudo_normals
+from tests.reference import mesh_distance, winding_number
+
+TOL = 1e-4  # voxels
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiles: list[float] = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: _compiles.append(secs) if name == COMPILE_EVENT else None
+)
+R = 32
+
+
+def icosphere(subdivisions=2, radius=0.6, shift=0.5) -> jv.Mesh:
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return jv.Mesh(np.asarray(s.vertices, np.float32) + np.float32(shift), np.asarray(s.faces, np.int32))
+
+
+def box() -> jv.Mesh:
+    import trimesh
+
+    b = trimesh.creation.box(extents=(0.7, 0.5, 0.33))
+    return jv.Mesh(np.asarray(b.vertices, np.float32) + np.float32(0.5), np.asarray(b.faces, np.int32))
+
+
+def centres(grid: jv.Grid, ijk) -> np.ndarray:
+    return (np.asarray(ijk, np.float64) + 0.5) * float(grid.voxel_size) + np.asarray(grid.origin, np.float64)
+
+
+def check_field(mesh: jv.Mesh, grid: jv.Grid, field: jv.SparseField, *, signed=True):
+    """Values, signs and completeness against the float64 references (see the module docstring)."""
+    h = float(grid.voxel_size)
+    n = int(field.count)
+    ijk = np.asarray(field.voxels.coords[:n])
+    values = np.asarray(field.values)
+    assert np.all(values[n:] == UNUSED_VALUE)
+    p = centres(grid, ijk)
+    d = mesh_distance(mesh.vertices, mesh.faces, p)
+    if signed:
+        d = np.where(winding_number(mesh.vertices, mesh.faces, p) > 0.5, -d, d)
+    assert np.max(np.abs(values[:n] - d), initial=0.0) / h < TOL
+    assert np.all(np.abs(d) <= (field.band + TOL) * h)
+    # Completeness: every centre within band - TOL of the surface is present. Centres
+    # farther than band * h + (longest edge) from every vertex cannot qualify.
+    v = np.asarray(mesh.vertices, np.float64)
+    tri = v[np.asarray(mesh.faces)]
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max()
+    all_ijk = np.indices((grid.resolution,) * 3).reshape(3, -1).T
+    near, _ = cKDTree(v).query(centres(grid, all_ijk), distance_upper_bound=field.band * h + longest + h)
+    cand = all_ijk[np.isfinite(near)]
+    dc = mesh_distance(mesh.vertices, mesh.faces, centres(grid, cand))
+    must = cand[dc <= (field.band - TOL) * h]
+    got = set(map(tuple, ijk.tolist()))
+    missing = [t for t in map(tuple, must.tolist()) if t not in got]
+    assert not missing, missing[:5]
+    # Morton order, unique, and the tree finds every voxel at its index.
+    assert np.array_equal(np.asarray(jv.voxel_index(field.tree, ijk)), np.arange(n))
+
+
+@pytest.mark.parametrize("make", [icosphere, box], ids=["icosphere", "box"])
+def test_primitives(make):
+    mesh = make()
+    grid = jv.Grid.fit(mesh, R, padding=0.15)
+    field = jv.sparse_distance_field(mesh, grid, band=3)
+    assert int(field.count) > 0
+    check_field(mesh, grid, field)
+
+
+@pytest.mark.parametrize("name, resolution", [("spot", 16), ("woody", 32)])
+def test_shared_meshes(meshes_dir, name, resolution):
+    """spot is watertight (pseudo-normal sign), woody has open edges (winding sign). (spot
+    at 16^3: the float64 winding-number reference loops over points.)"""
+    mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+    grid = jv.Grid.fit(mesh, resolution, padding=0.1)
+    field = jv.sparse_distance_field(mesh, grid, band=2)
+    check_field(mesh, grid, field)
+
+
+def test_open_meshes_signed_by_winding_numbers():
+    """A single quad (its winding number stays below 1/2: all positive) and a sphere with
+    its top cut off (inside where the winding number exceeds 1/2)."""
+    v = np.array([[0.2, 0.2, 0.5], [0.8, 0.2, 0.5], [0.8, 0.8, 0.5], [0.2, 0.8, 0.5]], np.float32)
+    quad = jv.Mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    signed = jv.sparse_distance_field(quad, grid, band=2)
+    check_field(quad, grid, signed)
+    assert (np.asarray(signed.values[: int(signed.count)]) > 0).all()
+    unsigned = jv.sparse_distance_field(quad, grid, band=2, signed=False)
+    check_field(quad, grid, unsigned, signed=False)
+    assert np.array_equal(np.abs(np.asarray(signed.values)), np.asarray(unsigned.values))
+    sphere = icosphere(2, 0.4)
+    tri = np.asarray(sphere.triangles())
+    cut = jv.Mesh(sphere.vertices, np.asarray(sphere.faces)[tri[:, :, 2].mean(1) < 0.8])
+    assert jv.open_edges(cut) > 0
+    field = jv.sparse_distance_field(cut, grid, band=2)
+    check_field(cut, grid, field)
+    assert (np.asarray(field.values[: int(field.count)]) < 0).any()
+
+
+def test_large_triangles_are_tiled_into_bricks():
+    """Two triangles whose dilated boxes exceed a brick (`BRICK` voxels): their boxes are
+    tiled, the tiles land in different chunks, and the host merges their minima."""
+    v = np.array([[0.02, 0.03, 0.1], [0.97, 0.05, 0.4], [0.95, 0.96, 0.9], [0.04, 0.94, 0.6]], np.float32)
+    quad = jv.Mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
+    grid = jv.Grid(np.zeros(3), 1 / 128, 128)
+    assert 128 > BRICK
+    field = jv.sparse_distance_field(quad, grid, band=1, signed=False)
+    check_field(quad, grid, field, signed=False)
+
+
+def test_sample_at_centres_and_gradient():
+    mesh = icosphere(3, 0.6)
+    grid = jv.Grid.fit(mesh, R, padding=0.15)
+    field = jv.sparse_distance_field(mesh, grid, band=3)
+    n = int(field.count)
+    p = centres(grid, field.voxels.coords[:n]).astype(np.float32)
+    values, _ = jv.sample(field, p)
+    h = float(grid.voxel_size)
+    assert np.max(np.abs(np.asarray(values) - np.asarray(field.values[:n]))) / h < 1e-4
+    # Under jit and vmap, the same.
+    jitted, _ = jax.jit(jv.sample)(field, p[:64])
+    mapped, _ = jax.vmap(jv.sample, in_axes=(None, 0))(field, p[:64])
+    np.testing.assert_allclose(np.asarray(jitted), np.asarray(values[:64]), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(mapped), np.asarray(values[:64]), atol=1e-6)
+    # Gradient vs central differences at points well inside the band (off voxel planes).
+    rng = np.random.default_rng(0)
+    dirs = rng.normal(size=(20, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = (0.5 + dirs * (0.6 + rng.uniform(-1, 1, (20, 1)) * h)).astype(np.float32)
+    _, inside = jv.sample(field, pts)
+    assert np.asarray(inside).all()
+    f = lambda x: jv.sample(field, x)[0]
+    grad = np.asarray(jax.vmap(jax.grad(f))(jnp.asarray(pts)))
+    eps = 1e-3 * h
+    fd = np.stack(
+        [
+            (np.asarray(f(pts + eps * e)) - np.asarray(f(pts - eps * e))) / (2 * eps)
+            for e in np.eye(3, dtype=np.float32)
+        ],
+        -1,
+    )
+    np.testing.assert_allclose(grad, fd, atol=2e-2)
+    # The gradient of a distance field is about a unit normal, outward.
+    assert np.all(np.abs(np.linalg.norm(grad, axis=1) - 1) < 0.1)
+    assert np.all(np.sum(grad * dirs, 1) > 0.9)
+
+
+def test_sample_outside_band_is_clamped():
+    mesh = icosphere()
+    grid = jv.Grid.fit(mesh, R, padding=0.15)
+    field = jv.sparse_distance_field(mesh, grid, band=2)
+    far = 2 * float(grid.voxel_size)
+    h = float(grid.voxel_size)
+    # The sphere's centre and a far point have no neighbour in the band: +band * h. A point
+    # 2.6 voxels inside the surface has some neighbours (negative) and some missing: those
+    # take -band * h.
+    points = np.array([[0.5, 0.5, 0.5], [5.0, 5.0, 5.0], [0.5, 0.5, 1.1], [0.5, 0.5, 1.1 - 2.6 * h]], np.float32)
+    values, inside = jv.sample(field, points)
+    np.testing.assert_allclose(np.asarray(values)[:2], [far, far], rtol=1e-6)
+    assert np.asarray(inside).tolist() == [False, False, True, False]
+    assert -far <= float(values[3]) < -h
+
+
+def test_edge_cases():
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    empty = jv.sparse_distance_field(jv.Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32)), grid)
+    assert int(empty.count) == 0
+    values, inside = jv.sample(empty, np.array([0.5, 0.5, 0.5], np.float32))
+    assert float(values) == pytest.approx(3 / 16) and not bool(inside)
+    mesh = icosphere(1, 0.3)
+    zero = jv.sparse_distance_field(mesh, grid, band=0)
+    assert int(zero.count) <= 8
+    with pytest.raises(jv.JaxvoxError, match="sparse_distance_field band: must be at least 0, got -1"):
+        jv.sparse_distance_field(mesh, grid, band=-1)
+    with pytest.raises(jv.JaxvoxError, match="band: must be an integer"):
+        jv.sparse_distance_field(mesh, grid, band=1.5)
+    with pytest.raises(jv.JaxvoxError, match="signed: must be True or False"):
+        jv.sparse_distance_field(mesh, grid, signed="yes")
+    with pytest.raises(jv.JaxvoxError, match="grid: expected a jaxvox.Grid"):
+        jv.sparse_distance_field(mesh, None)
+    with pytest.raises(jv.JaxvoxError, match="sample points: must have shape"):
+        jv.sample(zero, np.zeros((4, 2)))
+    with pytest.raises(jv.JaxvoxError, match="sample field"):
+        jv.sample(grid, np.zeros((4, 3)))
+
+
+def test_pseudo_normals_of_a_box():
+    mesh = box()
+    normals = pseudo_normals(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+    # A box corner's angle-weighted normal points along the diagonal.
+    corner = normals[:, 4:].reshape(-1, 3)
+    unit = corner / np.linalg.norm(corner, axis=1, keepdims=True)
+    assert np.allclose(np.abs(unit), 1 / np.sqrt(3), atol=1e-6)
+
+
+def test_new_mesh_compiles_nothing():
+    """A second mesh in the same buckets (faces, band voxels) runs the compiled programs."""
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    jv.sparse_distance_field(icosphere(1, 0.3), grid, band=2)
+    before = len(_compiles)
+    jv.sparse_distance_field(icosphere(1, 0.31, 0.49), grid, band=2)
+    assert len(_compiles) == before
