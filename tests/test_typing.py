@@ -22,6 +22,7 @@ PIPELINE = textwrap.dedent(
         from jaxvox import sdf
     from jaxtyping import TypeCheckError
 
+    jv.enable_compilation_cache()  # $JAXVOX_CACHE_DIR from the suite: programs the other tests compiled
     mesh = jv.default_scene()
     grid = jv.Grid.fit(mesh, 32)
     vox = jv.voxelize(mesh, grid, mode="conservative", triangle_ids=True)
