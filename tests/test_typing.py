@@ -42,7 +42,8 @@ PIPELINE = textwrap.dedent(
     traced = jv.sphere_trace(sphere, np.zeros((3, 3), np.float32) - 2, np.ones((3, 3), np.float32))
     albedo = jv.voxel_albedo(attributes)
     # render and the dense fields are left out: their compiles would double this test's
-    # time, so their annotations are checked by mypy only. The hook does check: a ray batch of the wrong width is a type error at the door.
+    # time, so their annotations are checked by mypy only. The hook does check: a ray
+    # batch of the wrong width is a type error at the door.
     try:
         jv.trace(dag, np.zeros((4, 2), np.float32), np.zeros((4, 2), np.float32))
     except TypeCheckError:
