@@ -29,8 +29,8 @@ def _spread10(x):
     return x
 
 
-def _compact10(x: jax.Array) -> jax.Array:
-    """Inverse of `_spread10`: gathers every third bit of uint32 `x` into the low 10 bits."""
+def _compact10(x):
+    """Inverse of `_spread10`: gathers every third bit of uint32 `x` into the low 10 bits (jax or numpy)."""
     x = x & 0x09249249
     x = (x | (x >> 2)) & 0x030C30C3
     x = (x | (x >> 4)) & 0x0300F00F
@@ -55,6 +55,12 @@ def decode_word(word: jax.Array) -> jax.Array:
     """Inverse of `encode_word`: uint32 [...] -> int32 [..., 3] with values < 1024."""
     w = jnp.asarray(word, jnp.uint32)
     return jnp.stack([_compact10(w), _compact10(w >> 1), _compact10(w >> 2)], axis=-1).astype(jnp.int32)
+
+
+def decode_word_host(word: np.ndarray) -> np.ndarray:
+    """`decode_word` in numpy (compiles nothing): int [...] (< 2^30) -> int64 [..., 3]."""
+    w = np.asarray(word, np.int64)
+    return np.stack([_compact10(w), _compact10(w >> 1), _compact10(w >> 2)], axis=-1)
 
 
 def encode(ijk: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -308,20 +308,6 @@ def _codes(ijk: np.ndarray) -> np.ndarray:
     return (hi << np.uint64(3 * morton.WORD_BITS)) | morton.encode_word_host(ijk & morton.WORD_MASK).astype(np.uint64)
 
 
-def _decode_word_host(word: np.ndarray) -> np.ndarray:
-    """Inverse of `morton.encode_word_host`: int [n] (< 2^30) -> int64 [n, 3]."""
-
-    def compact(x):
-        x = x & 0x09249249
-        x = (x | (x >> 2)) & 0x030C30C3
-        x = (x | (x >> 4)) & 0x0300F00F
-        x = (x | (x >> 8)) & 0x030000FF
-        return (x | (x >> 16)) & 0x3FF
-
-    w = np.asarray(word, np.int64)
-    return np.stack([compact(w), compact(w >> 1), compact(w >> 2)], -1)
-
-
 def _band_pairs(tris: np.ndarray, resolution: int, band: int):
     """Per-voxel minima over all triangles: (ijk int64 [n, 3], d2 float32 [n] squared
     distance in grid units, tri int32 [n]), in Morton order (see the module docstring)."""
@@ -356,7 +342,7 @@ def _band_pairs(tris: np.ndarray, resolution: int, band: int):
         if n:  # sliced to the ladder on the device, exactly on the host: no program per n
             cell, d2, t = (np.asarray(x)[:n] for x in _head((cell, d2, t), size=bucket(n)))
             k, local = np.divmod(cell, _CELLS)
-            parts.append((origins[k] + _decode_word_host(local), d2, t))
+            parts.append((origins[k] + morton.decode_word_host(local), d2, t))
     if not parts:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32)
     ijk, d2, t = (np.concatenate(x) for x in zip(*parts))
