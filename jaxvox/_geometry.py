@@ -52,6 +52,12 @@ def solid_angle(p, t):
     closed, outward-oriented mesh). Van Oosterom & Strackee, on separate components.
     """
     a, b, c = (tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3))
+    return solid_angle_parts(a, b, c)
+
+
+def solid_angle_parts(a, b, c):
+    """`solid_angle` from the corners relative to the point, each a tuple of its (x, y, z)
+    arrays (broadcast): no [..., 3] axis, which XLA's CPU code handles slowly."""
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
     det = a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (b[0] * c[1] - b[1] * c[0])

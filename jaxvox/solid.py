@@ -31,6 +31,7 @@ from jaxvox._checks import check_choice, check_number, check_type, refuse
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
+from jaxvox.topology import welded_faces
 from jaxvox.winding import box_winding_numbers
 
 SIGN_METHODS = ("auto", "parity", "winding")
@@ -54,14 +55,9 @@ def open_edges(mesh: Mesh) -> int:
     """
     check_type("open_edges mesh", mesh, Mesh)
     v = np.asarray(mesh.vertices)
-    f = np.asarray(mesh.faces)
-    if len(f) == 0:
+    if mesh.num_faces == 0:
         return 0
-    order = np.lexsort(v.T[::-1])  # weld: equal positions get one id (numeric sorts, no row unique)
-    new_group = np.concatenate([[True], np.any(v[order[1:]] != v[order[:-1]], axis=1)])
-    weld = np.empty(len(v), np.int64)
-    weld[order] = np.cumsum(new_group) - 1
-    f = weld[f]
+    f = welded_faces(v, np.asarray(mesh.faces))
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     e = e[e[:, 0] != e[:, 1]]
     _, counts = np.unique(e[:, 0] * len(v) + e[:, 1], return_counts=True)

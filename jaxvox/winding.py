@@ -20,6 +20,10 @@ Summing every triangle at every voxel costs O(R^3 F). Here:
   (count, prefix-sum, emit into a power-of-two capacity), level by level from the root
   to the triangles. The host sizes each frontier, so nothing is dropped.
 
+`point_winding_numbers` answers arbitrary points (the sparse field's band voxels) with a
+flatter tree evaluated densely per point (no frontier): dipoles of nodes of
+``TOP * LEAF`` and of ``LEAF`` triangles, exact solid angles for the nearest leaves.
+
 The error of a far term falls as ``(r / |q - c|)^2`` relative to it, so ``beta`` trades
 accuracy for time (`winding_numbers`); a sign decision can only flip where ``w`` is
 within that error of 1/2, which happens near holes, not near closed parts of a surface.
@@ -37,7 +41,7 @@ import numpy as np
 from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_int, check_number, check_type, refuse
-from jaxvox._geometry import solid_angle
+from jaxvox._geometry import solid_angle, solid_angle_parts
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
@@ -121,54 +125,54 @@ def _build_tree(tris: np.ndarray) -> _Tree:
 
 
 def _block_offsets(block: int) -> np.ndarray:
-    """Voxel-centre offsets [b^3, 3] float32 inside a block, from its corner."""
-    return (np.stack(np.unravel_index(np.arange(block**3), (block,) * 3), -1) + 0.5).astype(np.float32)
+    """Voxel-centre offsets [b^3, 3] float32 inside a block, from its centre."""
+    ijk = np.stack(np.unravel_index(np.arange(block**3), (block,) * 3), -1)
+    return (ijk + 0.5 - block / 2).astype(np.float32)
 
 
-def _block_corners(blocks, per_axis: tuple[int, int, int], block: int):
-    """Corner [n, 3] float32 (grid units) of blocks given by flat index [n] over `per_axis` blocks."""
-    return jnp.stack(jnp.unravel_index(blocks, per_axis), -1).astype(jnp.float32) * block
+def _far(tree: _Tree, centres, queries, nodes, reach: float, beta: float):
+    """Whether node ``nodes`` is far from query ``queries`` (centres [Q, 3], all within `reach`)."""
+    gap = jnp.linalg.norm(centres[queries] - tree.centre[nodes], axis=-1)
+    return gap > beta * (tree.radius[nodes] + reach)
 
 
-def _far(tree: _Tree, blocks, nodes, per_axis: tuple[int, int, int], block: int, beta: float):
-    centre = _block_corners(blocks, per_axis, block) + block / 2
-    gap = jnp.linalg.norm(centre - tree.centre[nodes], axis=-1)
-    return gap > beta * (tree.radius[nodes] + block * math.sqrt(3) / 2)
-
-
-@functools.partial(jax.jit, static_argnames=("per_axis", "block", "beta"))
-def _near_children(tree: _Tree, blocks, nodes, n, *, per_axis: tuple[int, int, int], block: int, beta: float):
+@functools.partial(jax.jit, static_argnames=("reach", "beta"))
+def _near_children(tree: _Tree, centres, queries, nodes, n, *, reach: float, beta: float):
     """Number of child pairs the near pairs of a frontier open into: [] int32."""
-    valid = jnp.arange(blocks.shape[0]) < n
-    near = valid & ~_far(tree, blocks, nodes, per_axis, block, beta)
+    valid = jnp.arange(queries.shape[0]) < n
+    near = valid & ~_far(tree, centres, queries, nodes, reach, beta)
     return jnp.sum(jnp.where(near, tree.count[nodes], 0))
 
 
-@functools.partial(jax.jit, static_argnames=("per_axis", "block", "beta", "leaves", "capacity"))
+@functools.partial(jax.jit, static_argnames=("reach", "beta", "leaves", "capacity"))
 def _level(
     tree: _Tree,
     w,
-    blocks,
+    centres,
+    offsets,
+    queries,
     nodes,
     n,
     *,
-    per_axis: tuple[int, int, int],
-    block: int,
+    reach: float,
     beta: float,
     leaves: bool,
     capacity: int,
 ):
-    """Adds one frontier's terms to ``w`` [B, b^3] and opens its near pairs.
+    """Adds one frontier's terms to ``w`` [Q, m] and opens its near pairs.
 
-    Returns (w, child blocks [capacity], child nodes [capacity]).
+    A query is a group of m points ``centres[q] + offsets`` ([Q, 3] and [m, 3] float32,
+    grid units) within `reach` of its centre; (queries, nodes) [size] int32 are the
+    frontier's pairs, the first `n` valid.
+
+    Returns (w, child queries [capacity], child nodes [capacity]).
     """
-    offsets = jnp.asarray(_block_offsets(block))
-    valid = jnp.arange(blocks.shape[0]) < n
-    far = _far(tree, blocks, nodes, per_axis, block, beta)
+    valid = jnp.arange(queries.shape[0]) < n
+    far = _far(tree, centres, queries, nodes, reach, beta)
 
     def add(w, chunk):
-        b, g, ok, is_far = chunk
-        p = _block_corners(b, per_axis, block)[:, None] + offsets  # [c, b^3, 3]
+        q, g, ok, is_far = chunk
+        p = centres[q][:, None] + offsets  # [c, m, 3]
         d = tree.centre[g][:, None] - p
         r2 = jnp.sum(d * d, -1)
         dipole = jnp.sum(tree.area[g][:, None] * d, -1) / (4 * jnp.pi * r2 * jnp.sqrt(r2))
@@ -176,15 +180,178 @@ def _level(
         if leaves:
             exact = solid_angle(p, tree.triangles[jnp.maximum(g - tree.levels[-1][0], 0)][:, None])
             term = jnp.where(is_far[:, None], term, exact)
-        return w.at[b].add(jnp.where(ok[:, None], term, 0.0), mode="drop"), None
+        return w.at[q].add(jnp.where(ok[:, None], term, 0.0), mode="drop"), None
 
-    size = blocks.shape[0]
+    size = queries.shape[0]
     chunk = min(size, _PAIRS_PER_CHUNK)  # both powers of two
     split = lambda x: x.reshape(size // chunk, chunk)
-    w = jax.lax.scan(add, w, (split(blocks), split(nodes), split(valid), split(far)))[0]
+    w = jax.lax.scan(add, w, (split(queries), split(nodes), split(valid), split(far)))[0]
     counts = jnp.where(valid & ~far, tree.count[nodes], 0)
     owner, rank, ok, _ = expand_counts(counts, capacity)
-    return w, jnp.where(ok, blocks[owner], 0), jnp.where(ok, tree.first[nodes[owner]] + rank, 0)
+    return w, jnp.where(ok, queries[owner], 0), jnp.where(ok, tree.first[nodes[owner]] + rank, 0)
+
+
+def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach: float, beta: float) -> jax.Array:
+    """Winding numbers [Q, m] float32 at ``centres[q] + offsets[j]`` of float64 triangles
+    [F, 3, 3] (F >= 1; all grid units), breadth first over the tree (module docstring)."""
+    tree = _build_tree(tris)
+    n = count = len(centres)
+    capacity = bucket(n)
+    centres = jnp.asarray(np.concatenate([centres, np.zeros((capacity - n, 3))]).astype(np.float32))
+    offsets = jnp.asarray(offsets, jnp.float32)
+    settings = dict(reach=float(reach), beta=float(beta))
+    w = jnp.zeros((capacity, offsets.shape[0]), jnp.float32)
+    queries = jnp.arange(capacity, dtype=jnp.int32)
+    nodes = jnp.zeros(capacity, jnp.int32)  # the root
+    for depth in range(len(tree.levels)):
+        leaves = depth == len(tree.levels) - 1
+        opened = 0 if leaves else int(_near_children(tree, centres, queries, nodes, n, **settings))
+        w, queries, nodes = _level(
+            tree, w, centres, offsets, queries, nodes, n, leaves=leaves, capacity=bucket(opened), **settings
+        )
+        n = opened
+    return w[:count]
+
+
+LEAF = 8  # triangles per leaf of the point tree (`point_winding_numbers`)
+TOP = 8  # leaves per top node of the point tree
+NEAR_TOPS = 96  # top nodes opened per point; more near ones send the point to brute force
+NEAR_LEAVES = 160  # leaves evaluated exactly per point; likewise
+POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
+BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
+
+
+class _PointTree(NamedTuple):
+    """Two levels of dipoles over Morton-ordered triangles (grid units, float32, one row
+    per component: XLA's CPU code for a minor axis of 3 is slow).
+
+    top: [7, T] rows centre xyz, radius, area xyz; leaf: [7, T * TOP] the same per leaf;
+    triangles: [9, T * TOP * LEAF] corner a xyz, b xyz, c xyz (padding: zero-area ones).
+    """
+
+    top: jax.Array
+    leaf: jax.Array
+    triangles: jax.Array
+
+
+def _dipole_nodes(tris: np.ndarray, size: int) -> np.ndarray:
+    """[7, n] centre xyz, radius, area vector xyz of consecutive groups of `size`
+    triangles [n * size, 3, 3] (area-weighted centre, radius about it)."""
+    g = tris.reshape(-1, size, 3, 3)
+    area = 0.5 * np.cross(g[:, :, 1] - g[:, :, 0], g[:, :, 2] - g[:, :, 0])  # [n, size, 3]
+    weight = np.linalg.norm(area, axis=-1)
+    total = weight.sum(1)
+    centroid = g.mean(2)
+    centre = np.where(
+        (total > 0)[:, None],
+        (weight[..., None] * centroid).sum(1) / np.where(total > 0, total, 1.0)[:, None],
+        centroid.mean(1),
+    )
+    radius = np.linalg.norm(g.reshape(len(g), -1, 3) - centre[:, None], axis=-1).max(1)
+    return np.concatenate([centre.T, radius[None], area.sum(1).T])
+
+
+def _point_tree(tris: np.ndarray) -> _PointTree:
+    """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder."""
+    tris = tris[_morton_order(tris.mean(1))]
+    padded = bucket(max(len(tris), TOP * LEAF))
+    pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
+    tris = np.concatenate([tris, pad])
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    return _PointTree(f32(_dipole_nodes(tris, TOP * LEAF)), f32(_dipole_nodes(tris, LEAF)), f32(tris.reshape(-1, 9).T))
+
+
+def _node_terms(p, nodes, beta: float):
+    """(ratio, dipole) [P, n] of nodes ([7, n] rows, or [7, P, n] gathered per point) seen
+    from points p (3 arrays [P, 1]): ``|p - c| / (beta r)`` (near when <= 1) and the term."""
+    d = [nodes[k] - p[k] for k in range(3)]
+    r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    ratio = jnp.sqrt(r2) / (beta * nodes[3] + 1e-30)
+    num = nodes[4] * d[0] + nodes[5] * d[1] + nodes[6] * d[2]
+    return ratio, jnp.where(r2 > 0, num * jax.lax.rsqrt(r2) / (4 * jnp.pi * r2), 0.0)
+
+
+def _nearest(ratio, k: int):
+    """The k entries of smallest ratio per row ([P, n] -> indices [P, k], near mask [P, k]),
+    and whether a row has more than k entries with ratio <= 1."""
+    k = min(k, ratio.shape[1])
+    neg, idx = jax.lax.top_k(-ratio, k)
+    return idx, -neg <= 1.0, jnp.sum(ratio <= 1.0, -1) > k
+
+
+@functools.partial(jax.jit, static_argnames="beta")
+def _point_tree_sum(tree: _PointTree, points, *, beta: float):
+    """Winding numbers [P] of the tree at points [P, 3], and [P] bool: too many near nodes
+    (the value is then incomplete)."""
+    p = [points[:, k, None] for k in range(3)]
+    ratio, term = _node_terms(p, tree.top, beta)
+    w = jnp.sum(jnp.where(ratio > 1.0, term, 0.0), -1)
+    tops, near_top, crowded = _nearest(ratio, NEAR_TOPS)
+    leaves = (tops[..., None] * TOP + jnp.arange(TOP)).reshape(len(points), -1)  # [P, NEAR_TOPS * TOP]
+    ratio, term = _node_terms(p, tree.leaf[:, leaves], beta)
+    ratio = jnp.where(jnp.repeat(near_top, TOP, axis=1), ratio, jnp.inf)  # leaves of far tops: done
+    w += jnp.sum(jnp.where(jnp.isfinite(ratio) & (ratio > 1.0), term, 0.0), -1)
+    pick, near_leaf, crowded_leaves = _nearest(ratio, NEAR_LEAVES)
+    leaf = jnp.take_along_axis(leaves, pick, 1)  # [P, NEAR_LEAVES]
+    corners = tree.triangles[:, (leaf[..., None] * LEAF + jnp.arange(LEAF)).reshape(len(points), -1)]
+    rel = [tuple(corners[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
+    exact = solid_angle_parts(*rel).reshape(len(points), -1, LEAF).sum(-1)
+    return w + jnp.sum(jnp.where(near_leaf, exact, 0.0), -1), crowded | crowded_leaves
+
+
+def point_winding_numbers(tris: np.ndarray, points: np.ndarray, *, beta: float = 2.0) -> np.ndarray:
+    """Fast winding numbers [P] float32 at arbitrary points [P, 3] of triangles [F, 3, 3]
+    (same units, float64 in; host-side).
+
+    A two-level tree of dipoles (`TOP * LEAF` and `LEAF` Morton-consecutive triangles),
+    evaluated densely per point: every top node far from the point (``|p - c| > beta r``)
+    adds its dipole term, the nearest `NEAR_TOPS` near ones open into their leaves, a far
+    leaf adds its dipole, and the nearest `NEAR_LEAVES` near leaves add their triangles'
+    exact solid angles. A point with more near nodes than that is summed by brute force.
+    """
+    points = np.asarray(points, np.float64)
+    if not len(points) or not len(tris):
+        return np.zeros(len(points), np.float32)
+    tree = _point_tree(np.asarray(tris, np.float64))
+    out, crowded = [], []
+    for s in range(0, len(points), POINT_CHUNK):
+        part = points[s : s + POINT_CHUNK]
+        chunk = np.zeros((POINT_CHUNK, 3), np.float32)
+        chunk[: len(part)] = part
+        w, c = _point_tree_sum(tree, jnp.asarray(chunk), beta=float(beta))
+        out.append(np.asarray(w)[: len(part)])
+        crowded.append(np.asarray(c)[: len(part)])
+    w, crowded = np.concatenate(out), np.flatnonzero(np.concatenate(crowded))
+    if len(crowded):
+        w[crowded] = brute_force_winding_numbers(tris, points[crowded])
+    return w
+
+
+def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
+    [F, 3, 3] (host arrays), `POINT_CHUNK` points per call."""
+    pad = -len(tris) % BRUTE_FORCE_BLOCK
+    tris = np.concatenate([np.asarray(tris, np.float64), np.zeros((pad, 3, 3))])  # zero-area padding
+    parts = jnp.asarray(tris.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1), jnp.float32)
+    out = []
+    for s in range(0, len(points), POINT_CHUNK):
+        part = points[s : s + POINT_CHUNK]
+        chunk = np.zeros((POINT_CHUNK, 3), np.float32)
+        chunk[: len(part)] = part
+        out.append(np.asarray(_brute_force(parts, jnp.asarray(chunk)))[: len(part)])
+    return np.concatenate(out) if out else np.zeros(0, np.float32)
+
+
+@jax.jit
+def _brute_force(blocks, points):
+    """Sum over blocks [n, 9, BRUTE_FORCE_BLOCK] of triangle corners at points [P, 3]."""
+    p = [points[:, k, None] for k in range(3)]
+
+    def step(w, block):
+        rel = [tuple(block[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
+        return w + jnp.sum(solid_angle_parts(*rel), -1), None
+
+    return jax.lax.scan(step, jnp.zeros(points.shape[0], jnp.float32), blocks)[0]
 
 
 def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4) -> Float32[Array, "R R R"]:
@@ -241,20 +408,14 @@ def box_winding_numbers(
     """
     block = min(block, 1 << (max(shape) - 1).bit_length())  # no larger than the box
     per_axis = tuple(-(-int(n) // block) for n in shape)
-    w = jnp.zeros((math.prod(per_axis), block**3), jnp.float32)
+    n = math.prod(per_axis)
     if mesh.num_faces:
         tris = (np.asarray(mesh.triangles(), np.float64) - np.asarray(origin, np.float64)) / float(voxel_size)
-        tree = _build_tree(tris)
-        settings = dict(per_axis=per_axis, block=block, beta=float(beta))
-        n = math.prod(per_axis)
-        capacity = bucket(n)
-        blocks = jnp.arange(capacity, dtype=jnp.int32)
-        nodes = jnp.zeros(capacity, jnp.int32)  # the root
-        for depth in range(len(tree.levels)):
-            leaves = depth == len(tree.levels) - 1
-            opened = 0 if leaves else int(_near_children(tree, blocks, nodes, n, **settings))
-            w, blocks, nodes = _level(tree, w, blocks, nodes, n, leaves=leaves, capacity=bucket(opened), **settings)
-            n = opened
+        corners = np.stack(np.unravel_index(np.arange(n), per_axis), -1) * block
+        reach = block * math.sqrt(3) / 2
+        w = _tree_sum(tris, corners + block / 2, _block_offsets(block), reach, beta)[:n]
+    else:
+        w = jnp.zeros((n, block**3), jnp.float32)
     w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)
     w = w.reshape(tuple(a * block for a in per_axis))
     return w[: shape[0], : shape[1], : shape[2]]
