@@ -45,7 +45,7 @@ METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep", "band")
 BYTES_PER_VOXEL = {"exact": 16, "jfa": 48, "jfa-separable": 48, "sweep": 64, "jfa+sweep": 64, "band": 48}
 
 
-def distance_field_bytes(resolution: int, *, method: str = "jfa+sweep", signed: bool = True) -> int:
+def distance_field_bytes(resolution: int, *, method: str = "jfa-separable", signed: bool = True) -> int:
     """Estimated peak working memory of `distance_field` at R^3 voxels, in bytes.
 
     ``R^3 * (BYTES_PER_VOXEL[method] + (SIGN_BYTES_PER_VOXEL if signed else 0))``; the
@@ -81,7 +81,7 @@ def distance_field(
     mesh: Mesh,
     grid: Grid,
     *,
-    method: str = "jfa+sweep",
+    method: str = "jfa-separable",
     signed: bool = True,
     band: int | None = None,
     sweeps: int = 3,
@@ -97,9 +97,11 @@ def distance_field(
     Args:
       mesh: `Mesh` with F faces (validated: NaN/inf vertices or bad indices raise).
       grid: `Grid` of R^3 voxels. Geometry outside the grid is taken into account.
-      method: "jfa+sweep" (narrow band by jump flooding, then fast sweeping), "jfa",
-        "jfa-separable", "sweep", "exact" (brute force, O(R^3 F): small grids) or
-        "band" (the narrow band only: +inf beyond it, -inf inside when signed).
+      method: "jfa-separable" (jump flooding one axis at a time: the most accurate for its
+        time on the measurements, within 0.75 voxel of exact), "jfa", "jfa+sweep"
+        (narrow band by jump flooding, then fast sweeping: the seed thread's pipeline,
+        formerly the default), "sweep", "exact" (brute force, O(R^3 F): small grids)
+        or "band" (the narrow band only: +inf beyond it, -inf inside when signed).
       signed: negative inside the mesh (see `solid_voxelize` for the sign).
       band: separable 3x3x3 jump-flooding passes around the surface voxels before the
         propagation (exact distances within that many voxels of the surface voxels);
