@@ -283,12 +283,13 @@ def _pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
     return out
 
 
-def _items(tris: np.ndarray, resolution: int, band: int):
-    """Every triangle's dilated, grid-clipped voxel box split at brick boundaries: (triangle
+def _items(tris: np.ndarray, shape, band: int):
+    """Every triangle's dilated voxel box, clipped to the box of `shape` (an int R for R^3,
+    or [3] ints), split at brick boundaries: (triangle
     id [n] int64, brick [n, 3] int64, lo [n, 3] int64, hi [n, 3] int64 inclusive voxel
     bounds), in Morton order of the bricks."""
     lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
-    hi = np.minimum(np.floor(tris.max(1) + band - 0.5), resolution - 1).astype(np.int64)
+    hi = np.minimum(np.floor(tris.max(1) + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
     lo, hi = lo[ids], hi[ids]
     first, last = lo // BRICK, hi // BRICK
@@ -312,10 +313,21 @@ def _codes(ijk: np.ndarray) -> np.ndarray:
     return (hi << np.uint64(3 * morton.WORD_BITS)) | morton.encode_word_host(ijk & morton.WORD_MASK).astype(np.uint64)
 
 
-def _band_pairs(tris: np.ndarray, resolution: int, band: int):
-    """Per-voxel minima over all triangles: (ijk int64 [n, 3], d2 float32 [n] squared
-    distance in grid units, tri int32 [n]), in Morton order (see the module docstring)."""
-    ids, brick, lo, hi = _items(tris, resolution, band)
+def band_pairs(tris: np.ndarray, shape, band: int):
+    """Per-voxel minima over all triangles in the box of voxels ``0 <= ijk < shape``.
+
+    Args:
+      tris: [F, 3, 3] float64 triangles in grid units of the box (voxel ijk has its centre
+        at ijk + 1/2); triangles outside the box count where within `band` of it.
+      shape: int R (an R^3 box) or [3] ints, each below 2^20.
+      band: half width in voxels.
+
+    Returns:
+      (ijk int64 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
+      closest triangle, lower id on ties) for every voxel within `band`, in Morton order
+      (see the module docstring).
+    """
+    ids, brick, lo, hi = _items(tris, shape, band)
     starts = np.flatnonzero(np.concatenate([[True], (brick[1:] != brick[:-1]).any(1)])) if len(ids) else ids
     bounds = np.append(starts, len(ids))  # items of brick b: bounds[b] .. bounds[b + 1]
     parts = []
@@ -362,8 +374,10 @@ def _chunked(fn, points: np.ndarray, *rest) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 
-def _signs(mesh: Mesh, tris_grid: np.ndarray, centres: np.ndarray, tri: np.ndarray, band: int) -> np.ndarray:
-    """+-1 per band voxel (see the module docstring for the two methods)."""
+def band_signs(mesh: Mesh, tris_grid: np.ndarray, centres: np.ndarray, tri: np.ndarray, band: int) -> np.ndarray:
+    """+-1 (float32 [n], -1 inside) at band voxel centres [n, 3] (grid units, float64) whose
+    closest triangles of `tris_grid` ([F, 3, 3] float64 grid units of `mesh`'s faces) are
+    `tri` [n]; see the module docstring for the methods."""
     f = np.asarray(mesh.faces)
     cross = np.cross(tris_grid[:, 1] - tris_grid[:, 0], tris_grid[:, 2] - tris_grid[:, 0])
     degenerate = bool((np.linalg.norm(cross, axis=1) == 0).any())
@@ -442,12 +456,12 @@ def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     tris = (np.asarray(mesh.triangles(), np.float64).reshape(-1, 3, 3) - origin) / h
-    ijk, d2, tri = _band_pairs(tris, grid.resolution, band)
+    ijk, d2, tri = band_pairs(tris, grid.resolution, band)
     n = len(ijk)
     capacity = bucket(n)
     dist = np.sqrt(d2.astype(np.float64))
     if signed and n:
-        dist = dist * _signs(mesh, tris, ijk.astype(np.float64) + 0.5, tri, band)
+        dist = dist * band_signs(mesh, tris, ijk.astype(np.float64) + 0.5, tri, band)
     values = _pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
     voxels = Voxels(
         jnp.asarray(_pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
