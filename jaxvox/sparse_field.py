@@ -36,9 +36,8 @@ Method (no propagation, so no propagation error):
   evaluated (`jaxvox.winding.point_winding_numbers`: a two-level dipole tree, exact solid
   angles for the nearest leaves); every voxel of a group is evaluated on its own when the
   group's value lies within `WINDING_MARGIN` of 1/2, or its triangle crosses another, has
-  an irregular edge, or lies within ``HOLE_REACH * (2 band + 2 + d)`` voxels of a boundary
-  edge (d the triangle's diameter: a path's length bounds the smooth change, which falls as
-  one over the distance to the hole's rim). Values within `EXACT_BELOW` of 1/2 are summed
+  an irregular edge, or lies near a boundary edge (`_near_holes`: a path's length over its
+  distance to the hole's rim bounds the smooth change). Values within `EXACT_BELOW` of 1/2 are summed
   again by brute force (the tree's error reaches a few 1e-2). Measured on the shared meshes
   at 32^3-64^3 (cow, teapot and bunny included): every sign equals the brute-force winding
   number's.
@@ -87,7 +86,7 @@ _FAR_BITS = np.uint32(0x7F800000)  # float32 bits of +inf: a brick cell without 
 _NO_TRIANGLE = np.int32(np.iinfo(np.int32).max)
 POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
 EXACT_BELOW = 0.1  # winding numbers this close to 1/2 are summed again by brute force
-HOLE_REACH = 3.0  # see `_near_holes`
+HOLE_REACH = 1.5  # see `_near_holes`
 WINDING_MARGIN = 0.25  # a group whose sample winding number lies within this of 1/2 is evaluated point by point
 MAX_BAND = 64  # largest accepted `band` (voxels)
 UNUSED_VALUE = np.float32(np.inf)  # `SparseField.values` past `count`
@@ -404,15 +403,24 @@ def band_signs(mesh: Mesh, tris_grid: np.ndarray, centres: np.ndarray, tri: np.n
 
 def _near_holes(tris: np.ndarray, welded: np.ndarray, band: int) -> np.ndarray:
     """[F] bool: triangles too close to a boundary edge for one winding number to stand for
-    their group: within ``HOLE_REACH * (2 band + 2 + d)`` of it, d the triangle's diameter
-    (grid units; module docstring)."""
+    their group (grid units).
+
+    Two voxels of a group are joined by a path of length at most ``L = 2 (band + 1) + 2 r``
+    (to the triangle, across it, back out; r the triangle's radius about its centroid) that
+    stays at least ``g = dist(centroid, boundary) - r - band - 1`` from every boundary
+    edge. Off the surface the winding number changes by at most ``1 / (2 pi g)`` per unit
+    length near a hole's rim (the bound of a straight rim), so by at most
+    ``L / (2 pi g)`` along the path: below ``WINDING_MARGIN / 2`` when
+    ``g >= HOLE_REACH * L`` (``HOLE_REACH = 1.5 > 1 / (pi WINDING_MARGIN)``). Closer
+    triangles are flagged.
+    """
     edges = boundary_edges(welded)
     vertex = np.zeros((int(welded.max()) + 1, 3))
     vertex[welded.reshape(-1)] = tris.reshape(-1, 3)
     centre = tris.mean(1)
     radius = np.linalg.norm(tris - centre[:, None], axis=-1).max(1)
-    gap = distance_to_segments(centre, vertex[edges[:, 0]], vertex[edges[:, 1]]) - radius
-    return gap < HOLE_REACH * (2 * band + 2 + 2 * radius)
+    gap = distance_to_segments(centre, vertex[edges[:, 0]], vertex[edges[:, 1]]) - radius - band - 1
+    return gap < HOLE_REACH * (2 * (band + 1) + 2 * radius)
 
 
 def _winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -217,3 +217,16 @@ def test_new_mesh_compiles_nothing():
     before = len(_compiles)
     jv.sparse_distance_field(icosphere(1, 0.31, 0.49), grid, band=2)
     assert len(_compiles) == before
+
+
+@pytest.mark.parametrize("name", ["teapot", "cow"])
+def test_crossing_triangles_are_signed_by_winding_numbers(meshes_dir, name):
+    """The teapot (open, its handle and spout cross its body) and the cow (watertight, but
+    triangles cross: pseudo-normals gave 55 wrong signs at 64^3) against the float64
+    winding number at every band voxel (32^3)."""
+    mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+    grid = jv.Grid.fit(mesh, 32)
+    field = jv.sparse_distance_field(mesh, grid, band=3)
+    n = int(field.count)
+    w = winding_number(mesh.vertices, mesh.faces, centres(grid, np.asarray(field.voxels.coords[:n])))
+    assert np.array_equal(np.asarray(field.values[:n]) < 0, w > 0.5)
