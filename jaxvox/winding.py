@@ -41,7 +41,7 @@ import numpy as np
 from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_int, check_number, check_type, refuse
-from jaxvox._geometry import solid_angle, solid_angle_parts
+from jaxvox._geometry import solid_angle_parts
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
@@ -172,13 +172,16 @@ def _level(
 
     def add(w, chunk):
         q, g, ok, is_far = chunk
-        p = centres[q][:, None] + offsets  # [c, m, 3]
-        d = tree.centre[g][:, None] - p
-        r2 = jnp.sum(d * d, -1)
-        dipole = jnp.sum(tree.area[g][:, None] * d, -1) / (4 * jnp.pi * r2 * jnp.sqrt(r2))
+        # Per component ([c, m] arrays): XLA's CPU code for a minor axis of 3 is slow.
+        p = [centres[q, k][:, None] + offsets[:, k] for k in range(3)]
+        d = [tree.centre[g, k][:, None] - p[k] for k in range(3)]
+        r2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        num = sum(tree.area[g, k][:, None] * d[k] for k in range(3))
+        dipole = num / (4 * jnp.pi * r2 * jnp.sqrt(r2))
         term = jnp.where(is_far[:, None], dipole, 0.0)
         if leaves:
-            exact = solid_angle(p, tree.triangles[jnp.maximum(g - tree.levels[-1][0], 0)][:, None])
+            t = tree.triangles[jnp.maximum(g - tree.levels[-1][0], 0)]  # [c, 3, 3]
+            exact = solid_angle_parts(*(tuple(t[:, i, k][:, None] - p[k] for k in range(3)) for i in range(3)))
             term = jnp.where(is_far[:, None], term, exact)
         return w.at[q].add(jnp.where(ok[:, None], term, 0.0), mode="drop"), None
 
@@ -197,17 +200,17 @@ def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach:
     tree = _build_tree(tris)
     n = count = len(centres)
     capacity = bucket(n)
-    centres = jnp.asarray(np.concatenate([centres, np.zeros((capacity - n, 3))]).astype(np.float32))
-    offsets = jnp.asarray(offsets, jnp.float32)
+    at = jnp.asarray(np.concatenate([centres, np.zeros((capacity - n, 3))]).astype(np.float32))
+    around = jnp.asarray(offsets, jnp.float32)
     settings = dict(reach=float(reach), beta=float(beta))
-    w = jnp.zeros((capacity, offsets.shape[0]), jnp.float32)
+    w = jnp.zeros((capacity, around.shape[0]), jnp.float32)
     queries = jnp.arange(capacity, dtype=jnp.int32)
     nodes = jnp.zeros(capacity, jnp.int32)  # the root
     for depth in range(len(tree.levels)):
         leaves = depth == len(tree.levels) - 1
-        opened = 0 if leaves else int(_near_children(tree, centres, queries, nodes, n, **settings))
+        opened = 0 if leaves else int(_near_children(tree, at, queries, nodes, n, **settings))
         w, queries, nodes = _level(
-            tree, w, centres, offsets, queries, nodes, n, leaves=leaves, capacity=bucket(opened), **settings
+            tree, w, at, around, queries, nodes, n, leaves=leaves, capacity=bucket(opened), **settings
         )
         n = opened
     return w[:count]
@@ -313,18 +316,19 @@ def point_winding_numbers(tris: np.ndarray, points: np.ndarray, *, beta: float =
     if not len(points) or not len(tris):
         return np.zeros(len(points), np.float32)
     tree = _point_tree(np.asarray(tris, np.float64))
-    out, crowded = [], []
+    values, flags = [], []
     for s in range(0, len(points), POINT_CHUNK):
         part = points[s : s + POINT_CHUNK]
         chunk = np.zeros((POINT_CHUNK, 3), np.float32)
         chunk[: len(part)] = part
         w, c = _point_tree_sum(tree, jnp.asarray(chunk), beta=float(beta))
-        out.append(np.asarray(w)[: len(part)])
-        crowded.append(np.asarray(c)[: len(part)])
-    w, crowded = np.concatenate(out), np.flatnonzero(np.concatenate(crowded))
+        values.append(np.asarray(w)[: len(part)])
+        flags.append(np.asarray(c)[: len(part)])
+    out = np.concatenate(values)
+    crowded = np.flatnonzero(np.concatenate(flags))
     if len(crowded):
-        w[crowded] = brute_force_winding_numbers(tris, points[crowded])
-    return w
+        out[crowded] = brute_force_winding_numbers(tris, points[crowded])
+    return out
 
 
 def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
