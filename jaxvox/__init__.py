@@ -36,6 +36,8 @@ from jaxvox.distance import (
     union_clipmaps,
     update_clipmap,
 )
+from jaxvox.field_mesh import field_to_mesh
+from jaxvox.field_trace import sample_gradient, sphere_trace_field
 from jaxvox.grid import Grid
 from jaxvox.image import read_exr, read_hdr, save_render, tonemap, write_exr, write_png
 from jaxvox.io import load, load_attributes, save
@@ -143,6 +145,7 @@ __all__ = [
     "distance_field_bytes",
     "enable_compilation_cache",
     "expand",
+    "field_to_mesh",
     "load",
     "load_attributes",
     "load_binvox",
@@ -162,6 +165,7 @@ __all__ = [
     "render_mesh",
     "run_batch",
     "sample",
+    "sample_gradient",
     "sample_texture",
     "save",
     "save_binvox",
@@ -173,6 +177,7 @@ __all__ = [
     "solid_voxelize",
     "sparse_distance_field",
     "sphere_trace",
+    "sphere_trace_field",
     "sphere_trace_octree",
     "stack_grids",
     "stack_meshes",

@@ -16,6 +16,10 @@ safe, only slower). Each class documents which; `is_exact` computes it for a tre
 `lipschitz_bound` bounds its Lipschitz constant (sphere tracing a scene whose bound is
 above 1 can step through surfaces).
 
+Sampled fields. `sampled(field)` wraps a sparse narrow-band distance field
+(`jaxvox.SparseField`) as a node: its distance is the trilinear interpolation
+`jaxvox.sample`, whose Lipschitz constant is up to sqrt(3) (see `Sampled`).
+
 Parameter checks (shapes, NaN, signs) raise `JaxvoxError` when a constructor is called;
 the value checks are skipped for traced values, so scenes can be built inside `jit` and
 `grad`.
@@ -69,6 +73,7 @@ from jaxvox.sdf.queries import (
     normal,
     to_mesh,
 )
+from jaxvox.sdf.sampled import Sampled, sampled
 
 __all__ = [
     "Box",
@@ -84,6 +89,7 @@ __all__ = [
     "Rotate",
     "RoundedBox",
     "SDF",
+    "Sampled",
     "Scale",
     "SmoothIntersection",
     "SmoothUnion",
@@ -105,6 +111,7 @@ __all__ = [
     "rotate",
     "rotation",
     "rounded_box",
+    "sampled",
     "scale",
     "smooth_intersection",
     "smooth_union",

@@ -12,6 +12,7 @@ from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
 from jaxvox.sdf.base import SDF, check_scene
 from jaxvox.sdf.operations import Complement, Mix, Rotate, Scale, Translate
+from jaxvox.sdf.sampled import Sampled
 
 MAX_MESH_RESOLUTION = 512  # `to_mesh` refuses larger grids (a 512^3 float32 field is 512 MiB)
 NORMAL_METHODS = ("grad", "central")  # `normal` methods
@@ -36,9 +37,12 @@ def lipschitz_bound(scene: SDF) -> float:
 
     Primitives 1; transforms, union, intersection, difference and the smooth operations
     keep the largest of their children's; `mix` gives ``|k| L_a + |1 - k| L_b``; an
-    uncorrected scale ``L / min(s)`` (uniform or not). Needs concrete `k` and scale factors.
+    uncorrected scale ``L / min(s)`` (uniform or not); a `sampled` field sqrt(3) (2 sqrt(3)
+    for a band below 2 voxels; see `Sampled`). Needs concrete `k` and scale factors.
     """
     check_scene(scene, "lipschitz_bound scene")
+    if isinstance(scene, Sampled):
+        return scene.lipschitz
     if isinstance(scene, Mix):
         k = float(scene.k)
         return abs(k) * lipschitz_bound(scene.a) + abs(1.0 - k) * lipschitz_bound(scene.b)
