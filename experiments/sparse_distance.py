@@ -1,22 +1,29 @@
-"""Sparse narrow-band distance fields: jaxvox against OpenVDB's meshToLevelSet on the bunny.
+"""Sparse narrow-band distance fields: jaxvox against OpenVDB's meshToLevelSet and Open3D.
 
-For each resolution R (default 256 and 1024), on ``jv.Grid.fit(bunny, resolution=R)``
-with half width ``--band`` (3) voxels:
+For each mesh and resolution R (default the bunny at 256 and 1024), on
+``jv.Grid.fit(mesh, resolution=R)`` with half width ``--band`` (3) voxels:
 
-* jaxvox: `jv.sparse_distance_field` (first call on a fresh process, compilation
-  included, then the median of ``--repeats`` warmed-up calls) and the band voxel count.
-  The bunny has open edges, so the signed field takes the brute-force winding number
-  (O(band voxels x F), far too slow at these sizes); by default the *unsigned* field is
-  timed (``--signed`` times the signed one);
-* OpenVDB: ``FloatGrid.createLevelSetFromPolygons`` (meshToLevelSet) with the same voxel
-  size and half width, run by the system ``/usr/bin/python3`` (Debian ``python3-openvdb``)
-  in a subprocess, timed there; ``{"error": ...}`` when it is not installed.
+* jaxvox: `jv.sparse_distance_field` (signed; ``--unsigned`` for the unsigned field): the
+  first call in a fresh process (compilation included, with its number of XLA
+  compilations), then the median of ``--repeats`` warmed-up calls; band voxels, bytes of
+  the values, peak resident memory. The bunny is open, so its sign takes the grouped fast
+  winding numbers (`jaxvox.sparse_field`);
+* OpenVDB: ``FloatGrid.createLevelSetFromPolygons`` (meshToLevelSet, multi-threaded) with
+  the same voxel size and half width, run by the system ``/usr/bin/python3`` (Debian
+  ``python3-openvdb``) in a subprocess, timed there (first call and median of repeats);
+  its sign is a flood fill from the outside, not a winding number;
+* Open3D: ``RaycastingScene.compute_distance`` (exact unsigned distance through a BVH,
+  multi-threaded) and ``compute_signed_distance`` at jaxvox's band voxel centres (the same
+  set of points), scene construction included; the largest difference from jaxvox's
+  values (voxels) is reported as a cross-check.
 
-Each case runs in a fresh process. Writes experiments/results/sparse_distance[_smoke].json.
+Each case runs in a fresh process. Writes experiments/results/sparse_distance[_smoke].json,
+.md and .png (time against resolution, log-log).
 
 Examples:
   python experiments/sparse_distance.py --smoke      # R = 64
   python experiments/sparse_distance.py              # R = 256, 1024
+  python experiments/sparse_distance.py --resolutions 4096 --repeats 1
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import argparse
 import json
 import subprocess
 import textwrap
+import time
 
 import _common
 
@@ -74,18 +82,58 @@ def _openvdb(spec: dict, timeout: float) -> dict:
 
 def worker(spec: dict) -> dict:
     import jax
+    import numpy as np
 
     import jaxvox as jv
 
+    compiles: list[float] = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiles.append(secs) if name == "/jax/core/compile/backend_compile_duration" else None
+    )
     mesh = jv.load_mesh(spec["mesh"])
     grid = jv.Grid.fit(mesh, resolution=spec["resolution"])
     run = lambda: jax.block_until_ready(jv.sparse_distance_field(mesh, grid, band=spec["band"], signed=spec["signed"]))
     timing, field = _common.time_calls(run, spec["repeats"])
     n = int(field.count)
-    return dict(
-        jaxvox=dict(timing, voxels=n, value_bytes=4 * n, peak_rss_mib=_common.peak_rss_mib()),
+    out = dict(
+        jaxvox=dict(
+            timing,
+            compiles=len(compiles),
+            voxels=n,
+            value_bytes=4 * n,
+            peak_rss_mib=_common.peak_rss_mib(),
+        ),
         voxel_size=float(grid.voxel_size),
     )
+    try:
+        import open3d as o3d
+    except ImportError as e:
+        out["open3d"] = {"error": str(e)}
+        return out
+    h = float(grid.voxel_size)
+    ijk = np.asarray(field.voxels.coords[:n], np.float64)
+    points = (np.asarray(grid.origin, np.float64) + (ijk + 0.5) * h).astype(np.float32)
+    values = np.asarray(field.values[:n], np.float64)
+    del field
+    vertices = o3d.core.Tensor(np.asarray(mesh.vertices, np.float32))
+    faces = o3d.core.Tensor(np.asarray(mesh.faces, np.uint32))
+    peer = {}
+    for name, method in (("unsigned", "compute_distance"), ("signed", "compute_signed_distance")):
+        times, d = [], None
+        for _ in range(spec["repeats"] + 1):
+            t = time.perf_counter()
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(vertices, faces)
+            d = getattr(scene, method)(o3d.core.Tensor(points)).numpy()
+            times.append(time.perf_counter() - t)
+        entry = dict(first_s=times[0], median_s=float(np.median(times[1:])))
+        if name == "unsigned":
+            entry["max_diff_voxels"] = float(np.max(np.abs(np.abs(d) - np.abs(values)), initial=0.0) / h)
+        elif spec["signed"]:  # Open3D's inside test is its own (ray parity), not a winding number
+            entry["sign_disagreements"] = int(np.sum((d < 0) != (values < 0)))
+        peer[name] = entry
+    out["open3d"] = peer
+    return out
 
 
 def main() -> None:
@@ -95,7 +143,7 @@ def main() -> None:
     parser.add_argument("--resolutions", type=int, nargs="*", default=None)
     parser.add_argument("--band", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--signed", action="store_true")
+    parser.add_argument("--unsigned", action="store_true")
     parser.add_argument("--timeout", type=float, default=1800)
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
@@ -104,23 +152,75 @@ def main() -> None:
     mesh = str(_common.MESH_DIR / "stanford-bunny.obj")
     cases = []
     for r in _common.progress(resolutions, desc="resolutions"):
-        spec = dict(mesh=mesh, resolution=r, band=args.band, repeats=args.repeats, signed=args.signed)
-        case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r)
+        spec = dict(mesh=mesh, resolution=r, band=args.band, repeats=args.repeats, signed=not args.unsigned)
+        case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, mesh="stanford-bunny")
         if "voxel_size" in case:
             peer = dict(mesh=mesh, voxel_size=case["voxel_size"], band=args.band, repeats=args.repeats)
             case["openvdb"] = _openvdb(peer, args.timeout)
         cases.append(case)
         print(json.dumps(case))
     name = "sparse_distance_smoke" if args.smoke else "sparse_distance"
-    _common.write_json(
-        _common.RESULTS_DIR / f"{name}.json",
+    result = dict(band=args.band, signed=not args.unsigned, cases=cases, machine=_common.machine_info(PACKAGES))
+    _common.write_json(_common.RESULTS_DIR / f"{name}.json", result)
+    write_report(result, _common.RESULTS_DIR / name)
+
+
+PACKAGES = ["jax", "jaxlib", "numpy", "open3d"]
+
+
+def _rows(case: dict) -> list[dict]:
+    j, vdb, o3d = case.get("jaxvox", {}), case.get("openvdb", {}), case.get("open3d", {})
+    fmt = lambda x: f"{x:.3g}" if isinstance(x, float) else "-"
+    return [
         dict(
-            band=args.band,
-            signed=args.signed,
-            cases=cases,
-            machine=_common.machine_info(["jax", "jaxlib", "numpy"]),
-        ),
-    )
+            R=case["resolution"],
+            voxels=f"{j.get('voxels', 0):,}",
+            first=fmt(j.get("first_s")),
+            compiles=str(j.get("compiles", "-")),
+            warm=fmt(j.get("median_s")),
+            peak=fmt(j.get("peak_rss_mib")),
+            vdb=fmt(vdb.get("median_s")) + (f" ({vdb['voxels']:,} voxels)" if "voxels" in vdb else ""),
+            o3d=fmt(o3d.get("signed", {}).get("median_s")) + " / " + fmt(o3d.get("unsigned", {}).get("median_s")),
+            diff=fmt(o3d.get("unsigned", {}).get("max_diff_voxels")),
+            signs=str(o3d.get("signed", {}).get("sign_disagreements", "-")),
+        )
+    ]
+
+
+def write_report(result: dict, stem) -> None:
+    """Markdown table and chart (time against resolution) next to the JSON."""
+    columns = [
+        ("R", "R"),
+        ("voxels", "band voxels"),
+        ("first", "jaxvox first call (s)"),
+        ("compiles", "compiles"),
+        ("warm", "jaxvox warm (s)"),
+        ("peak", "peak RSS (MiB)"),
+        ("vdb", "OpenVDB warm (s)"),
+        ("o3d", "Open3D signed / unsigned (s)"),
+        ("diff", "max abs diff vs Open3D (voxels)"),
+        ("signs", "sign disagreements with Open3D"),
+    ]
+    rows = _common.case_rows(result["cases"], _rows)
+    stem.with_suffix(".md").write_text(_common.markdown_table(rows, columns) + "\n")
+    fig, ax = _common.new_figure(1)
+    series = [
+        ("jaxvox first call", lambda c: c.get("jaxvox", {}).get("first_s")),
+        ("jaxvox warm", lambda c: c.get("jaxvox", {}).get("median_s")),
+        ("OpenVDB meshToLevelSet", lambda c: c.get("openvdb", {}).get("median_s")),
+        ("Open3D exact signed query", lambda c: c.get("open3d", {}).get("signed", {}).get("median_s")),
+    ]
+    for label, get in series:
+        pts = [(c["resolution"], get(c)) for c in result["cases"] if isinstance(get(c), float)]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=label)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("resolution R (bunny, band 3)")
+    ax.set_ylabel("seconds")
+    ax.set_title("signed narrow band" if result["signed"] else "unsigned narrow band")
+    ax.legend()
+    _common.save_figure(fig, stem.with_suffix(".png"))
 
 
 if __name__ == "__main__":

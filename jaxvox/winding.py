@@ -219,7 +219,7 @@ def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach:
 LEAF = 8  # triangles per leaf of the point tree (`point_winding_numbers`)
 TOP = 8  # leaves per top node of the point tree
 NEAR_TOPS = 96  # top nodes opened per point; more near ones send the point to brute force
-NEAR_LEAVES = 160  # leaves evaluated exactly per point; likewise
+NEAR_LEAVES = 96  # leaves evaluated exactly per point; likewise
 POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
 
@@ -333,14 +333,15 @@ def point_winding_numbers(tris: np.ndarray, points: np.ndarray, *, beta: float =
 
 def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
-    [F, 3, 3] (host arrays), `POINT_CHUNK` points per call."""
+    [F, 3, 3] (host arrays), at most `POINT_CHUNK` points per call."""
     pad = -len(tris) % BRUTE_FORCE_BLOCK
     tris = np.concatenate([np.asarray(tris, np.float64), np.zeros((pad, 3, 3))])  # zero-area padding
     parts = jnp.asarray(tris.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1), jnp.float32)
     out = []
-    for s in range(0, len(points), POINT_CHUNK):
-        part = points[s : s + POINT_CHUNK]
-        chunk = np.zeros((POINT_CHUNK, 3), np.float32)
+    size = min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
+    for s in range(0, len(points), size):
+        part = points[s : s + size]
+        chunk = np.zeros((size, 3), np.float32)
         chunk[: len(part)] = part
         out.append(np.asarray(_brute_force(parts, jnp.asarray(chunk)))[: len(part)])
     return np.concatenate(out) if out else np.zeros(0, np.float32)
