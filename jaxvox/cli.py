@@ -96,16 +96,77 @@ def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> N
     iio.imwrite(path, np.concatenate([hit_image(hit, "depth"), gap, hit_image(hit, "normal")], axis=1))
 
 
+# Above this resolution `build` writes a DAG region by region (`mesh_to_dag`), so the
+# whole voxel list is never held; the file is the same. `_STREAM_REGION`: the regions'
+# edge (None: `mesh_to_dag`'s default, 1024, so below it there is one region).
+_STREAM_ABOVE = 1024
+_STREAM_REGION: int | None = None
+_ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
+
+
+def _join(parts: list[np.ndarray]) -> np.ndarray:
+    """Concatenates host arrays, emptying `parts` as it goes (an untouched `np.empty`
+    page costs nothing), so the parts and the whole are never held at once."""
+    out = np.empty((sum(len(p) for p in parts),) + parts[0].shape[1:], parts[0].dtype)
+    start = 0
+    parts.reverse()
+    while parts:
+        part = parts.pop()
+        out[start : start + len(part)] = part
+        start += len(part)
+    return out
+
+
+def _streamed_dag_timed(mesh, grid):
+    """The DAG of `mesh` built region by region and its per-voxel attributes, gathered
+    region by region (the same arrays as `voxel_attributes` of the whole voxel set);
+    returns (tree, attributes, seconds of voxelization and build)."""
+    import jax.numpy as jnp
+
+    import jaxvox as jv
+    from jaxvox.octree.stream import stream_dag
+
+    parts: dict[str, list[np.ndarray]] = {}
+
+    def gather(vox) -> None:
+        # The attributes are per voxel, but XLA's CPU code for short buffers (measured:
+        # 256 and 1,024 slots, not 2,048 and up) rounds some normals and colours
+        # differently in the last bit, so every region runs on a long buffer.
+        n, pad = int(vox.count), max(_ATTRIBUTE_SLOTS - vox.capacity, 0)
+        coords = np.pad(np.asarray(vox.coords), ((0, pad), (0, 0)), constant_values=jv.UNUSED)
+        triangle = np.pad(np.asarray(vox.triangle), (0, pad), constant_values=jv.UNUSED)
+        vox = jv.Voxels(jnp.asarray(coords), vox.count, vox.overflow, jnp.asarray(triangle), vox.grid, vox.mode)
+        for key, value in jv.voxel_attributes(mesh, vox).items():
+            parts.setdefault(key, []).append(np.asarray(value)[:n])
+
+    start = time.perf_counter()
+    tree = stream_dag(mesh, grid, region=_STREAM_REGION, triangle_ids=True, on_region=gather, caller="build")
+    tree.mask.block_until_ready()
+    seconds = time.perf_counter() - start
+    if not parts:  # no voxels: empty attribute arrays, as voxel_attributes gives them
+        none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
+        gather(jv.Voxels(*none, grid, tree.mode))
+    return tree, {key: _join(value) for key, value in parts.items()}, seconds
+
+
 def cmd_build(args) -> int:
-    """Voxelizes a mesh, builds its octree or DAG and saves it with per-voxel attributes."""
+    """Voxelizes a mesh, builds its octree or DAG and saves it with per-voxel attributes.
+
+    DAGs above `_STREAM_ABOVE`^3 are built region by region (`mesh_to_dag`; the time
+    reported then includes the voxelization); the file is the same.
+    """
     import jaxvox as jv
     from jaxvox._checks import check_output_path
 
     check_output_path("--out", args.out)  # before the work
     mesh, name = _load(args.mesh)
-    vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=args.resolution), triangle_ids=True)
-    tree, seconds = _build_timed(vox, args.kind)
-    attributes = jv.voxel_attributes(mesh, vox)
+    grid = jv.Grid.fit(mesh, resolution=args.resolution)
+    if args.kind == "dag" and args.resolution > _STREAM_ABOVE:
+        tree, attributes, seconds = _streamed_dag_timed(mesh, grid)
+    else:
+        vox = jv.voxelize(mesh, grid, triangle_ids=True)
+        tree, seconds = _build_timed(vox, args.kind)
+        attributes = jv.voxel_attributes(mesh, vox)
     jv.save(args.out, tree, attributes=attributes)
     print(f"{name}: {int(tree.voxel_count):,} voxels at {args.resolution}^3 -> " + _tree_line(tree, seconds))
     print(f"  nodes per level: {list(tree.level_sizes)}")

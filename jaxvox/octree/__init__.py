@@ -37,6 +37,7 @@ from jaxvox.octree.attributes import voxel_attributes
 from jaxvox.octree.build import build_dag, build_octree, check_level_capacities, octree_capacities
 from jaxvox.octree.layout import compact, padded
 from jaxvox.octree.queries import expand, voxel_index
+from jaxvox.octree.stream import mesh_to_dag
 from jaxvox.octree.tree import EMPTY, MISSING, OVERFLOW_NODES, Octree, padded_sizes, stored_sizes
 
 __all__ = [
@@ -49,6 +50,7 @@ __all__ = [
     "check_level_capacities",
     "compact",
     "expand",
+    "mesh_to_dag",
     "octree_capacities",
     "padded",
     "padded_sizes",

@@ -1,7 +1,9 @@
 """Bottom-up builds of octrees and DAGs (see `jaxvox.octree`): one segment pass per level
 from Morton-sorted voxels, DAG deduplication by a lexicographic sort of child rows, the
 host-side counting pass (`_survey`) and capacity schedule (`_schedule`), and the public
-`build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`."""
+`build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`; for the
+region-by-region build (`jaxvox.octree.stream`), `build_scheduled` (the host build before
+its ladder layout) and `dag_levels_above` (levels over given nodes)."""
 
 from __future__ import annotations
 
@@ -242,14 +244,51 @@ def _schedule(counted) -> tuple[int, ...]:
     )
 
 
-def _build_padded(vox: Voxels, counted: np.ndarray, dag: bool) -> Octree:
-    """Host-side build: one compiled build with the capacities of `_schedule` (which fit
-    the counted levels), then the tables laid out on the shape ladder (`padded_sizes`)."""
+def build_scheduled(caller: str, vox: Voxels, dag: bool) -> Octree:
+    """Host-side build before the ladder layout: the voxels checked and counted
+    (`_check_voxels`, errors naming `caller`), then one compiled build with the
+    capacities of `_schedule` (which fit the counted levels). The tree keeps the
+    schedule's rows per level (`level_capacities`); `padded` lays it on the ladder."""
+    counted = _check_voxels(caller, vox)
     capacity = _schedule(counted)
     tree = _build(vox, capacity=capacity, dag=dag)
     if int(tree.overflow):
         raise JaxvoxError(f"internal error: octree levels {list(counted)} overflowed capacities {capacity}")
-    return padded(tree)
+    return tree
+
+
+def dag_levels_above(ijk, counts, ids, below: int, levels: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The `levels` DAG levels above a level given by its nodes' cells, built by the
+    build's own per-level step (`_build_level`), e.g. over the roots of sub-DAGs built
+    apart (`jaxvox.octree.stream`).
+
+    Args:
+      ijk: [k, 3] int32 cells of the nodes (indices at that level's resolution), k >= 1,
+        unique and in Morton order.
+      counts: [k] int32 voxels below each node.
+      ids: [k] int32 stored row of each node within its level, below `below`.
+      below: rows of that level.
+      levels: how many levels to build (the cells lie in a ``2^levels`` grid).
+
+    Returns:
+      Root first, (mask [n] uint8, child [n, 8] uint32 rows within the level below,
+      `EMPTY` where absent, prefix [n, 8] uint32) host arrays per level.
+    """
+    k = len(ijk)
+    cap = bucket(k)
+    pad = lambda a, shape: np.concatenate([np.asarray(a, np.int32), np.zeros((cap - k,) + shape, np.int32)])
+    cells, n, cell_counts, cell_ids = pad(ijk, (3,)), jnp.int32(k), pad(counts, ()), pad(ids, ())
+    built = []
+    for _ in range(levels):
+        level = _build_level(cells, n, cell_counts, cell_ids, capacity=cap, dag=True, id_bits=key_bits(below))
+        built.append((level.mask, level.child, level.prefix, level.count, level.overflow))
+        cells, n, cell_counts, cell_ids, below = level.cells, level.n_cells, level.cell_counts, level.cell_ids, cap
+    out = []
+    for mask, child, prefix, count, overflow in jax.device_get(built[::-1]):
+        if bool(overflow):
+            raise JaxvoxError(f"internal error: {k} nodes overflowed the {cap} rows of the levels above them")
+        out.append((mask[:count], child[:count], prefix[:count]))
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("resolution",))
@@ -319,7 +358,7 @@ def _build_host(caller: str, vox: Voxels, capacities, dag: bool, checked: bool) 
         if checked:
             raise_if_overflow(f"{caller} result", tree.overflow)
         return tree
-    return _build_padded(vox, _check_voxels(caller, vox), dag)
+    return padded(build_scheduled(caller, vox, dag))
 
 
 def octree_capacities(vox: Voxels) -> tuple[int, ...]:

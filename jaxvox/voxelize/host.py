@@ -4,6 +4,7 @@ into page buffers, region by region, and `voxel_capacities` sizes `voxelize_fixe
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -225,6 +226,26 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
         hit = inside & (lo <= c).all(1) & (hi >= c).all(1)
         out.append(((c * region_size).astype(np.int32), np.flatnonzero(hit)))
     return out
+
+
+def region_voxels(
+    mesh: Mesh, grid: Grid, *, six_sep: bool, region_size: int, triangle_ids: bool, progress: bool | None
+) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    """`voxelize`'s regions one at a time, for consumers that keep only a summary of each
+    (`jaxvox.octree.stream`); the caller has checked the mesh, grid and region size.
+
+    Yields:
+      Per aligned region that a triangle's bounding box touches, in Morton order:
+      (region_lo int32 [3], coords [n, 3] int32 voxel indices in Morton order,
+      triangle [n] int32 ids or None) host arrays; n may be 0.
+    """
+    tris = _grid_triangles(mesh, grid)
+    regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
+    from tqdm.auto import tqdm
+
+    disable = len(regions) < 2 if progress is None else not progress
+    for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
+        yield (region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
 
 
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:

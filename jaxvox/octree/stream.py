@@ -1,0 +1,330 @@
+"""`mesh_to_dag`: the DAG of a mesh built region by region, so that memory follows the
+result, not the voxel count.
+
+The grid is cut into the voxelizer's aligned cubic regions of edge ``S = 2^s``, visited in
+Morton order (`jaxvox.voxelize.host`: the regions any triangle's bounding box touches).
+A region is one node of level ``L = D - s``; it is voxelized alone and built into its
+sub-DAG (the DAG build of `build_dag` on the region's voxels in a local ``S^3`` grid:
+levels ``L .. D - 1``), and then its voxels are dropped.
+
+Sub-DAGs merge level by level, bottom-up, into `build_dag`'s canonical order: the mask
+level is the sorted set of distinct masks, every level above it the lexicographically
+sorted set of distinct child rows (`EMPTY` last) written with the merged ids of the
+level below, each with the prefix sums of any of its copies (they depend on the shape
+alone). A DAG of some regions holds a subset of the distinct nodes of every level of the
+whole DAG, in the same relative order, so the merged tables are exactly those of the
+whole voxel set. Merges go as in a binary counter: a new DAG merges with the one before
+it while it holds at least half as many rows, so the DAGs held together stay below
+twice the merged one and each node is merged a logarithmic number of times.
+
+The levels above ``L`` are built from the regions' roots (cells in Morton order, root
+ids, voxel counts) by the same per-level step as `build_dag` (`dag_levels_above`). The result
+is laid out on the shape ladder, as `build_dag` returns it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxvox._checks import check_choice, check_int, check_type, refuse
+from jaxvox._errors import JaxvoxError
+from jaxvox._shapes import bucket
+from jaxvox.grid import Grid
+from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.octree.build import build_dag, build_scheduled, dag_levels_above
+from jaxvox.octree.tree import EMPTY, Octree, padded_sizes
+from jaxvox.voxelize.host import region_voxels
+from jaxvox.voxelize.voxels import CONSERVATIVE, MODES, REGION_SIZE, SIX_SEPARATING, UNUSED, Mode, Voxels
+
+MAX_VOXELS = 2**31 - 1  # `Octree.voxel_count` is int32
+_BLOCK = 1 << 20  # rows remapped at once (bounds the index temporaries)
+
+
+@dataclasses.dataclass
+class _Partial:
+    """The canonical DAG of some regions, over levels ``L .. D - 1`` (entry ``j`` is level ``L + j``)."""
+
+    masks: list[np.ndarray]  # [n_j] uint8 per level
+    child: list[np.ndarray]  # [n_j, 8] uint32 rows within level j + 1, EMPTY where absent (levels above the last)
+    prefix: list[np.ndarray]  # [n_j, 8] uint32 voxels in the children before each slot
+    cells: np.ndarray  # [k, 3] int32 region cells (region_lo // S), Morton order
+    roots: np.ndarray  # [k] int64 row of each region's root within level L
+    counts: np.ndarray  # [k] int64 voxels per region
+
+    @property
+    def rows(self) -> int:
+        """Nodes over all levels."""
+        return sum(len(m) for m in self.masks)
+
+
+def _region_dag(vox: Voxels, region_lo: np.ndarray) -> _Partial:
+    """The sub-DAG of one region's voxels (`_local_voxels`): `build_dag`'s checked,
+    scheduled build, its levels cut out of the schedule's layout (child rows made
+    relative to their level)."""
+    tree = build_scheduled("mesh_to_dag", vox, True)
+    mask, child, prefix, count = jax.device_get((tree.mask, tree.child, tree.prefix, tree.level_count))
+    offsets = tree.level_offsets + (len(mask),)
+    rows = [slice(offsets[j], offsets[j] + int(count[j])) for j in range(tree.depth)]
+    return _Partial(
+        masks=[mask[r] for r in rows],
+        child=[_shift(child[rows[j]], -offsets[j + 1]) for j in range(tree.depth - 1)],
+        prefix=[prefix[rows[j]] for j in range(tree.depth - 1)],
+        cells=(region_lo // vox.grid.resolution).astype(np.int32)[None],
+        roots=np.zeros(1, np.int64),
+        counts=np.array([int(vox.count)], np.int64),
+    )
+
+
+def _local_voxels(coords: np.ndarray, region_lo: np.ndarray, local: Grid, mode: str) -> Voxels:
+    """A region's voxels (host int32 [n, 3] global indices, Morton order) in the region's
+    own grid `local`, in a buffer on the shape ladder."""
+    n = len(coords)
+    buf = np.full((bucket(n), 3), UNUSED, np.int32)
+    buf[:n] = coords - region_lo
+    return Voxels(jax.device_put(buf, may_alias=True), jnp.int32(n), jnp.int32(0), None, local, mode)
+
+
+def _shift(child: np.ndarray, by: int) -> np.ndarray:
+    """Child rows [n, 8] uint32 with `by` added to every present child."""
+    return np.where(child == EMPTY, EMPTY, child.astype(np.int64) + by).astype(np.uint32)
+
+
+def _remap(child: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
+    """Writes child rows [n, 8] uint32 (`EMPTY` where absent) through `ids` [m], the new
+    id of each row of the level below, to `out` [n, 8]; block by block, so temporaries
+    stay small."""
+    table = np.append(ids.astype(np.uint32), np.uint32(EMPTY))
+    for start in range(0, len(child), _BLOCK):
+        part = child[start : start + _BLOCK]
+        out[start : start + _BLOCK] = table[np.where(part == EMPTY, np.uint32(len(ids)), part)]
+
+
+def _unique_rows(rows: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct child rows in lexicographic order (`EMPTY` largest), as `build._unique_rows`
+    orders them, on the host.
+
+    Children below `bound` or `EMPTY` (which becomes ``2^bits - 1``, still the largest)
+    are packed first child in the highest bits into uint64 keys, so the keys' order is
+    the rows'.
+
+    Args:
+      rows: [n, 8] uint32.
+      bound: children are below it (or `EMPTY`).
+
+    Returns:
+      (rep [u] int64 one source row of each distinct row, in lexicographic order,
+      inverse [n] int64 the distinct row of each row).
+    """
+    bits = max(1, int(bound).bit_length())
+    per_word, top = 64 // bits, np.uint64((1 << bits) - 1)
+    keys = []
+    for start in range(0, 8, per_word):
+        key = np.zeros(len(rows), np.uint64)
+        for s in range(start, min(start + per_word, 8)):
+            col = rows[:, s]
+            key = (key << np.uint64(bits)) | np.where(col == EMPTY, top, col.astype(np.uint64))
+        keys.append(key)
+    order = np.lexsort(keys[::-1])  # the last key is the primary one
+    first = np.ones(len(rows), bool)
+    if len(rows) > 1:
+        ordered = [k[order] for k in keys]
+        first[1:] = functools.reduce(np.logical_or, [k[1:] != k[:-1] for k in ordered])
+    inverse = np.empty(len(rows), np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    return order[first], inverse
+
+
+def _merge(a: _Partial, b: _Partial) -> _Partial:
+    """The canonical DAG of the regions of `a` and then `b` (consumes both: their level
+    tables are dropped as the merge goes up)."""
+    depth = len(a.masks)
+    masks: list = [None] * depth
+    child: list = [None] * (depth - 1)
+    prefix: list = [None] * (depth - 1)
+    ids_a = ids_b = np.zeros(0, np.int64)  # new ids of the rows of `a` and `b` in the level below
+    for j in range(depth - 1, -1, -1):
+        n_a = len(a.masks[j])
+        if j == depth - 1:  # masks, by value
+            masks[j], inverse = np.unique(np.concatenate([a.masks[j], b.masks[j]]), return_inverse=True)
+        else:
+            rows = np.empty((n_a + len(b.masks[j]), 8), np.uint32)
+            _remap(a.child[j], ids_a, rows[:n_a])
+            _remap(b.child[j], ids_b, rows[n_a:])
+            rep, inverse = _unique_rows(rows, len(masks[j + 1]))
+            child[j] = rows[rep]
+            del rows
+            prefix[j] = np.concatenate([a.prefix[j], b.prefix[j]])[rep]
+            masks[j] = np.concatenate([a.masks[j], b.masks[j]])[rep]
+            a.child[j] = b.child[j] = a.prefix[j] = b.prefix[j] = None  # type: ignore[call-overload]
+        ids_a, ids_b = inverse[:n_a], inverse[n_a:]
+    return _Partial(
+        masks=masks,
+        child=child,
+        prefix=prefix,
+        cells=np.concatenate([a.cells, b.cells]),
+        roots=np.concatenate([ids_a[a.roots], ids_b[b.roots]]),
+        counts=np.concatenate([a.counts, b.counts]),
+    )
+
+
+def _tree(levels: list, grid: Grid, mode: str, voxels: int) -> Octree:
+    """The DAG of `levels` (root first; (mask, child within the level below or None,
+    prefix or None) each) laid out on the shape ladder as `build_dag` returns it."""
+    sizes = tuple(len(m) for m, _, _ in levels)
+    capacity = padded_sizes(sizes)
+    offsets = np.cumsum((0,) + capacity)
+    mask = np.zeros(offsets[-1], np.uint8)
+    child = np.full((offsets[-2], 8), EMPTY, np.uint32)
+    prefix = np.zeros((offsets[-2], 8), np.uint32)
+    for level, (m, c, p) in enumerate(levels):
+        rows = slice(offsets[level], offsets[level] + len(m))
+        mask[rows] = m
+        if c is not None:
+            child[rows] = _shift(c, int(offsets[level + 1]))
+            prefix[rows] = p
+        levels[level] = None  # dropped as copied
+    put = functools.partial(jax.device_put, may_alias=True)
+    return Octree(
+        mask=put(mask),
+        child=put(child),
+        prefix=put(prefix),
+        level_count=jnp.asarray(sizes, jnp.int32),
+        voxel_count=jnp.int32(voxels),
+        overflow=jnp.int32(0),
+        grid=grid,
+        level_capacity=jnp.asarray(capacity, jnp.int32),
+        dag=True,
+        mode=mode,
+    )
+
+
+def _empty(grid: Grid, mode: str) -> Voxels:
+    """No voxels, in the buffer `voxelize` returns for none."""
+    coords = jnp.full((bucket(0), 3), UNUSED, jnp.int32)
+    return Voxels(coords, jnp.int32(0), jnp.int32(0), None, grid, mode)
+
+
+def check_region(what: str, region) -> int:
+    """`region` (None: `REGION_SIZE`) as a power of two in ``[2, REGION_SIZE]``; raises
+    `JaxvoxError` naming `what` otherwise."""
+    if region is None:
+        return REGION_SIZE
+    region = check_int(what, region, minimum=2, maximum=REGION_SIZE)
+    if region & (region - 1):
+        raise refuse(what, f"must be a power of two between 2 and {REGION_SIZE}", region)
+    return region
+
+
+def stream_dag(
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    mode: Mode = CONSERVATIVE,
+    region: int | None = None,
+    progress: bool | None = None,
+    triangle_ids: bool = False,
+    on_region: Callable[[Voxels], None] | None = None,
+    caller: str = "mesh_to_dag",
+) -> Octree:
+    """`mesh_to_dag`, which also hands every non-empty region's voxels (global indices,
+    with triangle ids if asked) to `on_region`, in Morton order (e.g. to gather per-voxel
+    attributes region by region)."""
+    check_type(f"{caller} mesh", mesh, Mesh)
+    check_type(f"{caller} grid", grid, Grid)
+    six_sep = check_choice(f"{caller} mode", mode, MODES) == SIX_SEPARATING
+    region = min(check_region(f"{caller} region", region), grid.resolution)
+    validate_mesh(mesh)
+    local = Grid(origin=np.zeros(3, np.float32), voxel_size=1.0, resolution=region)
+    stack: list[_Partial] = []
+    voxels = 0
+    parts = region_voxels(mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress)
+    for region_lo, coords, triangle in parts:
+        if not len(coords):
+            continue
+        voxels += len(coords)
+        if voxels > MAX_VOXELS:
+            raise JaxvoxError(
+                f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the int32 voxel "
+                "count of an Octree"
+            )
+        if on_region is not None:
+            on_region(_global_voxels(coords, triangle, grid, mode))
+        vox = _local_voxels(coords, region_lo, local, mode)
+        del coords, triangle  # (views of the region's sort buffer) before the build
+        stack.append(_region_dag(vox, region_lo))
+        del vox
+        while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
+            b, a = stack.pop(), stack.pop()
+            stack.append(_merge(a, b))
+    while len(stack) > 1:
+        b, a = stack.pop(), stack.pop()
+        stack.append(_merge(a, b))
+    if not stack:
+        return build_dag(_empty(grid, mode))
+    dag = stack.pop()
+    depth_above = grid.resolution.bit_length() - region.bit_length()  # L = D - s
+    levels: list = []
+    if depth_above:  # the levels above the regions, over their roots
+        levels = dag_levels_above(dag.cells, dag.counts, dag.roots, len(dag.masks[0]), depth_above)
+    levels += [(m, c, p) for m, c, p in zip(dag.masks, dag.child + [None], dag.prefix + [None])]
+    del dag
+    return _tree(levels, grid, mode, voxels)
+
+
+def _global_voxels(coords: np.ndarray, triangle: np.ndarray | None, grid: Grid, mode: str) -> Voxels:
+    """One region's voxels as `Voxels` of the whole grid (buffer on the shape ladder)."""
+    n = len(coords)
+    buf = np.full((bucket(n), 3), UNUSED, np.int32)
+    buf[:n] = coords
+    ids = None
+    if triangle is not None:
+        padded_ids = np.full(bucket(n), UNUSED, np.int32)
+        padded_ids[:n] = triangle
+        ids = jax.device_put(padded_ids)
+    return Voxels(jax.device_put(buf), jnp.int32(n), jnp.int32(0), ids, grid, mode)
+
+
+def mesh_to_dag(
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    mode: Mode = CONSERVATIVE,
+    region: int | None = None,
+    progress: bool | None = None,
+) -> Octree:
+    """Voxelizes a mesh straight into its sparse voxel DAG, one region at a time.
+
+    Returns the DAG of ``build_dag(voxelize(mesh, grid, mode=mode))``, table for table
+    (same node order, same ladder-padded layout), but never holds the whole voxel list:
+    the grid is cut into aligned cubic regions of edge `region`, visited in Morton order;
+    each region is voxelized alone and built into its sub-DAG, its voxels are dropped,
+    and sub-DAGs merge level by level in `build_dag`'s canonical (lexicographic) order.
+    The levels above the regions are built from the regions' roots. Memory is about the
+    merged DAG (at most twice it while merging) plus one region's voxels and build;
+    nothing is truncated.
+
+    Args:
+      mesh: the `Mesh` (validated: NaN/inf vertices or bad face indices raise).
+      grid: the `Grid`; geometry outside it is clipped.
+      mode: "conservative" or "6-separating" (as in `voxelize`).
+      region: voxels per region edge, a power of two in ``[2, 1024]`` (None: 1024, the
+        voxelizer's region); clipped to the grid's resolution. Smaller regions hold
+        fewer voxels at once but run more, smaller steps.
+      progress: show a progress bar over regions (default: when there are several).
+
+    Returns:
+      An `Octree` with ``dag=True`` and ``overflow == 0``, laid out on the shape ladder
+      (`compact` drops the padding); for a mesh that sets no voxel, what `build_dag`
+      returns for no voxels (a root with mask 0).
+
+    Raises:
+      JaxvoxError: not a `Mesh` or `Grid`, a malformed mesh, a bad mode or region, or
+        more than ``2^31 - 1`` voxels (the int32 voxel count of an `Octree`).
+    """
+    return stream_dag(mesh, grid, mode=mode, region=region, progress=progress)
