@@ -6,17 +6,20 @@ the finest window is about the mesh's size) follow a camera flying through the m
 updated every frame, so each frame exposes slabs of one to three voxels in the finest
 cascade and fewer in the coarser ones.
 
-* methods: `update_clipmap` with "band" (the default), "jfa", "jfa+sweep" (the thread's pipeline, on scissor
-  volumes: each exposed slab grown by the truncation plus one voxel) and "exact" (brute
-  force at each exposed voxel);
+* methods: `update_clipmap` with "band", "jfa", "jfa+sweep" (the thread's pipeline, on
+  scissor volumes: each exposed slab grown by the truncation plus one voxel) and "exact"
+  (the default: exact point-triangle distances over the triangles within the truncation
+  of each exposed voxel, one batch per frame; see `jaxvox.Clipmap`);
 * peer: Open3D's `RaycastingScene.compute_signed_distance` (float32 BVH, exact distance,
   sign by ray parity) at exactly the exposed voxel centres, clamped and written into a
   toroidal numpy array: the work a move needs done by a real library;
 * rebuild: `build_clipmap` at the last position (every voxel of every cascade), median
-  of 2 calls after a warm-up ("exact": one call);
+  of 2 calls after a warm-up;
 * time: the path is flown twice; the second flight is timed (median seconds per frame)
   and the first flight's extra time is reported as compilation (new slab shapes; the
-  first method, "band", also pays for the voxelizer and sign code the others reuse);
+  first method also pays for the sign code the others reuse), with the number of XLA
+  compilations in each flight (`jax.monitoring`; 0 in the timed one: moves run programs
+  already compiled);
 * error: the clipmap after the flight against the clamped exact signed distance at
   every voxel (Open3D's distance and parity occupancy), in voxels of each cascade: max,
   mean and 99th percentile of |field - exact| over all cascades; sign errors counted
@@ -29,6 +32,8 @@ experiments/results/.
 Examples:
   python experiments/clipmap_updates.py --smoke     # spot, R = 16, a few frames
   python experiments/clipmap_updates.py             # spot, R = 32 and 64, 8 frames (about 15 minutes)
+  python experiments/clipmap_updates.py --resolutions 64 --methods band exact --out /tmp/x
+                                                    # 64^3 x 3 only, two methods, results in /tmp/x.*
 """
 
 from __future__ import annotations
@@ -59,6 +64,10 @@ def worker(spec: dict) -> dict:
 
     mesh = jv.load_mesh(spec["path"])
     v = np.asarray(mesh.vertices, np.float64)
+    compiles: list[float] = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **kw: compiles.append(secs) if name == "/jax/core/compile/backend_compile_duration" else None
+    )
     r, n, trunc = spec["resolution"], spec["cascades"], spec["truncation"]
     h0 = float((v.max(0) - v.min(0)).max()) / r
     centre = (v.max(0) + v.min(0)) / 2
@@ -100,16 +109,17 @@ def worker(spec: dict) -> dict:
 
     exact_fields = None
     rows = []
-    for method in METHODS + ("open3d",):
+    for method in tuple(spec["methods"]) + ("open3d",):
         flights = []
         for _ in range(2):  # the first flight compiles every slab shape; the second is timed
+            before = len(compiles)
             t0 = time.perf_counter()
             if method == "open3d":
                 fields, corner, times = fly_open3d()
             else:
                 clip, times = fly_jaxvox(method)
                 fields, corner = np.asarray(clip.fields), np.asarray(clip.corner)
-            flights.append((time.perf_counter() - t0, times))
+            flights.append((time.perf_counter() - t0, times, len(compiles) - before))
         if exact_fields is None:
             exact_fields = _reference(scene, corner, h0, r, trunc)
         h = h0 * 2.0 ** np.arange(n)[:, None, None, None]
@@ -121,6 +131,8 @@ def worker(spec: dict) -> dict:
             frame_median_s=float(np.median(flights[1][1])),
             frame_max_s=float(np.max(flights[1][1])),
             compile_s=max(flights[0][0] - flights[1][0], 0.0),
+            compiles=flights[0][2],  # XLA compilations in the first flight (build included)
+            compiles_timed=flights[1][2],  # ... and in the timed one (0: no new program per move)
             max=float(err.max()),
             mean=float(err.mean()),
             p99=float(np.percentile(err, 99)),
@@ -129,7 +141,7 @@ def worker(spec: dict) -> dict:
         )
         if method != "open3d":
             call = lambda: jax.block_until_ready(jv.build_clipmap(mesh, path[-1], method=method, **settings).fields)
-            timing, _ = _common.time_calls(call, 0 if method == "exact" else 2)  # exact: one call (minutes)
+            timing, _ = _common.time_calls(call, 2)
             row.update(rebuild_s=timing["median_s"])
         rows.append(row)
     exposed = _exposed_per_frame(path, start, h0, r, n)
@@ -184,7 +196,8 @@ def table(cases: list[dict]) -> str:
                 method=row["method"],
                 frame=f"{row['frame_median_s'] * 1e3:.3g} / {row['frame_max_s'] * 1e3:.3g}",
                 rebuild=f"{row['rebuild_s']:.3g}" if "rebuild_s" in row else "-",
-                compile=f"{row['compile_s']:.2g}",
+                compile=f"{row['compile_s']:.2g}"
+                + (f" ({row['compiles']} / {row['compiles_timed']})" if "compiles" in row else ""),
                 err=f"{row['max']:.3f} / {row['mean']:.4f} / {row['p99']:.3f}",
                 sign=f"{row['sign_errors']} / {row['sign_checked']:,}",
                 exposed=f"{case['exposed_voxels_per_frame']:,.0f}",
@@ -200,7 +213,7 @@ def table(cases: list[dict]) -> str:
         ("exposed", "exposed voxels / frame"),
         ("frame", "frame: median / max (ms)"),
         ("rebuild", "rebuild (s)"),
-        ("compile", "compile (s)"),
+        ("compile", "compile (s) (programs: first / timed flight)"),
         ("err", "vs exact: max / mean / p99 (voxels)"),
         ("sign", "sign errors"),
     ]
@@ -209,7 +222,7 @@ def table(cases: list[dict]) -> str:
 
 def plot(cases: list[dict], stem) -> None:
     fig, ax = _common.new_figure(1, width=7.0)
-    for k, method in enumerate(METHODS + ("open3d",)):
+    for k, method in enumerate(METHODS + ("open3d",)):  # fixed colours whatever --methods ran
         pts = [
             (row["frame_median_s"], max(row["max"], 1e-4), case)
             for case in cases
@@ -235,6 +248,8 @@ def plot(cases: list[dict], stem) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--meshes", nargs="+", default=["spot"])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--out", default="clipmap_updates", help="results stem in experiments/results (or a path)")
     parser.add_argument("--resolutions", nargs="+", type=int, default=[32, 64])
     parser.add_argument("--cascades", type=int, default=3)
     parser.add_argument("--truncation", type=float, default=8.0)
@@ -248,7 +263,7 @@ def main() -> None:
         return
     if args.smoke:
         args.meshes, args.resolutions, args.frames = ["spot"], [16], 4
-    stem = _common.RESULTS_DIR / ("clipmap_updates_smoke" if args.smoke else "clipmap_updates")
+    stem = _common.RESULTS_DIR / (args.out + "_smoke" if args.smoke else args.out)
     cases = []
     for name in args.meshes:
         for r in args.resolutions:
@@ -259,6 +274,7 @@ def main() -> None:
                 truncation=args.truncation,
                 frames=args.frames,
                 step=args.step,
+                methods=args.methods,
             )
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), mesh=name, resolution=r)
             cases.append(case)

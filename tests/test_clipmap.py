@@ -1,5 +1,6 @@
 """Cascaded clipmaps: incremental updates against scratch builds and the exact clamped
-field, the scissor volumes of a move, and sphere tracing through the cascades."""
+field, the scissor volumes of a move, the compile budget of a flight, and sphere tracing
+through the cascades."""
 
 from __future__ import annotations
 
@@ -12,14 +13,39 @@ import pytest
 import jaxvox as jv
 from jaxvox.distance.clipmap import _exposed_boxes
 from tests.reference import first_hit, mesh_distance, winding_number
+from tests.test_compiles import count_compiles
 from tests.test_distance import BOUNDS, ISOLATED_SWEEP_BOUND, icosphere
+
+
+def _open_sphere() -> jv.Mesh:
+    """An icosphere with a cap cut off (open edges: signed by winding numbers)."""
+    sphere = icosphere(2, 0.5, (0.1, 0.0, 0.0))
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    return jv.Mesh(v, f[v[f].mean(1)[:, 2] < 0.3])
+
+
+def _exact_clamped(mesh: jv.Mesh, clip: jv.Clipmap):
+    """The float64 clamped signed distance [N, R, R, R] in voxels of each cascade, in the
+    clipmap's toroidal slots, and the winding numbers there (brute force)."""
+    n, r = clip.num_cascades, clip.resolution
+    ref, wind = np.zeros((n, r, r, r)), np.zeros((n, r, r, r))
+    for c in range(n):
+        h = float(clip.voxel_size) * 2.0**c
+        g = np.asarray(clip.corner[c]) + np.argwhere(np.ones((r, r, r), bool))
+        centres = np.asarray(clip.origin, np.float64) + (g + 0.5) * h
+        slots = tuple(np.mod(g, r).T)
+        w = winding_number(mesh.vertices, mesh.faces, centres)
+        d = np.minimum(mesh_distance(mesh.vertices, mesh.faces, centres) / h, clip.truncation)
+        ref[c][slots], wind[c][slots] = np.where(w > 0.5, -d, d), w
+    return ref, wind
 
 
 @pytest.mark.parametrize("method", ["exact", "band"])
 def test_clipmap_incremental_equals_scratch_after_moves(method):
     """After time-sliced moves (small, large, random), the incremental clipmap equals a
-    build from scratch: exactly for "exact" (a function of position), and to float32
-    rounding for "band" (a function of the seeds near each voxel; see `Clipmap`)."""
+    build from scratch: bit for bit for "exact" (a function of position: each pair is
+    evaluated relative to its triangle's lattice voxel), and to float32 rounding for
+    "band" (a function of the seeds near each voxel; see `Clipmap`)."""
     mesh = icosphere(1, 0.5, (0.1, 0.0, 0.0))
     kw = dict(resolution=16, num_cascades=3, voxel_size=0.05, method=method)
     rng = np.random.default_rng(5)
@@ -31,9 +57,10 @@ def test_clipmap_incremental_equals_scratch_after_moves(method):
     clip = jv.update_clipmap(clip, mesh, moves[-1])  # catch up every cascade
     scratch = jv.build_clipmap(mesh, moves[-1], **kw)
     np.testing.assert_array_equal(np.asarray(clip.corner), np.asarray(scratch.corner))
-    np.testing.assert_allclose(
-        np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-6 if method == "exact" else 1e-5
-    )
+    if method == "exact":
+        np.testing.assert_array_equal(np.asarray(clip.fields), np.asarray(scratch.fields))
+    else:
+        np.testing.assert_allclose(np.asarray(clip.fields), np.asarray(scratch.fields), atol=1e-5)
     # stored values are the signed distance at each voxel centre, clamped (exact, or within
     # the separable jump flooding's bound, never below)
     above = BOUNDS["exact"][0] if method == "exact" else BOUNDS["jfa-separable"][0]
@@ -54,6 +81,56 @@ def test_clipmap_incremental_equals_scratch_after_moves(method):
     ball = jv.build_clipmap(icosphere(0, 0.2, (-0.6, 0.0, 0.0)), moves[-1], **kw)
     union = jv.union_clipmaps(scratch, ball)
     np.testing.assert_array_equal(np.asarray(union.fields), np.minimum(scratch.fields, ball.fields))
+
+
+@pytest.mark.parametrize("mesh", [icosphere(2, 0.5, (0.1, 0.0, 0.0)), _open_sphere()], ids=["watertight", "open"])
+def test_exact_clipmap_matches_float64_after_moves(mesh):
+    """The default "exact" method after moves (the lattice indices of the windows go
+    negative) equals the float64 clamped signed distance within 1e-3 voxel at every voxel
+    of every cascade, with no sign error: parity for the watertight mesh, winding numbers
+    for the open one (excused only where the float64 winding number is within 1e-4 of
+    1/2: a tie of the inside test itself)."""
+    kw = dict(resolution=16, num_cascades=3, voxel_size=0.05, truncation=3.0)
+    clip = jv.build_clipmap(mesh, (-0.9, 0.2, 0.1), **kw)
+    assert clip.method == "exact"
+    for frame, camera in enumerate([(-0.8, 0.25, 0.1), (-0.3, 0.0, 0.2), (0.35, -0.3, -0.1), (0.4, -0.25, -0.1)]):
+        clip = jv.update_clipmap(clip, mesh, camera, cascades=None if frame % 2 else jv.time_sliced_cascades(frame, 3))
+    clip = jv.update_clipmap(clip, mesh, (0.4, -0.25, -0.1))
+    assert (np.asarray(clip.corner) < 0).any()
+    ref, wind = _exact_clamped(mesh, clip)
+    got = np.asarray(clip.fields) / (0.05 * 2.0 ** np.arange(3))[:, None, None, None]
+    assert (np.abs(ref) < 3.0).sum() > 1000 and (ref < 0).any()  # a real band, and an inside
+    tie = np.abs(wind - 0.5) < 1e-4
+    err = np.abs(got - ref)[~tie]
+    assert err.max() <= 1e-3, err.max()
+    firm = (np.abs(ref) > 1e-3) & ~tie
+    np.testing.assert_array_equal(got[firm] < 0, ref[firm] < 0)
+    # a mesh without faces: everything at the clamp, outside
+    empty = jv.build_clipmap(jv.Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32)), (0.0, 0.0, 0.0), **kw)
+    limit = 3.0 * 0.05 * 2.0 ** np.arange(3)[:, None, None, None]
+    np.testing.assert_allclose(np.asarray(empty.fields), np.broadcast_to(limit, got.shape), rtol=1e-6)
+
+
+def test_exact_clipmap_flight_compiles_nothing_new():
+    """Moves run programs already compiled: a flight repeated elsewhere on the lattice
+    (camera and mesh shifted by a whole number of the coarsest voxels, so that every box
+    and every count falls in the same buckets) compiles nothing."""
+    mesh = icosphere(2, 0.5, (0.1, 0.0, 0.0))
+    kw = dict(resolution=16, num_cascades=2, voxel_size=0.05)
+    path = [np.array([-0.61, 0.13, 0.07]) + np.array([1.0, 0.5, 0.25]) * 0.08 * f for f in range(6)]
+
+    def fly(shift):
+        moved = jv.Mesh(np.asarray(mesh.vertices) + shift, mesh.faces)
+        clip = jv.build_clipmap(moved, path[0] + shift, **kw)
+        for camera in path[1:]:
+            clip = jv.update_clipmap(clip, moved, camera + shift)
+        return jax.block_until_ready(clip.fields)
+
+    first = fly(np.zeros(3))
+    with count_compiles() as n:
+        again = fly(np.array([-1.6, 0.8, -2.4]))  # 16, 8 and 24 coarse voxels of 0.1
+    assert n[0] == 0, f"{n[0]} programs compiled for a flight in the warmed-up buckets"
+    np.testing.assert_allclose(np.sort(np.asarray(again).ravel()), np.sort(np.asarray(first).ravel()), atol=1e-5)
 
 
 @hypothesis.settings(max_examples=60, deadline=None)
