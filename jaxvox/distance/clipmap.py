@@ -405,7 +405,7 @@ def build_clipmap(
     per side, from the faces near it (see `Clipmap`); a build is one such field of
     ``(R + 2 truncation + 2)^3`` per cascade. Measured on spot (experiments/
     clipmap_updates.py, 32^3 and 64^3 cascades): "exact" within 5e-6 voxel of Open3D's
-    (float32) exact clamped value and 10 to 60 times faster per move than the others;
+    (float32) exact clamped value and 20 to 100 times faster per move than the others;
     "band" and "jfa" within 0.42 voxel, "jfa+sweep" within 0.78 (the tests allow 1e-3,
     0.75, 0.5 and 3.25).
 
