@@ -32,8 +32,8 @@ jv.enable_compilation_cache()  # compiled programs persist across sessions (~/.c
 
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 MESHES = pathlib.Path(os.environ.get("JAXVOX_MESHES", "../../shared/meshes"))  # from notebooks/
-RESOLUTION = 64 if SMOKE else 1024
-WIDTH, HEIGHT = (160, 120) if SMOKE else (960, 720)
+RESOLUTION = 32 if SMOKE else 1024  # the smoke run's speed point below reuses this tree's programs
+WIDTH, HEIGHT = (64, 48) if SMOKE else (960, 720)
 
 path = MESHES / "stanford-bunny.obj"
 mesh = jv.load_mesh(path) if path.exists() else jv.default_scene()
@@ -108,7 +108,7 @@ if RESOLUTION <= 256:
 
 # %%
 rates = {}
-for R in ([32] if SMOKE else [256, 512, 1024, 2048]):
+for R in ([RESOLUTION] if SMOKE else [256, 512, 1024, 2048]):
     tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=R)))
     for method in jv.TRACE_METHODS:
         jax.block_until_ready(jv.trace(tree, origins, directions, method=method))

@@ -32,7 +32,7 @@ jv.enable_compilation_cache()  # compiled programs persist across sessions (~/.c
 
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 MESHES = pathlib.Path(os.environ.get("JAXVOX_MESHES", "../../shared/meshes"))  # from notebooks/
-RESOLUTION = 32 if SMOKE else 512
+RESOLUTION = 32 if SMOKE else 512  # smoke sizes = tests/test_render.py's CLI render: they share compiled programs
 WIDTH, HEIGHT = (64, 48) if SMOKE else (480, 360)
 SPP, BOUNCES = (2, 2) if SMOKE else (32, 8)
 
@@ -117,7 +117,7 @@ bunny = jv.load_mesh(path) if path.exists() else scene
 eye, target = jv.look_at_view(bunny, distance=1.6)
 settings = dict(env=jv.sky_environment(), width=WIDTH, height=HEIGHT, spp=SPP, bounces=BOUNCES, key=3)
 images = {}
-for R in ([16, 32] if SMOKE else [128, 1024]):
+for R in ([RESOLUTION] if SMOKE else [128, 1024]):
     tree = jv.build_dag(jv.voxelize(bunny, jv.Grid.fit(bunny, resolution=R)))
     images[f"DAG {R}^3"] = jv.render(tree, eye, target, **settings).radiance
 try:

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import numpy as np
 import pytest
@@ -13,6 +15,12 @@ from jaxvox.overflow import check_overflow, describe
 V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) * 0.8 + 0.1
 F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
 GRID = jv.Grid(np.zeros(3), 1.0 / 32, 32)
+
+
+@functools.partial(jax.jit, static_argnames=("caps", "checked"))
+def fixed_voxels(mesh, caps, checked=False):
+    """`voxelize_fixed` on GRID inside jit: one compiled program per capacities, shared by the tests."""
+    return jv.voxelize_fixed(mesh, GRID, caps, checked=checked)
 
 
 def test_bits_are_distinct_and_named():
@@ -34,7 +42,7 @@ def test_bits_are_distinct_and_named():
 def test_capacities_functions_fit_the_fixed_functions():
     mesh = jv.Mesh(V, F)
     caps = jv.voxel_capacities(mesh, GRID)
-    vox = jax.jit(lambda m: jv.voxelize_fixed(m, GRID, caps))(mesh)
+    vox = fixed_voxels(mesh, caps)
     np.testing.assert_array_equal(vox.to_numpy(), jv.voxelize(mesh, GRID).to_numpy())
     levels = jv.octree_capacities(vox)
     assert len(levels) == 5 and levels[0] == 1
@@ -50,12 +58,12 @@ def test_checked_raises_inside_jit():
     mesh = jv.Mesh(V, F)
     caps = jv.voxel_capacities(mesh, GRID)
     tiny = caps._replace(voxels=8)
-    flagged = jax.jit(lambda m: jv.voxelize_fixed(m, GRID, tiny))(mesh)
+    flagged = fixed_voxels(mesh, tiny)
     assert int(flagged.overflow) == jv.Overflow.VOXELS
     with pytest.raises(Exception, match=r"voxelize_fixed result: overflowed \(VOXELS;"):
-        jax.block_until_ready(jax.jit(lambda m: jv.voxelize_fixed(m, GRID, tiny, checked=True))(mesh))
+        jax.block_until_ready(fixed_voxels(mesh, tiny, checked=True))
     # Checked and fitting: no error, the same voxels.
-    fine = jax.jit(lambda m: jv.voxelize_fixed(m, GRID, caps, checked=True))(mesh)
+    fine = fixed_voxels(mesh, caps, checked=True)
     assert int(fine.overflow) == 0
 
     vox = jv.voxelize(mesh, GRID)
@@ -70,7 +78,7 @@ def test_checked_raises_inside_jit():
 def test_host_side_messages_name_the_bits(tmp_path):
     mesh = jv.Mesh(V, F)
     tiny = jv.voxel_capacities(mesh, GRID)._replace(voxels=8)
-    flagged = jv.voxelize_fixed(mesh, GRID, tiny)
+    flagged = fixed_voxels(mesh, tiny)  # the program test_checked_raises_inside_jit compiles (eager: tests/test_api.py)
     for call in (flagged.to_numpy, lambda: jv.build_octree(flagged)):
         with pytest.raises(jv.JaxvoxError, match=r"overflowed \(VOXELS; the result is truncated\)"):
             call()

@@ -111,9 +111,10 @@ def test_black_environment_and_emission(scene):
     assert inner.sum() > 100
     np.testing.assert_array_equal(rgb[inner], np.broadcast_to(np.float32([1.0, 2.0, 3.0]), (inner.sum(), 3)))
     np.testing.assert_array_equal(rgb[_interior(~hits)], 0.0)
-    # A few emissive voxels light their surroundings; the background stays black.
-    n = int(tree.voxel_count)
-    emission = np.zeros((n, 3), np.float32)
+    # A few emissive voxels light their surroundings; the background stays black. The table
+    # has a row per voxel slot of the expanded tree (as `box_emission` makes it for the CLI's
+    # --emit): test_cli_info_and_errors's render then runs this test's compiled program.
+    emission = np.zeros((jv.expand(tree).coords.shape[0], 3), np.float32)
     emission[::7] = 4.0
     lit = jv.render(
         tree, eye, target, env=black, albedo=(0.8, 0.8, 0.8), emission=emission, bounces=4, key=2, **SETTINGS
@@ -398,8 +399,11 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
 
 
 def test_cli_render_subprocess(tmp_path):
+    """`python -m jaxvox render` of the default scene. Its scene, resolution and image are
+    notebooks/04_render.py's smoke run (upright default scene with its colours, 32^3, 64x48,
+    2 spp, 2 bounces, sky): both processes share the suite's compilation cache
+    ($JAXVOX_CACHE_DIR, set by conftest), so whichever runs second compiles nothing."""
     out = tmp_path / "tiny.exr"
-    env = dict(os.environ, JAXVOX_CACHE_DIR="")
     result = subprocess.run(
         [
             sys.executable,
@@ -407,19 +411,18 @@ def test_cli_render_subprocess(tmp_path):
             "jaxvox",
             "render",
             "--resolution",
-            "16",
+            "32",
             "--size",
-            "24x16",
+            "64x48",
             "--spp",
-            "1",
+            "2",
             "--bounces",
-            "1",
+            "2",
             "--out",
             str(out),
         ],
         capture_output=True,
         text=True,
-        env=env,
         timeout=600,
         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
     )
@@ -427,7 +430,7 @@ def test_cli_render_subprocess(tmp_path):
     assert out.exists() and (tmp_path / "tiny.png").exists()
     assert str(tmp_path / "tiny.png") in result.stdout
     channels = jv.read_exr(out)
-    assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(channels) and channels["R"].shape == (16, 24)
+    assert {"R", "G", "B", "Z", "N.X", "N.Y", "N.Z"} <= set(channels) and channels["R"].shape == (48, 64)
 
 
 def test_mesh_renderer_furnace_and_agreement_with_voxels(scene):
