@@ -104,19 +104,6 @@ _STREAM_REGION: int | None = None
 _ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
 
 
-def _join(parts: list[np.ndarray]) -> np.ndarray:
-    """Concatenates host arrays, emptying `parts` as it goes (an untouched `np.empty`
-    page costs nothing), so the parts and the whole are never held at once."""
-    out = np.empty((sum(len(p) for p in parts),) + parts[0].shape[1:], parts[0].dtype)
-    start = 0
-    parts.reverse()
-    while parts:
-        part = parts.pop()
-        out[start : start + len(part)] = part
-        start += len(part)
-    return out
-
-
 def _streamed_dag_timed(mesh, grid):
     """The DAG of `mesh` built region by region and its per-voxel attributes, gathered
     region by region (the same arrays as `voxel_attributes` of the whole voxel set);
@@ -125,6 +112,7 @@ def _streamed_dag_timed(mesh, grid):
 
     import jaxvox as jv
     from jaxvox.octree.stream import stream_dag
+    from jaxvox.voxelize.host import join_rows
 
     parts: dict[str, list[np.ndarray]] = {}
 
@@ -146,7 +134,7 @@ def _streamed_dag_timed(mesh, grid):
     if not parts:  # no voxels: empty attribute arrays, as voxel_attributes gives them
         none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
         gather(jv.Voxels(*none, grid, tree.mode))
-    return tree, {key: _join(value) for key, value in parts.items()}, seconds
+    return tree, {key: join_rows(value) for key, value in parts.items()}, seconds
 
 
 def cmd_build(args) -> int:

@@ -249,19 +249,27 @@ def region_voxels(
 
 
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
-    """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED`.
+    """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED` (see `join_rows`)."""
+    return join_rows(parts, shape, UNUSED, dtype=np.int32)
+
+
+def join_rows(parts: list[np.ndarray], shape: tuple[int, ...] | None = None, fill=0, dtype=None) -> np.ndarray:
+    """Concatenates host arrays along their first axis into one buffer of `shape` (default:
+    just their rows) of `dtype` (default the parts'), the rows past them set to `fill`.
 
     Empties `parts` as it goes, and the buffer's pages are only touched as they are
     filled, so the parts and the whole buffer are never held at once.
     """
-    out = np.empty(shape, np.int32)
+    if shape is None:
+        shape = (sum(len(p) for p in parts),) + parts[0].shape[1:]
+    out = np.empty(shape, dtype or (parts[0].dtype if parts else np.int32))
     start = 0
     parts.reverse()
     while parts:
         part = parts.pop()
         out[start : start + len(part)] = part
         start += len(part)
-    out[start:] = UNUSED
+    out[start:] = fill
     return out
 
 
