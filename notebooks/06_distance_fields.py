@@ -95,7 +95,7 @@ lo, hi = np.asarray(mesh.vertices).min(0), np.asarray(mesh.vertices).max(0)
 size = float((hi - lo).max())
 cascade_r = 8 if SMOKE else 32
 kw = dict(resolution=cascade_r, num_cascades=3, voxel_size=1.5 * size / cascade_r / 2)
-path_points = [lo - 0.6 * size + t * (hi - lo + 1.2 * size) * [1, 0.2, 0.1] for t in np.linspace(0, 0.5, 4 if SMOKE else 12)]
+path_points = [lo - 0.6 * size + t * (hi - lo + 1.2 * size) * [1, 0.2, 0.1] for t in np.linspace(0, 0.5, 3 if SMOKE else 12)]
 clip = jv.build_clipmap(mesh, path_points[0], **kw)
 for frame, camera in enumerate(path_points[1:]):
     clip = jv.update_clipmap(clip, mesh, camera, cascades=jv.time_sliced_cascades(frame, 3))

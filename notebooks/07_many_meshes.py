@@ -35,10 +35,10 @@ import jaxvox as jv
 
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 MESHES = pathlib.Path(os.environ.get("JAXVOX_MESHES", "../../shared/meshes"))  # from notebooks/
-RESOLUTION = 32 if SMOKE else 128
-BATCH = 4 if SMOKE else 16
+RESOLUTION = 16 if SMOKE else 128
+BATCH = 2 if SMOKE else 16
 WIDTH, HEIGHT = (32, 24) if SMOKE else (128, 96)
-NAMES = (["suzanne", "woody", "beetle", "spot"] if SMOKE else
+NAMES = (["suzanne", "woody"] if SMOKE else
          ["suzanne", "woody", "beetle", "spot", "cow", "teapot", "fandisk", "stanford-bunny"])
 
 # No persistent compilation cache here (unlike the other notebooks): the point is to
