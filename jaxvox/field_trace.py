@@ -45,7 +45,7 @@ from jaxtyping import Array, ArrayLike, Float, Float32, Real
 from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
 from jaxvox.sdf import sampled
 from jaxvox.sdf_octree import sphere_trace_octree
-from jaxvox.sparse_field import SparseField, sample
+from jaxvox.sparse_field import SparseField, checked_points, sample
 from jaxvox.trace import TRACE_METHODS, Hit
 
 
@@ -156,10 +156,7 @@ def sample_gradient(field: SparseField, points: Float[ArrayLike, "*batch 3"]) ->
     Raises:
       JaxvoxError: not a `SparseField`, or `points` without a last axis of 3.
     """
-    check_type("sample_gradient field", field, SparseField)
-    if np.shape(points)[-1:] != (3,):
-        raise refuse("sample_gradient points", "must have shape [..., 3]", np.shape(points))
-    return _sample_gradient(field, jnp.asarray(points, jnp.float32))
+    return _sample_gradient(field, checked_points("sample_gradient", field, points))
 
 
 @jax.jit

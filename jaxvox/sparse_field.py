@@ -507,10 +507,16 @@ def sample(
     Raises:
       JaxvoxError: not a `SparseField`, or `points` without a last axis of 3.
     """
-    check_type("sample field", field, SparseField)
+    return _sample(field, checked_points("sample", field, points))
+
+
+def checked_points(what: str, field: SparseField, points) -> jax.Array:
+    """`points` as float32 [..., 3] after checking that `field` is a `SparseField` and the
+    points have a last axis of 3 (`JaxvoxError` naming ``what``)."""
+    check_type(f"{what} field", field, SparseField)
     if np.shape(points)[-1:] != (3,):
-        raise refuse("sample points", "must have shape [..., 3]", np.shape(points))
-    return _sample(field, jnp.asarray(points, jnp.float32))
+        raise refuse(f"{what} points", "must have shape [..., 3]", np.shape(points))
+    return jnp.asarray(points, jnp.float32)
 
 
 @jax.jit
