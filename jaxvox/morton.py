@@ -51,6 +51,13 @@ def encode_word_host(ijk: np.ndarray) -> np.ndarray:
     return _spread10(u[..., 0]) | (_spread10(u[..., 1]) << 1) | (_spread10(u[..., 2]) << 2)
 
 
+def encode_host(ijk: np.ndarray) -> np.ndarray:
+    """The whole Morton code in numpy (compiles nothing): int [..., 3] (< 2^20) -> uint64 [...]."""
+    u = np.asarray(ijk, np.int64)
+    hi = encode_word_host(u >> WORD_BITS).astype(np.uint64)
+    return (hi << np.uint64(3 * WORD_BITS)) | encode_word_host(u & WORD_MASK).astype(np.uint64)
+
+
 def decode_word(word: jax.Array) -> jax.Array:
     """Inverse of `encode_word`: uint32 [...] -> int32 [..., 3] with values < 1024."""
     w = jnp.asarray(word, jnp.uint32)

@@ -298,18 +298,11 @@ def _items(tris: np.ndarray, shape, band: int):
     rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
     n = per_axis[owner]
     brick = first[owner] + np.stack([rank // (n[:, 1] * n[:, 2]), (rank // n[:, 2]) % n[:, 1], rank % n[:, 2]], -1)
-    order = np.argsort(_codes(brick), kind="stable")
+    order = np.argsort(morton.encode_host(brick), kind="stable")
     brick, owner = brick[order], owner[order]
     tile_lo = np.maximum(lo[owner], brick * BRICK)
     tile_hi = np.minimum(hi[owner], brick * BRICK + BRICK - 1)
     return ids[owner], brick, tile_lo, tile_hi
-
-
-def _codes(ijk: np.ndarray) -> np.ndarray:
-    """uint64 [n] Morton codes of voxel indices [n, 3] (< 2^20), host-side."""
-    ijk = np.asarray(ijk, np.int64)
-    hi = morton.encode_word_host(ijk >> morton.WORD_BITS).astype(np.uint64)
-    return (hi << np.uint64(3 * morton.WORD_BITS)) | morton.encode_word_host(ijk & morton.WORD_MASK).astype(np.uint64)
 
 
 def band_pairs(tris: np.ndarray, shape, band: int):

@@ -1,6 +1,6 @@
 """Bottom-up builds of octrees and DAGs (see `jaxvox.octree`): one segment pass per level
 from Morton-sorted voxels, DAG deduplication by a lexicographic sort of child rows, the
-host-side counting pass (`_survey`) and capacity schedule (`_schedule`), and the public
+host-side counting pass (`_check_voxels`) and capacity schedule (`_schedule`), and the public
 `build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`; for the
 region-by-region build (`jaxvox.octree.stream`), `build_scheduled` (the host build before
 its ladder layout) and `dag_levels_above` (levels over given nodes)."""
@@ -291,50 +291,40 @@ def dag_levels_above(ijk, counts, ids, below: int, levels: int) -> list[tuple[np
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("resolution",))
-def _survey(coords: jax.Array, count: jax.Array, *, resolution: int):
-    """Checks and counts a voxel buffer in one program.
-
-    Returns:
-      (in_range [] bool: valid voxels lie in the grid, ordered [] bool: they strictly
-      increase in Morton order, sizes [D] int32 octree nodes per level, root first:
-      level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order).
-    """
-    valid = jnp.arange(coords.shape[0]) < count
-    inside = jnp.all((coords >= 0) & (coords < resolution) | ~valid[:, None])
-    hi, lo = morton.encode(jnp.clip(coords, 0, resolution - 1))
-    increasing = (hi[1:] > hi[:-1]) | ((hi[1:] == hi[:-1]) & (lo[1:] > lo[:-1]))
-    # Consecutive voxels first differ at the highest set bit p of their codes' XOR; they
-    # sit in different nodes of level l exactly when l >= D - p // 3.
-    x_hi, x_lo = hi[1:] ^ hi[:-1], lo[1:] ^ lo[:-1]
-    top = jnp.where(x_hi != 0, 61 - jax.lax.clz(x_hi), 31 - jax.lax.clz(x_lo)).astype(jnp.int32)
-    depth = resolution.bit_length() - 1
-    first_level = jnp.where(valid[1:] & (top >= 0), depth - top // 3, depth)
-    new_nodes = jnp.cumsum(jnp.zeros(depth + 1, jnp.int32).at[first_level].add(1))[:depth]
-    sizes = jnp.minimum(count, 1) + new_nodes
-    return inside, jnp.all(increasing | ~valid[1:]), sizes
+def _bit_length(x: np.ndarray) -> np.ndarray:
+    """int64 [n] bit lengths of uint64 [n] values (exact: 32-bit halves through frexp)."""
+    hi, lo = (x >> np.uint64(32)).astype(np.float64), (x & np.uint64(0xFFFFFFFF)).astype(np.float64)
+    return np.where(hi > 0, 32 + np.frexp(hi)[1], np.frexp(lo)[1]).astype(np.int64)
 
 
 def _check_voxels(caller: str, vox: Voxels) -> np.ndarray:
-    """Host-side validation of build input (raises `JaxvoxError` naming `caller`); returns
-    the octree's nodes per level (host int [D])."""
+    """Host-side validation and counting pass of build input, in numpy (so that it compiles
+    nothing for a new voxel count); raises `JaxvoxError` naming `caller`.
+
+    Returns:
+      Host int64 [D] octree nodes per level, root first: level ``l`` holds the distinct
+      ``ijk >> (D - l)``, consecutive in Morton order.
+    """
     check_overflow(f"{caller} vox", vox.overflow, "the tree would be truncated; use jaxvox.voxelize")
     resolution = vox.grid.resolution
-    inside, ordered, sizes = jax.device_get(_survey(vox.coords, vox.count, resolution=resolution))
-    if not (bool(inside) and bool(ordered)):
-        ijk = np.asarray(vox.coords[: int(vox.count)])
-        outside = ((ijk < 0) | (ijk >= resolution)).any(1)
-        if outside.any():
-            raise refuse(f"{caller} vox", f"holds voxel indices outside [0, {resolution})", ijk[outside][0])
-        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(jnp.asarray(ijk)))
-        codes = (hi << 30) | lo
+    depth = resolution.bit_length() - 1
+    ijk = np.asarray(vox.coords)[: min(int(vox.count), vox.coords.shape[0])]
+    outside = ((ijk < 0) | (ijk >= resolution)).any(1)
+    if outside.any():
+        raise refuse(f"{caller} vox", f"holds voxel indices outside [0, {resolution})", ijk[outside][0])
+    codes = morton.encode_host(ijk)
+    if (codes[1:] <= codes[:-1]).any():
         first = int(np.flatnonzero(codes[1:] <= codes[:-1])[0])
         raise refuse(
             f"{caller} vox",
             "voxels must be unique and in Morton order (build them with jaxvox.voxelize or Voxels.from_coords)",
             ijk[first : first + 2],
         )
-    return sizes
+    # Consecutive voxels first differ at the highest set bit p of their codes' XOR; they
+    # sit in different nodes of level l exactly when l >= D - p // 3.
+    first_level = depth - (_bit_length(codes[1:] ^ codes[:-1]) - 1) // 3
+    new_nodes = np.cumsum(np.bincount(first_level, minlength=depth + 1))[:depth]
+    return min(len(ijk), 1) + new_nodes
 
 
 def check_level_capacities(what: str, capacities, depth: int) -> tuple[int, ...]:

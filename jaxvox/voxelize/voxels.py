@@ -131,8 +131,7 @@ class Voxels:
         if outside.any():
             raise refuse("Voxels.from_coords ijk", f"holds voxel indices outside [0, {grid.resolution})", a[outside][0])
         a = a.astype(np.int32)
-        hi, lo = (np.asarray(w).astype(np.int64) for w in morton.encode(jnp.asarray(a)))
-        codes, first = np.unique((hi << 30) | lo, return_index=True)
+        codes, first = np.unique(morton.encode_host(a), return_index=True)
         n = len(codes)
         coords = np.full((bucket(n), 3), UNUSED, np.int32)
         coords[:n] = a[first]
