@@ -6,6 +6,15 @@ attribute arrays) is rounded up with `bucket` (a power of two, at least `FLOOR`)
 inputs whose counts fall in the same buckets run the same compiled programs. A padded
 buffer is at most twice its contents (or `FLOOR` entries).
 
+Buffers that grow with a surface (voxel lists and octree tables) have a higher floor
+that depends on the resolution R, so that the meshes a user meets at one resolution
+share one program instead of one per power of two: `voxel_bucket` pads voxel lists to
+at least 4 R^2 entries (capped at 2^22: 48 MiB of int32 coordinates) and `row_bucket`
+octree tables to at least R^2 rows (capped at 2^20: 64 MiB of child and prefix rows).
+A closed surface at R holds about 0.5-4 R^2 voxels (the shared meshes: 0.5 R^2 for
+woody, 3.3 R^2 for the bunny) and a DAG about R^2 / 16 to R^2 / 4 rows; what is larger
+goes up the ladder by powers of two. At 256^3 the floors cost 3 MiB and 4 MiB.
+
 Widths of packed sort keys go through `key_bits`, which keeps only the widths that
 change how many keys are sorted.
 """
@@ -22,6 +31,16 @@ FLOOR = 256  # smallest bucket
 def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
     """The ladder: the smallest power of two >= max(n, minimum)."""
     return 1 << (max(int(n), int(minimum), 1) - 1).bit_length()
+
+
+def voxel_bucket(n: int | np.integer, resolution: int) -> int:
+    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^22)."""
+    return bucket(n, min(4 * resolution * resolution, 1 << 22))
+
+
+def row_bucket(n: int | np.integer, resolution: int) -> int:
+    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^20)."""
+    return bucket(n, min(resolution * resolution, 1 << 20))
 
 
 def key_bits(n: int | np.integer) -> int:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox.octree.stream import _unique_rows
+from jaxvox.octree.host import unique_rows as _unique_rows
 
 MESHES = ["stanford-bunny", "spot", "teapot", "suzanne", "fandisk", "cow", "woody", "beetle"]
 FIELDS = ("mask", "child", "prefix", "level_count", "voxel_count", "overflow", "level_capacity")

@@ -83,11 +83,11 @@ def _check_tree(tree: jv.Octree, ijk: np.ndarray) -> None:
     stored = [max(expected[0], 1)] + expected[1:]  # an empty tree keeps its root row
     assert jv.compact(tree).nbytes == tree.compact_nbytes == sum(stored) + 64 * sum(stored[:-1])
     # Host-built trees are padded to the shape ladder: power-of-two tables, at most twice
-    # the rows (four times for the one-byte masks).
+    # the rows or the resolution's floor of R^2 rows (`row_bucket`).
     n, m = tree.mask.shape[0], tree.child.shape[0]
-    inner = sum(stored[:-1])
-    assert m & (m - 1) == 0 and m <= max(2 * inner - 1, 256) if inner else m == 0
-    assert n & (n - 1) == 0 and n <= max(2 * (m + stored[-1]) - 1, 256)
+    inner, floor = sum(stored[:-1]), tree.grid.resolution**2
+    assert m & (m - 1) == 0 and m <= max(2 * inner - 1, floor) if inner else m == 0
+    assert n & (n - 1) == 0 and n <= max(2 * (m + stored[-1]) - 1, floor)
 
 
 def _sorted_voxels(ijk: np.ndarray) -> np.ndarray:
@@ -416,6 +416,18 @@ def test_packed_sort_keys_order_rows_lexicographically(id_bits):
     assert int(count) == len(unique)
     np.testing.assert_array_equal(np.asarray(ids)[:280], inverse.reshape(-1))
     np.testing.assert_array_equal(rows[np.asarray(rep)[: len(unique)]], unique)
+
+
+@pytest.mark.parametrize("name", ["stanford-bunny", "teapot"])
+def test_host_build_matches_the_jittable_build_on_meshes(mesh_voxels, name):
+    """The host build (numpy) and the jittable build (XLA, with the counted capacities)
+    give the same tables, for the octree and the DAG."""
+    _, vox = mesh_voxels(name)
+    caps = jv.octree_capacities(vox)
+    for build in (jv.build_octree, jv.build_dag):
+        host, jitted = jv.compact(build(vox)), jv.compact(build(vox, capacities=caps))
+        for field in ("mask", "child", "prefix", "level_count", "voxel_count"):
+            np.testing.assert_array_equal(np.asarray(getattr(jitted, field)), np.asarray(getattr(host, field)))
 
 
 def test_jittable_build_with_wide_ids_matches_host():

@@ -1,9 +1,10 @@
-"""Bottom-up builds of octrees and DAGs (see `jaxvox.octree`): one segment pass per level
-from Morton-sorted voxels, DAG deduplication by a lexicographic sort of child rows, the
-host-side counting pass (`_check_voxels`) and capacity schedule (`_schedule`), and the public
-`build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`; for the
-region-by-region build (`jaxvox.octree.stream`), `build_scheduled` (the host build before
-its ladder layout) and `dag_levels_above` (levels over given nodes)."""
+"""Bottom-up builds of octrees and DAGs (see `jaxvox.octree`): the jittable build with
+static capacities (one segment pass per level from Morton-sorted voxels, DAG
+deduplication by a lexicographic sort of child rows), the host-side checks and counting
+pass (`_checked_codes`, `_level_sizes`) and capacity schedule (`_schedule`), and the
+public `build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`.
+Without capacities the build runs in numpy (`jaxvox.octree.host`), table for table the
+same, and compiles nothing."""
 
 from __future__ import annotations
 
@@ -16,9 +17,8 @@ import numpy as np
 
 from jaxvox import morton
 from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
 from jaxvox._shapes import bucket, key_bits
-from jaxvox.octree.layout import padded
+from jaxvox.octree.host import tree_from_levels, voxel_levels
 from jaxvox.octree.tree import EMPTY, OVERFLOW_NODES, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import check_overflow, raise_if_overflow
 from jaxvox.voxelize import Voxels
@@ -227,68 +227,22 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     )
 
 
-def _schedule(counted) -> tuple[int, ...]:
-    """Per-level build capacities from the bottom level's node count alone, so that trees
-    of similar size share one compiled build.
+def _schedule(counted, voxel_capacity: int) -> tuple[int, ...]:
+    """Per-level build capacities from the bottom level's node count and the voxel
+    buffer's capacity alone, so that trees of similar size share one compiled build.
 
     A surface has about a quarter as many nodes per level as the level below (measured
     0.25-0.28 near the bottom on five shared meshes at 128^3 and 1024^3), so level ``D - 1 - k`` gets
-    ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1), doubled above the three
-    bottom levels where the ratio creeps up; a level counted above that (scattered
-    voxels) gets the bucket of its own count. Capped at ``8^l``.
+    ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1, at least half the voxel
+    capacity, which a surface's P stays below, so that one voxel bucket is one build),
+    doubled above the three bottom levels where the ratio creeps up; a level counted
+    above that (scattered voxels) gets the bucket of its own count. Capped at ``8^l``.
     """
-    depth, bottom = len(counted), bucket(int(counted[-1]), 64)
+    depth, bottom = len(counted), bucket(int(counted[-1]), max(64, voxel_capacity // 2))
     return tuple(
         min(8**level, max(bottom >> 2 * k << (k >= 3), bucket(int(n), 64)))
         for level, (k, n) in enumerate(zip(range(depth - 1, -1, -1), counted))
     )
-
-
-def build_scheduled(caller: str, vox: Voxels, dag: bool) -> Octree:
-    """Host-side build before the ladder layout: the voxels checked and counted
-    (`_check_voxels`, errors naming `caller`), then one compiled build with the
-    capacities of `_schedule` (which fit the counted levels). The tree keeps the
-    schedule's rows per level (`level_capacities`); `padded` lays it on the ladder."""
-    counted = _check_voxels(caller, vox)
-    capacity = _schedule(counted)
-    tree = _build(vox, capacity=capacity, dag=dag)
-    if int(tree.overflow):
-        raise JaxvoxError(f"internal error: octree levels {list(counted)} overflowed capacities {capacity}")
-    return tree
-
-
-def dag_levels_above(ijk, counts, ids, below: int, levels: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The `levels` DAG levels above a level given by its nodes' cells, built by the
-    build's own per-level step (`_build_level`), e.g. over the roots of sub-DAGs built
-    apart (`jaxvox.octree.stream`).
-
-    Args:
-      ijk: [k, 3] int32 cells of the nodes (indices at that level's resolution), k >= 1,
-        unique and in Morton order.
-      counts: [k] int32 voxels below each node.
-      ids: [k] int32 stored row of each node within its level, below `below`.
-      below: rows of that level.
-      levels: how many levels to build (the cells lie in a ``2^levels`` grid).
-
-    Returns:
-      Root first, (mask [n] uint8, child [n, 8] uint32 rows within the level below,
-      `EMPTY` where absent, prefix [n, 8] uint32) host arrays per level.
-    """
-    k = len(ijk)
-    cap = bucket(k)
-    pad = lambda a, shape: np.concatenate([np.asarray(a, np.int32), np.zeros((cap - k,) + shape, np.int32)])
-    cells, n, cell_counts, cell_ids = pad(ijk, (3,)), jnp.int32(k), pad(counts, ()), pad(ids, ())
-    built = []
-    for _ in range(levels):
-        level = _build_level(cells, n, cell_counts, cell_ids, capacity=cap, dag=True, id_bits=key_bits(below))
-        built.append((level.mask, level.child, level.prefix, level.count, level.overflow))
-        cells, n, cell_counts, cell_ids, below = level.cells, level.n_cells, level.cell_counts, level.cell_ids, cap
-    out = []
-    for mask, child, prefix, count, overflow in jax.device_get(built[::-1]):
-        if bool(overflow):
-            raise JaxvoxError(f"internal error: {k} nodes overflowed the {cap} rows of the levels above them")
-        out.append((mask[:count], child[:count], prefix[:count]))
-    return out
 
 
 def _bit_length(x: np.ndarray) -> np.ndarray:
@@ -297,17 +251,15 @@ def _bit_length(x: np.ndarray) -> np.ndarray:
     return np.where(hi > 0, 32 + np.frexp(hi)[1], np.frexp(lo)[1]).astype(np.int64)
 
 
-def _check_voxels(caller: str, vox: Voxels) -> np.ndarray:
-    """Host-side validation and counting pass of build input, in numpy (so that it compiles
-    nothing for a new voxel count); raises `JaxvoxError` naming `caller`.
+def _checked_codes(caller: str, vox: Voxels) -> np.ndarray:
+    """Host-side validation of build input, in numpy (so that a new voxel count compiles
+    nothing); raises `JaxvoxError` naming `caller`.
 
     Returns:
-      Host int64 [D] octree nodes per level, root first: level ``l`` holds the distinct
-      ``ijk >> (D - l)``, consecutive in Morton order.
+      uint64 [V] Morton codes of the valid voxels, strictly increasing.
     """
     check_overflow(f"{caller} vox", vox.overflow, "the tree would be truncated; use jaxvox.voxelize")
     resolution = vox.grid.resolution
-    depth = resolution.bit_length() - 1
     ijk = np.asarray(vox.coords)[: min(int(vox.count), vox.coords.shape[0])]
     outside = ((ijk < 0) | (ijk >= resolution)).any(1)
     if outside.any():
@@ -320,11 +272,16 @@ def _check_voxels(caller: str, vox: Voxels) -> np.ndarray:
             "voxels must be unique and in Morton order (build them with jaxvox.voxelize or Voxels.from_coords)",
             ijk[first : first + 2],
         )
+    return codes
+
+
+def _level_sizes(codes: np.ndarray, depth: int) -> np.ndarray:
+    """Host int64 [D] octree nodes per level, root first, of voxels with increasing Morton
+    codes [V] uint64: level ``l`` holds the distinct ``code >> 3 (D - l)``."""
     # Consecutive voxels first differ at the highest set bit p of their codes' XOR; they
     # sit in different nodes of level l exactly when l >= D - p // 3.
     first_level = depth - (_bit_length(codes[1:] ^ codes[:-1]) - 1) // 3
-    new_nodes = np.cumsum(np.bincount(first_level, minlength=depth + 1))[:depth]
-    return min(len(ijk), 1) + new_nodes
+    return min(len(codes), 1) + np.cumsum(np.bincount(first_level, minlength=depth + 1))[:depth]
 
 
 def check_level_capacities(what: str, capacities, depth: int) -> tuple[int, ...]:
@@ -342,19 +299,21 @@ def check_level_capacities(what: str, capacities, depth: int) -> tuple[int, ...]
 
 def _build_host(caller: str, vox: Voxels, capacities, dag: bool, checked: bool) -> Octree:
     check_type(f"{caller} vox", vox, Voxels)
+    depth = vox.grid.resolution.bit_length() - 1
     if capacities is not None:
-        depth = vox.grid.resolution.bit_length() - 1
         tree = _build(vox, capacity=check_level_capacities(f"{caller} capacities", capacities, depth), dag=dag)
         if checked:
             raise_if_overflow(f"{caller} result", tree.overflow)
         return tree
-    return padded(build_scheduled(caller, vox, dag))
+    codes = _checked_codes(caller, vox)
+    levels, _ = voxel_levels(codes, depth, dag)
+    return tree_from_levels(levels, vox.grid, vox.mode, len(codes), dag)
 
 
 def octree_capacities(vox: Voxels) -> tuple[int, ...]:
     """Per-level node capacities with which `build_octree` / `build_dag` (``capacities=``)
     do not overflow for these voxels: the counted octree levels rounded up to the shape
-    ladder (host-side counting pass, one compiled program per voxel-buffer size).
+    ladder (host-side counting pass in numpy, no compiled program).
 
     Returns:
       D Python ints, root level first (1 for the root).
@@ -364,16 +323,17 @@ def octree_capacities(vox: Voxels) -> tuple[int, ...]:
         voxels that are not unique and Morton-sorted.
     """
     check_type("octree_capacities vox", vox, Voxels)
-    return _schedule(_check_voxels("octree_capacities", vox))
+    depth = vox.grid.resolution.bit_length() - 1
+    return _schedule(_level_sizes(_checked_codes("octree_capacities", vox), depth), vox.coords.shape[0])
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None, checked: bool = False) -> Octree:
     """Builds the sparse voxel octree of a voxel set, bottom-up from Morton order.
 
     Without `capacities` (host-side use) the input is checked (no overflow, indices in
-    range, unique and Morton-sorted), one compiled build sized from the voxel buffer's
-    length runs (a counting pass checks that every level fits) and the result is laid out
-    on the shape ladder (see `Octree`; `compact` drops the padding). With `capacities` the
+    range, unique and Morton-sorted), the tree is built in numpy (`jaxvox.octree.host`:
+    the same tables as the jittable build, and no program to compile for a new size)
+    and laid out on the shape ladder (see `Octree`; `compact` drops the padding). With `capacities` the
     build is a pure function of static shape, usable inside `jax.jit` and `jax.vmap`: a
     level with more nodes than its capacity sets `OVERFLOW_NODES` in ``tree.overflow`` and
     the tree is truncated.

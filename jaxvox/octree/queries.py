@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Int32, Integer
 
 from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._shapes import expand_counts, voxel_bucket
 from jaxvox.octree.layout import padded
 from jaxvox.octree.tree import EMPTY, MISSING, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import Overflow, check_overflow, raise_if_overflow
@@ -124,7 +124,7 @@ def expand(tree: Octree, *, capacity: int | None = None, checked: bool = False) 
         capacity = check_int("expand capacity", capacity, minimum=1)
     if capacity is None:
         check_overflow("expand tree", tree.overflow, "it is truncated; build it with the host-side build")
-        capacity = bucket(int(tree.voxel_count))
+        capacity = voxel_bucket(int(tree.voxel_count), tree.grid.resolution)
         tree = padded(tree)
     coords, n = _expand_nodes(tree.mask, tree.child, tree.voxel_count, depth=tree.depth, capacity=int(capacity))
     overflow = tree.overflow | jnp.where(tree.voxel_count > capacity, int(Overflow.EXPANDED), 0)

@@ -17,28 +17,29 @@ whole voxel set. Merges go as in a binary counter: a new DAG merges with the one
 it while it holds at least half as many rows, so the DAGs held together stay below
 twice the merged one and each node is merged a logarithmic number of times.
 
-The levels above ``L`` are built from the regions' roots (cells in Morton order, root
-ids, voxel counts) by the same per-level step as `build_dag` (`dag_levels_above`). The result
-is laid out on the shape ladder, as `build_dag` returns it.
+Regions and the levels above ``L`` (over the regions' roots: cells in Morton order,
+root ids, voxel counts) are built by `build_dag`'s host levels (`jaxvox.octree.host`).
+The result is laid out on the shape ladder, as `build_dag` returns it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox import morton
 from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket
+from jaxvox._shapes import bucket, voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
-from jaxvox.octree.build import build_dag, build_scheduled, dag_levels_above
-from jaxvox.octree.tree import EMPTY, Octree, padded_sizes
+from jaxvox.octree.build import build_dag
+from jaxvox.octree.host import Nodes, levels_above, tree_from_levels, unique_rows, voxel_levels
+from jaxvox.octree.tree import EMPTY, Octree
 from jaxvox.voxelize.host import region_voxels
 from jaxvox.voxelize.voxels import CONSERVATIVE, MODES, REGION_SIZE, SIX_SEPARATING, UNUSED, Mode, Voxels
 
@@ -63,36 +64,18 @@ class _Partial:
         return sum(len(m) for m in self.masks)
 
 
-def _region_dag(vox: Voxels, region_lo: np.ndarray) -> _Partial:
-    """The sub-DAG of one region's voxels (`_local_voxels`): `build_dag`'s checked,
-    scheduled build, its levels cut out of the schedule's layout (child rows made
-    relative to their level)."""
-    tree = build_scheduled("mesh_to_dag", vox, True)
-    mask, child, prefix, count = jax.device_get((tree.mask, tree.child, tree.prefix, tree.level_count))
-    offsets = tree.level_offsets + (len(mask),)
-    rows = [slice(offsets[j], offsets[j] + int(count[j])) for j in range(tree.depth)]
+def _region_dag(coords: np.ndarray, region_lo: np.ndarray, region: int) -> _Partial:
+    """The sub-DAG of one region's voxels (host int32 [n, 3] global indices, Morton
+    order), by `build_dag`'s host levels in the region's own grid."""
+    levels, _ = voxel_levels(morton.encode_host(coords - region_lo), region.bit_length() - 1, dag=True)
     return _Partial(
-        masks=[mask[r] for r in rows],
-        child=[_shift(child[rows[j]], -offsets[j + 1]) for j in range(tree.depth - 1)],
-        prefix=[prefix[rows[j]] for j in range(tree.depth - 1)],
-        cells=(region_lo // vox.grid.resolution).astype(np.int32)[None],
+        masks=[m for m, _, _ in levels],
+        child=[c for _, c, _ in levels[:-1]],
+        prefix=[p for _, _, p in levels[:-1]],
+        cells=(region_lo // region).astype(np.int32)[None],
         roots=np.zeros(1, np.int64),
-        counts=np.array([int(vox.count)], np.int64),
+        counts=np.array([len(coords)], np.int64),
     )
-
-
-def _local_voxels(coords: np.ndarray, region_lo: np.ndarray, local: Grid, mode: str) -> Voxels:
-    """A region's voxels (host int32 [n, 3] global indices, Morton order) in the region's
-    own grid `local`, in a buffer on the shape ladder."""
-    n = len(coords)
-    buf = np.full((bucket(n), 3), UNUSED, np.int32)
-    buf[:n] = coords - region_lo
-    return Voxels(jax.device_put(buf, may_alias=True), jnp.int32(n), jnp.int32(0), None, local, mode)
-
-
-def _shift(child: np.ndarray, by: int) -> np.ndarray:
-    """Child rows [n, 8] uint32 with `by` added to every present child."""
-    return np.where(child == EMPTY, EMPTY, child.astype(np.int64) + by).astype(np.uint32)
 
 
 def _remap(child: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
@@ -103,41 +86,6 @@ def _remap(child: np.ndarray, ids: np.ndarray, out: np.ndarray) -> None:
     for start in range(0, len(child), _BLOCK):
         part = child[start : start + _BLOCK]
         out[start : start + _BLOCK] = table[np.where(part == EMPTY, np.uint32(len(ids)), part)]
-
-
-def _unique_rows(rows: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct child rows in lexicographic order (`EMPTY` largest), as `build._unique_rows`
-    orders them, on the host.
-
-    Children below `bound` or `EMPTY` (which becomes ``2^bits - 1``, still the largest)
-    are packed first child in the highest bits into uint64 keys, so the keys' order is
-    the rows'.
-
-    Args:
-      rows: [n, 8] uint32.
-      bound: children are below it (or `EMPTY`).
-
-    Returns:
-      (rep [u] int64 one source row of each distinct row, in lexicographic order,
-      inverse [n] int64 the distinct row of each row).
-    """
-    bits = max(1, int(bound).bit_length())
-    per_word, top = 64 // bits, np.uint64((1 << bits) - 1)
-    keys = []
-    for start in range(0, 8, per_word):
-        key = np.zeros(len(rows), np.uint64)
-        for s in range(start, min(start + per_word, 8)):
-            col = rows[:, s]
-            key = (key << np.uint64(bits)) | np.where(col == EMPTY, top, col.astype(np.uint64))
-        keys.append(key)
-    order = np.lexsort(keys[::-1])  # the last key is the primary one
-    first = np.ones(len(rows), bool)
-    if len(rows) > 1:
-        ordered = [k[order] for k in keys]
-        first[1:] = functools.reduce(np.logical_or, [k[1:] != k[:-1] for k in ordered])
-    inverse = np.empty(len(rows), np.int64)
-    inverse[order] = np.cumsum(first) - 1
-    return order[first], inverse
 
 
 def _merge(a: _Partial, b: _Partial) -> _Partial:
@@ -156,7 +104,7 @@ def _merge(a: _Partial, b: _Partial) -> _Partial:
             rows = np.empty((n_a + len(b.masks[j]), 8), np.uint32)
             _remap(a.child[j], ids_a, rows[:n_a])
             _remap(b.child[j], ids_b, rows[n_a:])
-            rep, inverse = _unique_rows(rows, len(masks[j + 1]))
+            rep, inverse = unique_rows(rows, len(masks[j + 1]))
             child[j] = rows[rep]
             del rows
             prefix[j] = np.concatenate([a.prefix[j], b.prefix[j]])[rep]
@@ -173,40 +121,9 @@ def _merge(a: _Partial, b: _Partial) -> _Partial:
     )
 
 
-def _tree(levels: list, grid: Grid, mode: str, voxels: int) -> Octree:
-    """The DAG of `levels` (root first; (mask, child within the level below or None,
-    prefix or None) each) laid out on the shape ladder as `build_dag` returns it."""
-    sizes = tuple(len(m) for m, _, _ in levels)
-    capacity = padded_sizes(sizes)
-    offsets = np.cumsum((0,) + capacity)
-    mask = np.zeros(offsets[-1], np.uint8)
-    child = np.full((offsets[-2], 8), EMPTY, np.uint32)
-    prefix = np.zeros((offsets[-2], 8), np.uint32)
-    for level, (m, c, p) in enumerate(levels):
-        rows = slice(offsets[level], offsets[level] + len(m))
-        mask[rows] = m
-        if c is not None:
-            child[rows] = _shift(c, int(offsets[level + 1]))
-            prefix[rows] = p
-        levels[level] = None  # dropped as copied
-    put = functools.partial(jax.device_put, may_alias=True)
-    return Octree(
-        mask=put(mask),
-        child=put(child),
-        prefix=put(prefix),
-        level_count=jnp.asarray(sizes, jnp.int32),
-        voxel_count=jnp.int32(voxels),
-        overflow=jnp.int32(0),
-        grid=grid,
-        level_capacity=jnp.asarray(capacity, jnp.int32),
-        dag=True,
-        mode=mode,
-    )
-
-
 def _empty(grid: Grid, mode: str) -> Voxels:
     """No voxels, in the buffer `voxelize` returns for none."""
-    coords = jnp.full((bucket(0), 3), UNUSED, jnp.int32)
+    coords = jnp.full((voxel_bucket(0, grid.resolution), 3), UNUSED, jnp.int32)
     return Voxels(coords, jnp.int32(0), jnp.int32(0), None, grid, mode)
 
 
@@ -240,7 +157,6 @@ def stream_dag(
     six_sep = check_choice(f"{caller} mode", mode, MODES) == SIX_SEPARATING
     region = min(check_region(f"{caller} region", region), grid.resolution)
     validate_mesh(mesh)
-    local = Grid(origin=np.zeros(3, np.float32), voxel_size=1.0, resolution=region)
     stack: list[_Partial] = []
     voxels = 0
     parts = region_voxels(mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress)
@@ -255,10 +171,8 @@ def stream_dag(
             )
         if on_region is not None:
             on_region(_global_voxels(coords, triangle, grid, mode))
-        vox = _local_voxels(coords, region_lo, local, mode)
-        del coords, triangle  # (views of the region's sort buffer) before the build
-        stack.append(_region_dag(vox, region_lo))
-        del vox
+        stack.append(_region_dag(coords, region_lo, region))
+        del coords, triangle
         while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
             b, a = stack.pop(), stack.pop()
             stack.append(_merge(a, b))
@@ -271,10 +185,11 @@ def stream_dag(
     depth_above = grid.resolution.bit_length() - region.bit_length()  # L = D - s
     levels: list = []
     if depth_above:  # the levels above the regions, over their roots
-        levels = dag_levels_above(dag.cells, dag.counts, dag.roots, len(dag.masks[0]), depth_above)
+        roots = Nodes(morton.encode_host(dag.cells), dag.counts, dag.roots, len(dag.masks[0]))
+        levels = levels_above(roots, depth_above, dag=True)
     levels += [(m, c, p) for m, c, p in zip(dag.masks, dag.child + [None], dag.prefix + [None])]
     del dag
-    return _tree(levels, grid, mode, voxels)
+    return tree_from_levels(levels, grid, mode, voxels, dag=True)
 
 
 def _global_voxels(coords: np.ndarray, triangle: np.ndarray | None, grid: Grid, mode: str) -> Voxels:

@@ -13,7 +13,7 @@ from jaxtyping import Array, Int32, UInt8, UInt32
 
 from jaxvox import morton
 from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
+from jaxvox._shapes import row_bucket
 from jaxvox.grid import Grid
 from jaxvox.overflow import Overflow
 
@@ -123,11 +123,12 @@ def padded_sizes(level_sizes) -> tuple[int, ...]:
     brings all rows (`mask`) to a power of two added to level D - 1.
     """
     sizes = list(stored_sizes(level_sizes))
+    resolution = 1 << len(sizes)
     if len(sizes) > 1:
         inner = sum(sizes[:-1])
-        sizes[-2] += bucket(inner) - inner
+        sizes[-2] += row_bucket(inner, resolution) - inner
     above = sum(sizes[:-1])
-    sizes[-1] = bucket(above + sizes[-1]) - above
+    sizes[-1] = row_bucket(above + sizes[-1], resolution) - above
     return tuple(sizes)
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from jaxvox import morton
 from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket
+from jaxvox._shapes import bucket, voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.voxelize.triangles import expand_candidates, expand_columns, expand_rows, setup_triangles
@@ -136,7 +136,8 @@ def _sort_region(pages, region_lo: np.ndarray, with_ids: bool):
     """
     keys, *payload = (np.concatenate([np.asarray(page[i]) for page in pages]) for i in range(len(pages[0])))
     if with_ids:
-        keys, dist, tri = (a[np.lexsort((payload[1], payload[0], keys))] for a in (keys, *payload))
+        order = np.lexsort((payload[1], payload[0], keys))
+        keys, tri = keys[order], payload[1][order]
     else:
         keys = np.sort(keys)
     first = np.concatenate([[True], keys[1:] != keys[:-1]]) & (keys != morton.EMPTY)
@@ -343,7 +344,7 @@ def voxelize(
         if triangle_ids:
             tri_parts.append(triangle)
     total = sum(len(p) for p in parts)
-    cap = bucket(total)
+    cap = voxel_bucket(total, grid.resolution)
     coords = _pad_rows(parts, (cap, 3))
     triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
     to_device = functools.partial(jax.device_put, may_alias=True)  # one copy, not jnp.asarray's two

@@ -13,7 +13,7 @@ from jaxtyping import Array, Int32
 from jaxvox import morton
 from jaxvox._checks import check_choice, check_int, check_type, refuse
 from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
+from jaxvox._shapes import voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.overflow import Overflow, check_overflow
 
@@ -133,7 +133,7 @@ class Voxels:
         a = a.astype(np.int32)
         codes, first = np.unique(morton.encode_host(a), return_index=True)
         n = len(codes)
-        coords = np.full((bucket(n), 3), UNUSED, np.int32)
+        coords = np.full((voxel_bucket(n, grid.resolution), 3), UNUSED, np.int32)
         coords[:n] = a[first]
         return cls(jnp.asarray(coords), jnp.int32(n), jnp.int32(0), None, grid, mode)
 
