@@ -28,11 +28,11 @@ provably safe trace at ``1 / sqrt(3)``, except two grazing rays on spot that rea
 `STEP_CAP` at ``1 / sqrt(3)`` and hit at 1, and one grazing ray on the box that passes
 within epsilon of an edge (the safe trace calls the near miss a hit, 0.83 voxel earlier);
 it takes 8.4-11.6 field samples per ray instead of 13.7-19.3. Over-relaxation
-(``relaxation > 1``) is refused: `jaxvox.sphere_trace_octree` restarts the relaxation in
-each leaf, and an over-relaxed step that leaves a band voxel is never checked, so a step
-that crosses the surface into the next voxel is taken for a ray starting inside (a hit
-past the surface: 72 of 128 hits up to 0.5 voxel late at 1.2, all 128 up to 1.4 voxels at
-1.6, on the icosphere at 32^3).
+(``relaxation > 1``) is refused: its safety check (the unbounding spheres of two
+consecutive points must overlap) assumes a 1-Lipschitz distance, which a sampled field
+is not. (`jaxvox.sphere_trace_octree` used to take an over-relaxed step out of a leaf
+unchecked, which gave hits up to 1.4 voxels past the surface at 1.6 on any scene; such a
+step is now a plain one, see `jaxvox.sphere_trace`.)
 """
 
 from __future__ import annotations
@@ -92,8 +92,8 @@ def sphere_trace_field(
       epsilon: a ray hits where ``|f| < epsilon * max(t, 1)`` (world units), as in
         `jaxvox.sphere_trace`; ``t`` is then refined onto the crossing of ``f = 0``.
       relaxation: step factor in (0, 1]: ``1 / sqrt(3)`` is provably safe, 1 (default)
-        measured as safe (module docstring); over-relaxation is refused (unchecked when
-        traced, where it gives hits past the surface).
+        measured as safe (module docstring); over-relaxation is refused (its check
+        needs a 1-Lipschitz distance).
       method: the octree traversal, "esvo" or "stack" (static).
       return_steps: also return field samples per ray (static).
 

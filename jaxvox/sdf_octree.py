@@ -225,7 +225,8 @@ def sphere_trace_octree(
       t_max: rays are a `MISS` beyond this distance.
       max_steps: cap on scene evaluations per ray (static); reaching it gives `STEP_CAP`.
       max_leaves: cap on leaves entered per ray (static); reaching it gives `STEP_CAP`.
-      epsilon, relaxation: as in `jaxvox.sphere_trace` (relaxation restarts in each leaf).
+      epsilon, relaxation: as in `jaxvox.sphere_trace` (relaxation restarts in each leaf;
+        a step that would leave a leaf is a plain one, so none is taken unchecked).
       method: the octree traversal, "esvo" or "stack" (static).
       return_steps: also return scene evaluations per ray (static).
 

@@ -5,7 +5,9 @@ crossing one (the unbounding sphere), as long as the scene's Lipschitz constant 
 most 1 (`jaxvox.sdf.lipschitz_bound`). Over-relaxation steps ``omega * d`` instead; when
 the unbounding spheres at the previous and the new point do not overlap
 (``|d_prev| + |d| < step``) the step may have skipped a surface, so the ray goes back to
-the previous point, steps by ``d_prev`` and continues with ``omega = 1``.
+the previous point, steps by ``d_prev`` and continues with ``omega = 1``. A step that
+would end past ``t_max`` (the ray's, or an octree leaf's exit) is never checked, so it is taken as a plain step (and ``omega = 1``) instead:
+a ray that leaves ``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
 
 Each ray is a `jax.lax.while_loop` over a `NamedTuple` state with a step cap, vmapped
 over the flattened batch; rays that reach the cap report `STEP_CAP`, never a hit or a
@@ -66,14 +68,19 @@ def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
         d = scene._distance(o + s.t * u)
         overlap_fails = (s.omega > 1.0) & (jnp.abs(d) + jnp.abs(s.d_prev) < s.t - s.t_prev)
         hit = (jnp.abs(d) < epsilon * jnp.maximum(s.t, 1.0)) | ((s.steps == 0) & (d < 0))
-        t_next = jnp.maximum(s.t + s.omega * d, t_min)
+        # An over-relaxed step past t_max is never checked, so a surface it jumps over
+        # would be missed (or, in an octree leaf, found late in the next leaf, which
+        # starts where this one's last step ended): it becomes a plain step.
+        unchecked_exit = (s.omega > 1.0) & (s.t + s.omega * d > t_max)
+        omega = jnp.where(unchecked_exit, 1.0, s.omega)
+        t_next = jnp.maximum(s.t + omega * d, t_min)
         status = jnp.where(
             jnp.isnan(d),
             INVALID,
             jnp.where(hit, HIT, jnp.where((t_next > t_max) | ~jnp.isfinite(t_next), MISS, RUNNING)),
         )
         steps = s.steps + 1
-        accepted = _State(jnp.where(hit, s.t, t_next), s.t, d, s.omega, steps, status)
+        accepted = _State(jnp.where(hit, s.t, t_next), s.t, d, omega, steps, status)
         fallback = _State(
             s.t_prev + s.d_prev, s.t_prev, s.d_prev, jnp.ones_like(s.omega), steps, jnp.asarray(RUNNING, jnp.int32)
         )

@@ -142,6 +142,20 @@ def test_octree_tracing_matches_plain(trees, name):
     assert np.asarray(fast_steps).mean() < np.asarray(plain_steps).mean()
 
 
+@pytest.mark.parametrize("relaxation", [1.2, 1.6])
+def test_over_relaxation_finds_the_same_hits(trees, relaxation):
+    """Over-relaxed steps that leave a leaf are checked: the hits are those of plain steps
+    (they used to land up to half a voxel late, in the next leaf)."""
+    scene, tree = SCENES["sphere"], trees["sphere"]
+    o, d = _camera_rays(N_RAYS, np.random.default_rng(4))
+    plain, _ = jv.sphere_trace_octree(scene, tree, o, d, **TRACE)
+    relaxed, _ = jv.sphere_trace_octree(scene, tree, o, d, relaxation=relaxation, **TRACE)
+    a, b = np.asarray(plain.status), np.asarray(relaxed.status)
+    assert (a == b).mean() > 0.995
+    both = (a == jv.HIT) & (b == jv.HIT)
+    np.testing.assert_allclose(np.asarray(relaxed.t)[both], np.asarray(plain.t)[both], atol=2e-3)
+
+
 def test_against_analytic_sphere_and_edge_cases(trees):
     c, radius = np.array([0.05, -0.02, 0.01]), 0.55
     scene, tree = SCENES["sphere"], trees["sphere"]
