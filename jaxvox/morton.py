@@ -65,9 +65,12 @@ def decode_word(word: jax.Array) -> jax.Array:
 
 
 def decode_word_host(word: np.ndarray) -> np.ndarray:
-    """`decode_word` in numpy (compiles nothing): int [...] (< 2^30) -> int64 [..., 3]."""
-    w = np.asarray(word, np.int64)
-    return np.stack([_compact10(w), _compact10(w >> 1), _compact10(w >> 2)], axis=-1)
+    """`decode_word` in numpy (compiles nothing): int [...] (< 2^30) -> int32 [..., 3]."""
+    w = np.asarray(word).astype(np.uint32)
+    out = np.empty(w.shape + (3,), np.int32)
+    for axis in range(3):
+        out[..., axis] = _compact10(w >> axis)
+    return out
 
 
 def encode(ijk: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -6,8 +6,9 @@ most 1 (`jaxvox.sdf.lipschitz_bound`). Over-relaxation steps ``omega * d`` inste
 the unbounding spheres at the previous and the new point do not overlap
 (``|d_prev| + |d| < step``) the step may have skipped a surface, so the ray goes back to
 the previous point, steps by ``d_prev`` and continues with ``omega = 1``. A step that
-would end past ``t_max`` (the ray's, or an octree leaf's exit) is never checked, so it is taken as a plain step (and ``omega = 1``) instead:
-a ray that leaves ``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
+would end past ``t_max`` (the ray's, or an octree leaf's exit) is never checked, so it
+is taken as a plain step (and ``omega = 1``) instead: a ray that leaves
+``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
 
 Each ray is a `jax.lax.while_loop` over a `NamedTuple` state with a step cap, vmapped
 over the flattened batch; rays that reach the cap report `STEP_CAP`, never a hit or a

@@ -142,7 +142,8 @@ def _sort_region(pages, region_lo: np.ndarray, with_ids: bool):
         keys = np.sort(keys)
     first = np.concatenate([[True], keys[1:] != keys[:-1]]) & (keys != morton.EMPTY)
     high = (np.asarray(region_lo, np.int32) >> morton.WORD_BITS) << morton.WORD_BITS
-    coords = (morton.decode_word_host(keys[first]) | high).astype(np.int32)
+    coords = morton.decode_word_host(keys[first])
+    coords |= high
     return coords, (tri[first].astype(np.int32) if with_ids else None)
 
 
