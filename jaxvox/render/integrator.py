@@ -413,8 +413,9 @@ def render(
         raise JaxvoxError(f"cannot render a truncated tree (overflow flags {int(tree.overflow)})")
     env = sky_environment() if env is None else check_type("render env", env, Environment)
     rows = int(tree.voxel_count)
-    albedo = rgb_table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7))
-    emission = rgb_table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0))
+    resolution = tree.grid.resolution
+    albedo = rgb_table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7), resolution)
+    emission = rgb_table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0), resolution)
     camera = checked_camera("render", eye, target, up, fov)
     steps = check_int("render max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     if lanes is not None:
@@ -447,4 +448,5 @@ def render(
             )
             bar.update(1)
     depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)
-    return RenderResult(radiance=(image / spp).reshape(height, width, 3), depth=depth, normal=normal, stopped=stopped)
+    radiance = jax.device_put(np.asarray(image).reshape(height, width, 3) / np.float32(spp))  # no program per size
+    return RenderResult(radiance=radiance, depth=depth, normal=normal, stopped=stopped)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._checks import check_type, check_vector, refuse
+from jaxvox._shapes import voxel_bucket
 from jaxvox.image import srgb_to_linear
 from jaxvox.voxelize import Voxels
 
@@ -31,9 +32,11 @@ def check_rgb(name: str, value) -> np.ndarray:
     return v
 
 
-def rgb_table(what: str, value, rows: int, per: str, default) -> jax.Array:
-    """A [1 or rows, 3] float32 table from None, an RGB triple or an array with a row `per`
-    voxel or face; errors name `what`."""
+def rgb_table(what: str, value, rows: int, per: str, default, resolution: int | None = None) -> jax.Array:
+    """A [1 or n >= rows, 3] float32 table from None, an RGB triple or an array with a row
+    `per` voxel or face; errors name `what`. With a grid `resolution` a per-voxel table is
+    padded with zero rows to the voxel-list ladder (`voxel_bucket`), so that its length is
+    not a new key of a compiled program for every tree."""
     expected = f"must be an RGB triple or a [{per}s, 3] array with at least {rows} rows"
     try:
         a = np.asarray(default if value is None else value, np.float32)
@@ -47,6 +50,8 @@ def rgb_table(what: str, value, rows: int, per: str, default) -> jax.Array:
     bad = ~(np.isfinite(a) & (a >= 0))
     if bad.any():
         raise refuse(what, "must be finite and non-negative", a[bad][0])
+    if resolution is not None and a.shape[0] > 1:
+        a = np.concatenate([a, np.zeros((voxel_bucket(a.shape[0], resolution) - a.shape[0], 3), np.float32)])
     return jnp.asarray(a)
 
 

@@ -144,7 +144,7 @@ class Voxels:
           JaxvoxError: when the overflow flag is set (the set would be truncated).
         """
         check_overflow("Voxels", self.overflow, "use jaxvox.voxelize, which sizes capacities itself")
-        return np.asarray(self.coords[: int(self.count)])
+        return np.asarray(self.coords)[: int(self.count)]  # sliced on the host: no program per count
 
     def triangle_ids(self) -> np.ndarray:
         """Host int32 [count] triangle id per voxel (requires ``triangle_ids=True``).
@@ -158,4 +158,4 @@ class Voxels:
                 "must hold triangle ids (voxelize with triangle_ids=True)",
                 self.triangle,
             )
-        return np.asarray(self.triangle[: int(self.count)])
+        return np.asarray(self.triangle)[: int(self.count)]
