@@ -9,8 +9,8 @@ buffer is at most twice its contents (or `FLOOR` entries).
 Buffers that grow with a surface (voxel lists and octree tables) have a higher floor
 that depends on the resolution R, so that the meshes a user meets at one resolution
 share one program instead of one per power of two: `voxel_bucket` pads voxel lists to
-at least 4 R^2 entries (capped at 2^22: 48 MiB of int32 coordinates) and `row_bucket`
-octree tables to at least R^2 rows (capped at 2^20: 64 MiB of child and prefix rows).
+at least 4 R^2 entries (capped at 2^20: 12 MiB of int32 coordinates) and `row_bucket`
+octree tables to at least R^2 rows (capped at 2^18: 16 MiB of child and prefix rows).
 A closed surface at R holds about 0.5-4 R^2 voxels (the shared meshes: 0.5 R^2 for
 woody, 3.3 R^2 for the bunny) and a DAG about R^2 / 16 to R^2 / 4 rows; what is larger
 goes up the ladder by powers of two. At 256^3 the floors cost 3 MiB and 4 MiB.
@@ -34,13 +34,13 @@ def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
 
 
 def voxel_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^22)."""
-    return bucket(n, min(4 * resolution * resolution, 1 << 22))
+    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^20)."""
+    return bucket(n, min(4 * resolution * resolution, 1 << 20))
 
 
 def row_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^20)."""
-    return bucket(n, min(resolution * resolution, 1 << 20))
+    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^18)."""
+    return bucket(n, min(resolution * resolution, 1 << 18))
 
 
 def key_bits(n: int | np.integer) -> int:

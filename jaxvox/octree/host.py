@@ -138,9 +138,10 @@ def voxel_levels(codes: np.ndarray, depth: int, dag: bool) -> tuple[list[Level],
     return out[::-1], nodes
 
 
-def tree_from_levels(levels: list[Level], grid: Grid, mode: str, voxels: int, dag: bool) -> Octree:
-    """The tree of `levels` (root first; emptied as copied) laid out on the shape ladder,
-    as `build_octree` / `build_dag` return it."""
+def tree_from_levels(levels: list, grid: Grid, mode: str, voxels: int, dag: bool) -> Octree:
+    """The tree of `levels` (`Level` tables, root first; each entry is set to None once
+    copied, so the tables are not held twice) laid out on the shape ladder, as
+    `build_octree` / `build_dag` return it."""
     sizes = tuple(len(m) for m, _, _ in levels)
     capacity = padded_sizes(sizes)
     offsets = np.cumsum((0,) + capacity)
