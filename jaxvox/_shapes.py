@@ -11,6 +11,9 @@ that depends on the resolution R, so that the meshes a user meets at one resolut
 share one program instead of one per power of two: `voxel_bucket` pads voxel lists to
 at least 4 R^2 entries (capped at 2^20: 12 MiB of int32 coordinates) and `row_bucket`
 octree tables to at least R^2 rows (capped at 2^18: 16 MiB of child and prefix rows).
+Above 1024^3 (`SURFACE_FLOORS_UP_TO`) a mesh costs seconds of work and a compile is
+small beside it, so there the floor is `FLOOR` again, and a sparse set at a huge
+resolution pays no padding for its work on the tables.
 A closed surface at R holds about 0.5-4 R^2 voxels (the shared meshes: 0.5 R^2 for
 woody, 3.3 R^2 for the bunny) and a DAG about R^2 / 16 to R^2 / 4 rows; what is larger
 goes up the ladder by powers of two. At 256^3 the floors cost 3 MiB and 4 MiB.
@@ -26,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 FLOOR = 256  # smallest bucket
+SURFACE_FLOORS_UP_TO = 1024  # resolutions whose voxel lists and tree tables get surface floors
 
 
 def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
@@ -34,13 +38,15 @@ def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
 
 
 def voxel_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^20)."""
-    return bucket(n, min(4 * resolution * resolution, 1 << 20))
+    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^20;
+    `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
+    return bucket(n, min(4 * resolution * resolution, 1 << 20) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
 
 
 def row_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^18)."""
-    return bucket(n, min(resolution * resolution, 1 << 18))
+    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^18;
+    `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
+    return bucket(n, min(resolution * resolution, 1 << 18) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
 
 
 def key_bits(n: int | np.integer) -> int:

@@ -85,7 +85,8 @@ def _check_tree(tree: jv.Octree, ijk: np.ndarray) -> None:
     # Host-built trees are padded to the shape ladder: power-of-two tables, at most twice
     # the rows or the resolution's floor of R^2 rows (`row_bucket`).
     n, m = tree.mask.shape[0], tree.child.shape[0]
-    inner, floor = sum(stored[:-1]), min(tree.grid.resolution**2, 1 << 18)
+    r = tree.grid.resolution
+    inner, floor = sum(stored[:-1]), min(r**2, 1 << 18) if r <= 1024 else 256
     assert m & (m - 1) == 0 and m <= max(2 * inner - 1, floor) if inner else m == 0
     assert n & (n - 1) == 0 and n <= max(2 * (m + stored[-1]) - 1, floor)
 
