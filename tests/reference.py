@@ -405,18 +405,18 @@ def winding_number(vertices, faces, points) -> np.ndarray:
       float64 [P].
     """
     tri = np.asarray(vertices, np.float64)[np.asarray(faces)]  # [F, 3, 3]
+    points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.empty(len(points))
-    for n, p in enumerate(np.asarray(points, np.float64)):
-        a, b, c = np.moveaxis(tri - p, 1, 0)
-        la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
-        det = np.einsum("ij,ij->i", a, np.cross(b, c))
-        den = (
-            la * lb * lc
-            + np.einsum("ij,ij->i", a, b) * lc
-            + np.einsum("ij,ij->i", b, c) * la
-            + np.einsum("ij,ij->i", c, a) * lb
-        )
-        out[n] = np.arctan2(det, den).sum() / (2 * np.pi)
+    block = max(1, (1 << 21) // max(len(tri), 1))  # points per block: [block, F] temporaries
+    corner = [[tri[None, :, k, axis] for axis in range(3)] for k in range(3)]  # [1, F] per axis
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    for start in range(0, len(points), block):
+        p = points[start : start + block]
+        a, b, c = ([corner[k][axis] - p[:, axis, None] for axis in range(3)] for k in range(3))  # [B, F] each
+        la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
+        cross = (b[1] * c[2] - b[2] * c[1], b[2] * c[0] - b[0] * c[2], b[0] * c[1] - b[1] * c[0])
+        den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
+        out[start : start + block] = np.arctan2(dot(a, cross), den).sum(-1) / (2 * np.pi)
     return out
 
 
