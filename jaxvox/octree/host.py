@@ -89,12 +89,12 @@ def mask_level(codes: np.ndarray, dag: bool) -> tuple[Level, Nodes]:
     bits = np.left_shift(np.uint8(1), (codes & np.uint64(7)).astype(np.uint8))
     mask = np.bitwise_or.reduceat(bits, starts) if len(codes) else np.zeros(0, np.uint8)
     counts = np.bitwise_count(mask).astype(np.int64)
+    table: np.ndarray = mask
+    ids: np.ndarray = np.arange(len(mask))
     if dag:  # at most 256 distinct masks: a table, not a sort
         present = np.bincount(mask, minlength=256) > 0
-        rank = np.cumsum(present) - present
+        rank: np.ndarray = np.cumsum(present) - present
         table, ids = np.flatnonzero(present).astype(np.uint8), rank[mask]
-    else:
-        table, ids = mask, np.arange(len(mask))
     return (table, None, None), Nodes(cells, counts, ids, len(table))
 
 
@@ -155,7 +155,7 @@ def tree_from_levels(levels: list, grid: Grid, mode: str, voxels: int, dag: bool
             shift = np.uint32(offsets[level + 1])
             child[rows] = np.where(c == EMPTY, EMPTY, c + shift)
             prefix[rows] = p
-        levels[level] = None  # type: ignore[call-overload]  # dropped as copied
+        levels[level] = None  # dropped as copied
     put = functools.partial(jax.device_put, may_alias=True)
     return Octree(
         mask=put(mask),

@@ -70,8 +70,8 @@ def _region_dag(coords: np.ndarray, region_lo: np.ndarray, region: int) -> _Part
     levels, _ = voxel_levels(morton.encode_host(coords - region_lo), region.bit_length() - 1, dag=True)
     return _Partial(
         masks=[m for m, _, _ in levels],
-        child=[c for _, c, _ in levels[:-1]],
-        prefix=[p for _, _, p in levels[:-1]],
+        child=[c for _, c, _ in levels[:-1] if c is not None],
+        prefix=[p for _, _, p in levels[:-1] if p is not None],
         cells=(region_lo // region).astype(np.int32)[None],
         roots=np.zeros(1, np.int64),
         counts=np.array([len(coords)], np.int64),
