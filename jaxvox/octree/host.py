@@ -89,12 +89,14 @@ def mask_level(codes: np.ndarray, dag: bool) -> tuple[Level, Nodes]:
     bits = np.left_shift(np.uint8(1), (codes & np.uint64(7)).astype(np.uint8))
     mask = np.bitwise_or.reduceat(bits, starts) if len(codes) else np.zeros(0, np.uint8)
     counts = np.bitwise_count(mask).astype(np.int64)
-    table: np.ndarray = mask
-    ids: np.ndarray = np.arange(len(mask))
+    table: np.ndarray
+    ids: np.ndarray
     if dag:  # at most 256 distinct masks: a table, not a sort
         present = np.bincount(mask, minlength=256) > 0
         rank: np.ndarray = np.cumsum(present) - present
         table, ids = np.flatnonzero(present).astype(np.uint8), rank[mask]
+    else:
+        table, ids = mask, np.arange(len(mask))
     return (table, None, None), Nodes(cells, counts, ids, len(table))
 
 
