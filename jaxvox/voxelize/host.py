@@ -132,7 +132,8 @@ def _sort_region(pages, region_lo: np.ndarray, with_ids: bool):
       region_lo: host int32 [3] first voxel of the (aligned, at most 1024-wide) region.
 
     Returns:
-      (coords [n, 3] int32 voxel indices in Morton order, triangle [n] int32 or None).
+      (coords [n, 3] int32 voxel indices in Morton order, triangle [n] int32 or None,
+      written: the number of candidates in the pages, keys other than `morton.EMPTY`).
     """
     keys, *payload = (np.concatenate([np.asarray(page[i]) for page in pages]) for i in range(len(pages[0])))
     if with_ids:
@@ -140,11 +141,13 @@ def _sort_region(pages, region_lo: np.ndarray, with_ids: bool):
         keys, tri = keys[order], payload[1][order]
     else:
         keys = np.sort(keys)
-    first = np.concatenate([[True], keys[1:] != keys[:-1]]) & (keys != morton.EMPTY)
+    written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
+    first = np.concatenate([[True], keys[1:] != keys[:-1]])
+    first[written:] = False
     high = (np.asarray(region_lo, np.int32) >> morton.WORD_BITS) << morton.WORD_BITS
     coords = morton.decode_word_host(keys[first])
     coords |= high
-    return coords, (tri[first].astype(np.int32) if with_ids else None)
+    return coords, (tri[first].astype(np.int32) if with_ids else None), written
 
 
 def _grid_triangles(mesh: Mesh, grid: Grid) -> np.ndarray:
@@ -211,11 +214,11 @@ def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: 
             )
             at += 2
     pages = pages[:n_pages]
-    coords, triangle = _sort_region(pages, region_lo, with_ids)
-    # The pages were sized by the exact count of the same walk, so nothing is dropped
-    # (a count past the buffer would show as a missing sentinel, never silently).
-    if len(coords) > total:
-        raise JaxvoxError(f"internal error: {len(coords)} voxels from {total} candidates")
+    coords, triangle, written = _sort_region(pages, region_lo, with_ids)
+    # The pages were sized by the exact count of the same walk, so every candidate has a
+    # slot; a walk that wrote fewer (or more) would lose voxels, so it raises.
+    if written != total:
+        raise JaxvoxError(f"internal error: {written} candidates written, {total} counted")
     return coords, triangle
 
 
