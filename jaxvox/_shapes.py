@@ -15,7 +15,7 @@ Above 1024^3 (`SURFACE_FLOORS_UP_TO`) a mesh costs seconds of work and a compile
 small beside it, so there the floor is `FLOOR` again, and a sparse set at a huge
 resolution pays no padding for its work on the tables.
 A closed surface at R holds about 0.5-4 R^2 voxels (the shared meshes: 0.5 R^2 for
-woody, 3.3 R^2 for the bunny) and a DAG about R^2 / 16 to R^2 / 4 rows; what is larger
+woody, 3.3 R^2 for the bunny) and a DAG up to about R^2 / 5 rows (the bunny; woody R^2 / 95); what is larger
 goes up the ladder by powers of two. At 256^3 the floors cost 3 MiB and 4 MiB.
 
 Widths of packed sort keys go through `key_bits`, which keeps only the widths that

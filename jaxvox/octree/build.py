@@ -227,18 +227,17 @@ def _build(vox: Voxels, capacity: tuple[int, ...], dag: bool) -> Octree:
     )
 
 
-def _schedule(counted, voxel_capacity: int) -> tuple[int, ...]:
-    """Per-level build capacities from the bottom level's node count and the voxel
-    buffer's capacity alone, so that trees of similar size share one compiled build.
+def _schedule(counted) -> tuple[int, ...]:
+    """Per-level build capacities from the bottom level's node count alone, so that trees
+    of similar size share one compiled build.
 
     A surface has about a quarter as many nodes per level as the level below (measured
     0.25-0.28 near the bottom on five shared meshes at 128^3 and 1024^3), so level ``D - 1 - k`` gets
-    ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1, at least half the voxel
-    capacity, which a surface's P stays below, so that one voxel bucket is one build),
-    doubled above the three bottom levels where the ratio creeps up; a level counted
-    above that (scattered voxels) gets the bucket of its own count. Capped at ``8^l``.
+    ``bucket(P) / 4^k`` (P: the counted nodes of level D - 1), doubled above the three
+    bottom levels where the ratio creeps up; a level counted above that (scattered
+    voxels) gets the bucket of its own count. Capped at ``8^l``.
     """
-    depth, bottom = len(counted), bucket(int(counted[-1]), max(64, voxel_capacity // 2))
+    depth, bottom = len(counted), bucket(int(counted[-1]), 64)
     return tuple(
         min(8**level, max(bottom >> 2 * k << (k >= 3), bucket(int(n), 64)))
         for level, (k, n) in enumerate(zip(range(depth - 1, -1, -1), counted))
@@ -324,7 +323,7 @@ def octree_capacities(vox: Voxels) -> tuple[int, ...]:
     """
     check_type("octree_capacities vox", vox, Voxels)
     depth = vox.grid.resolution.bit_length() - 1
-    return _schedule(_level_sizes(_checked_codes("octree_capacities", vox), depth), vox.coords.shape[0])
+    return _schedule(_level_sizes(_checked_codes("octree_capacities", vox), depth))
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None, checked: bool = False) -> Octree:
