@@ -38,16 +38,49 @@ def worker(spec: dict) -> dict:
         tree = jv.build_dag(jv.voxelize(mesh, grid, progress=False))
     tree.mask.block_until_ready()
     seconds = time.perf_counter() - start
+    build_peak = _common.peak_rss_mib()
     small = jv.compact(tree)
     digest = hashlib.sha256()
     for leaf in (small.mask, small.child, small.prefix):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
-    return dict(
+    result = dict(
         seconds=seconds,
         voxels=int(tree.voxel_count),
+        nodes=small.num_nodes,
         dag_mib=small.compact_nbytes / 2**20,
-        peak_rss_mib=_common.peak_rss_mib(),
+        bits_per_voxel=8 * small.compact_nbytes / max(int(tree.voxel_count), 1),
+        peak_rss_mib=build_peak,
         tables_sha256=digest.hexdigest(),
+    )
+    if spec.get("trace"):
+        result.update(_trace_and_render(jv, mesh, small, spec))
+    return result
+
+
+def _trace_and_render(jv, mesh, tree, spec: dict) -> dict:
+    """1920x1080 primary rays at the DAG (first call and median of 3 compiled calls, hit
+    count) and a small path-traced image written to experiments/results/."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    eye, target = jv.look_at_view(mesh)
+    width, height = 1920, 1080
+    o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=width, height=height))
+    timing, hit = _common.time_calls(lambda: jax.block_until_ready(jv.trace(tree, o, d)), 3)
+    start = time.perf_counter()
+    image = jv.render(tree, eye, target, width=480, height=270, spp=4, bounces=2, key=0, progress=False)
+    render_s = time.perf_counter() - start
+    png = jv.save_render(_common.RESULTS_DIR / f"stream_dag_{spec['resolution']}.exr", image)[1]
+    return dict(
+        trace_first_s=timing["first_s"],
+        trace_median_s=timing["median_s"],
+        trace_mrays_s=width * height / timing["median_s"] / 1e6,
+        trace_hits=int(np.sum(np.asarray(hit.status) == jv.HIT)),
+        render_s=render_s,
+        render_png=str(png),
+        render_stopped=int(image.stopped),
+        peak_rss_with_trace_mib=_common.peak_rss_mib(),
     )
 
 
@@ -58,6 +91,9 @@ def main() -> None:
     parser.add_argument("--resolutions", type=int, nargs="*", default=None)
     parser.add_argument("--whole-max", type=int, default=1024)
     parser.add_argument("--timeout", type=float, default=3600)
+    parser.add_argument(
+        "--trace-from", type=int, default=8192, help="trace 1920x1080 rays and render the stream DAG from this R on"
+    )
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
@@ -68,7 +104,7 @@ def main() -> None:
         for kind in ("stream", "whole"):
             if kind == "whole" and r > args.whole_max:
                 continue
-            spec = dict(mesh=mesh, resolution=r, kind=kind)
+            spec = dict(mesh=mesh, resolution=r, kind=kind, trace=kind == "stream" and r >= args.trace_from)
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, kind=kind)
             cases.append(case)
             print(case, flush=True)
@@ -84,8 +120,12 @@ def main() -> None:
         ("kind", "build"),
         ("voxels", "voxels"),
         ("dag_mib", "DAG (MiB)"),
+        ("nodes", "nodes"),
+        ("bits_per_voxel", "bits/voxel"),
         ("seconds", "time (s)"),
         ("peak_rss_mib", "peak RSS (MiB)"),
+        ("trace_mrays_s", "1080p Mrays/s"),
+        ("render_s", "render 480x270x4 (s)"),
         ("same_tables", "same tables"),
     ]
     cell = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float32, Real
@@ -103,19 +105,16 @@ def pinhole_rays(
     )
     if all(is_concrete(x) for x in (eye, target, up)):
         check_view("pinhole_rays", eye, target, up, fov)
-    eye, target = jnp.asarray(eye, jnp.float32), jnp.asarray(target, jnp.float32)
+    as32 = lambda v: jnp.asarray(v, jnp.float32)
+    return _pinhole(as32(eye), as32(target), as32(up), np.tan(np.radians(fov) / 2), width=width, height=height)
+
+
+@functools.partial(jax.jit, static_argnames=("width", "height"))
+def _pinhole(eye, target, up, tan_half_fov, *, width: int, height: int):
+    """`pinhole_rays` as one program per image size (eagerly it would be a dozen)."""
     px = (jnp.arange(width) + 0.5)[None, :]
     py = (jnp.arange(height) + 0.5)[:, None]
-    d = pixel_directions(
-        eye,
-        target,
-        jnp.asarray(up, jnp.float32),
-        px,
-        py,
-        width=width,
-        height=height,
-        tan_half_fov=np.tan(np.radians(fov) / 2),
-    )
+    d = pixel_directions(eye, target, up, px, py, width=width, height=height, tan_half_fov=tan_half_fov)
     return jnp.broadcast_to(eye, d.shape), d
 
 

@@ -65,6 +65,12 @@ class Mesh:
         return self.vertices[self.faces]
 
 
+def host_triangles(mesh: Mesh) -> np.ndarray:
+    """Corner positions of every face on the host: [F, 3, 3] float64 (`Mesh.triangles`
+    without a device program per mesh size)."""
+    return np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)].reshape(-1, 3, 3)
+
+
 def _numeric(what: str, value, dtype) -> jax.Array:
     """`value` as a `dtype` array; concrete values must be numbers, and integer-valued for int32."""
     if not is_concrete(value):

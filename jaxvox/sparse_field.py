@@ -63,7 +63,7 @@ from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, build_octree, voxel_index
 from jaxvox.solid import open_edges
 from jaxvox.topology import (
@@ -456,7 +456,7 @@ def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool
         raise refuse("sparse_distance_field signed", "must be True or False", signed)
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
-    tris = (np.asarray(mesh.triangles(), np.float64).reshape(-1, 3, 3) - origin) / h
+    tris = (host_triangles(mesh) - origin) / h
     ijk, d2, tri = band_pairs(tris, grid.resolution, band)
     n = len(ijk)
     capacity = bucket(n)

@@ -44,7 +44,7 @@ from jaxvox._checks import check_int, check_number, check_type, refuse
 from jaxvox._geometry import solid_angle_parts
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.grid import Grid
-from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 
 _PAIRS_PER_CHUNK = 1 << 15  # (block, node) pairs evaluated together (x b^3 voxels each)
 
@@ -112,14 +112,18 @@ def _build_tree(tris: np.ndarray) -> _Tree:
         else:
             first.append(np.zeros(size, np.int64))
             count.append(np.zeros(size, np.int64))
-    stack = lambda i: np.concatenate([level[i] for level in levels]).astype(np.float32)
+    # Tables padded to the ladder (padding nodes have no children and are never reached),
+    # so that meshes of similar sizes run the same compiled levels.
+    rows = bucket(sum(sizes))
+    pad = lambda x, n, dtype: jax.device_put(np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:])]).astype(dtype))
+    stack = lambda i: pad(np.concatenate([level[i] for level in levels]), rows, np.float32)
     return _Tree(
-        centre=jnp.asarray(stack(0)),
-        radius=jnp.asarray(stack(1)),
-        area=jnp.asarray(stack(2)),
-        first=jnp.asarray(np.concatenate(first).astype(np.int32)),
-        count=jnp.asarray(np.concatenate(count).astype(np.int32)),
-        triangles=jnp.asarray(tris.astype(np.float32)),
+        centre=stack(0),
+        radius=stack(1),
+        area=stack(2),
+        first=pad(np.concatenate(first), rows, np.int32),
+        count=pad(np.concatenate(count), rows, np.int32),
+        triangles=pad(tris, bucket(len(tris)), np.float32),
         levels=tuple(zip(offsets.tolist(), sizes)),
     )
 
@@ -200,8 +204,8 @@ def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach:
     tree = _build_tree(tris)
     n = count = len(centres)
     capacity = bucket(n)
-    at = jnp.asarray(np.concatenate([centres, np.zeros((capacity - n, 3))]).astype(np.float32))
-    around = jnp.asarray(offsets, jnp.float32)
+    at = jax.device_put(np.concatenate([centres, np.zeros((capacity - n, 3))]).astype(np.float32))
+    around = jax.device_put(np.asarray(offsets, np.float32))
     settings = dict(reach=float(reach), beta=float(beta))
     w = jnp.zeros((capacity, around.shape[0]), jnp.float32)
     queries = jnp.arange(capacity, dtype=jnp.int32)
@@ -415,12 +419,12 @@ def box_winding_numbers(
     per_axis = tuple(-(-int(n) // block) for n in shape)
     n = math.prod(per_axis)
     if mesh.num_faces:
-        tris = (np.asarray(mesh.triangles(), np.float64) - np.asarray(origin, np.float64)) / float(voxel_size)
+        tris = (host_triangles(mesh) - np.asarray(origin, np.float64)) / float(voxel_size)
         corners = np.stack(np.unravel_index(np.arange(n), per_axis), -1) * block
         reach = block * math.sqrt(3) / 2
-        w = _tree_sum(tris, corners + block / 2, _block_offsets(block), reach, beta)[:n]
+        w = np.asarray(_tree_sum(tris, corners + block / 2, _block_offsets(block), reach, beta))[:n]
     else:
-        w = jnp.zeros((n, block**3), jnp.float32)
-    w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)
+        w = np.zeros((n, block**3), np.float32)
+    w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)  # on the host: no program per shape
     w = w.reshape(tuple(a * block for a in per_axis))
-    return w[: shape[0], : shape[1], : shape[2]]
+    return jax.device_put(np.ascontiguousarray(w[: shape[0], : shape[1], : shape[2]]))

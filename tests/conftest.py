@@ -20,6 +20,17 @@ jaxvox.enable_compilation_cache()
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 
 
+# The modules whose tests take longest run first, so that with pytest-xdist no worker
+# starts a long test when the others have run out of work.
+LONGEST_FIRST = ("test_notebooks", "test_clipmap", "test_render", "test_sparse_field", "test_distance")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    key = lambda item: rank.get(item.module.__name__.rsplit(".", 1)[-1], len(rank))
+    items[:] = sorted(items, key=key)  # stable: the other modules keep their order
+
+
 @pytest.fixture(scope="session")
 def meshes_dir() -> pathlib.Path:
     """The shared test meshes (``../shared/meshes`` next to the repository); skips if absent."""

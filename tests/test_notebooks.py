@@ -1,11 +1,14 @@
-"""Every notebook in notebooks/ runs top to bottom at a small size (SMOKE=1)."""
+"""Every notebook in notebooks/ runs top to bottom at a small size (SMOKE=1).
+
+They run in the test process (as `python notebooks/NN.py` would run them, from the
+notebooks folder): a subprocess per notebook paid a fresh interpreter, JAX and
+matplotlib import and recompiled programs the tests beside it had already compiled.
+"""
 
 from __future__ import annotations
 
-import os
 import pathlib
-import subprocess
-import sys
+import runpy
 
 import pytest
 
@@ -13,9 +16,17 @@ NOTEBOOKS = sorted((pathlib.Path(__file__).resolve().parents[1] / "notebooks").g
 
 
 @pytest.mark.parametrize("notebook", NOTEBOOKS, ids=lambda p: p.stem)
-def test_notebook_runs(notebook, meshes_dir):
-    env = dict(os.environ, SMOKE="1", MPLBACKEND="Agg", JAXVOX_MESHES=str(meshes_dir))
-    result = subprocess.run(
-        [sys.executable, str(notebook)], cwd=notebook.parent, env=env, capture_output=True, text=True, timeout=600
-    )
-    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-4000:]
+def test_notebook_runs(notebook, meshes_dir, monkeypatch):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    monkeypatch.setenv("SMOKE", "1")
+    monkeypatch.setenv("JAXVOX_MESHES", str(meshes_dir))
+    monkeypatch.chdir(notebook.parent)
+    monkeypatch.syspath_prepend(str(notebook.parent))
+    try:
+        runpy.run_path(str(notebook), run_name="__main__")
+    finally:
+        plt.close("all")

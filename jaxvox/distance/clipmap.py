@@ -23,7 +23,7 @@ from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
 from jaxvox.distance.field import METHODS, box_distance, box_grid
 from jaxvox.grid import Grid, check_resolution
-from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.solid import grid_triangles, open_edges, padded_mesh, solid_inside
 from jaxvox.sparse_field import EXACT_BELOW
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
@@ -176,7 +176,7 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
     limit = np.float32(clip.truncation * h)
     near = _near_faces(mesh, bounds, corner - h, corner + (np.asarray(shape) + 1) * h)
     if near is None:
-        d = jnp.full(size, limit)
+        d = np.full(size, limit)
     else:
         band = margin if clip.method == "band" else int(clip.method == "jfa+sweep")
         d = box_distance(
@@ -188,24 +188,26 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
             sweeps=3,
             clamped=clip.method != "band",
         )
-        d = jnp.minimum(d[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]] * h, limit)
+        cut = np.asarray(d)[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
+        d = np.minimum(cut * np.float32(h), limit)
     sign_shape: tuple[int, int, int] = tuple(_side(n, r, 0) for n in size)  # type: ignore[assignment]
     grid = box_grid(origin + lo * h, h, sign_shape)
-    inside = solid_inside(mesh, grid_triangles(padded, grid), grid, sign_shape, sign, 2.0)
-    return jnp.where(inside[: size[0], : size[1], : size[2]], -d, d)
+    inside = np.asarray(solid_inside(mesh, grid_triangles(padded, grid), grid, sign_shape, sign, 2.0))
+    return np.where(inside[: size[0], : size[1], : size[2]], -d, d)
 
 
-def _refresh(fields, mesh: Mesh, padded: Mesh, cascade: int, old, new, clip: Clipmap, sign: str):
+def _refresh(fields: np.ndarray, mesh: Mesh, padded: Mesh, cascade: int, old, new, clip: Clipmap, sign: str):
     """Writes the voxels of cascade `cascade` in window `new` that window `old` lacks with
-    a pipeline method (`padded`: `padded_mesh(mesh)`; `sign`: the solid voxelization method)."""
+    a pipeline method into the host copy `fields` [N, R, R, R] (`padded`: `padded_mesh(mesh)`;
+    `sign`: the solid voxelization method). Box values are cut and written on the host: no
+    small program per box shape."""
     r = fields.shape[-1]
     h = float(clip.voxel_size) * 2.0**cascade
-    tris = np.asarray(mesh.triangles(), np.float64)
+    tris = host_triangles(mesh)
     bounds = np.stack([tris.min(1), tris.max(1)])  # [2, F, 3]: once per cascade, not per box
     for lo, hi in _exposed_boxes(old, new, r):
         slots = np.ix_(*(np.mod(np.arange(a, b), r) for a, b in zip(lo, hi)))
-        fields = fields.at[(cascade,) + slots].set(_scissor_values(mesh, padded, bounds, lo, hi, h, clip, sign))
-    return fields
+        fields[(cascade, *slots)] = _scissor_values(mesh, padded, bounds, lo, hi, h, clip, sign)
 
 
 @functools.partial(jax.jit, donate_argnums=0)
@@ -335,7 +337,7 @@ def _exact_update(fields, mesh: Mesh, jobs, clip: Clipmap, sign: str):
         return fields
     origin = np.asarray(clip.origin, np.float64)
     r = clip.resolution
-    world = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)].reshape(-1, 3, 3)  # [F, 3, 3]
+    world = host_triangles(mesh)  # [F, 3, 3]
     low, high = world.min(1), world.max(1)
     h = [float(clip.voxel_size) * 2.0**c for c, _, _ in jobs]
     counts = [int(np.prod(hi - lo)) for _, lo, hi in jobs]
@@ -481,8 +483,10 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
         fields = _exact_update(fields, mesh, jobs, clip, sign)
     else:
         padded = padded_mesh(mesh)
+        host = np.array(fields)
         for c in cascades:
-            fields = _refresh(fields, mesh, padded, c, corner[c], new[c], clip, sign)
+            _refresh(host, mesh, padded, c, corner[c], new[c], clip, sign)
+        fields = jnp.asarray(host)
     corner[list(cascades)] = new[list(cascades)]
     return dataclasses.replace(clip, fields=fields, corner=jnp.asarray(corner))
 

@@ -16,6 +16,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_choice, check_int, check_type
@@ -157,10 +158,13 @@ def box_distance(
         vox = voxelize(padded, grid, mode=CONSERVATIVE, triangle_ids=True, progress=False)
         n = int(vox.count)
         cap = bucket(n, 4096)  # few shapes: similar meshes share the compiled field
-        inside = jnp.all(vox.coords[:n] < jnp.asarray(shape), axis=1, keepdims=True)  # the box only
-        coords = jnp.full((cap, 3), UNUSED, jnp.int32).at[:n].set(jnp.where(inside, vox.coords[:n], UNUSED))
         assert vox.triangle is not None  # voxelized with triangle ids
-        triangle = jnp.full(cap, UNUSED, jnp.int32).at[:n].set(vox.triangle[:n])
+        found, ids = vox.to_numpy(), vox.triangle_ids()  # on the host: no small program per count
+        coords = np.full((cap, 3), UNUSED, np.int32)
+        coords[:n] = np.where(np.all(found < np.asarray(shape), axis=1, keepdims=True), found, UNUSED)  # the box only
+        triangle = np.full(cap, UNUSED, np.int32)
+        triangle[:n] = ids
+        coords, triangle = jnp.asarray(coords), jnp.asarray(triangle)
     return _unsigned(tris, coords, triangle, shape=shape, method=method, band=band, sweeps=sweeps, clamped=clamped)
 
 

@@ -163,11 +163,11 @@ def tree_from_levels(levels: list, grid: Grid, mode: str, voxels: int, dag: bool
         mask=put(mask),
         child=put(child),
         prefix=put(prefix),
-        level_count=jnp.asarray(sizes, jnp.int32),
+        level_count=put(np.asarray(sizes, np.int32)),
         voxel_count=jnp.int32(voxels),
         overflow=jnp.int32(0),
         grid=grid,
-        level_capacity=jnp.asarray(capacity, jnp.int32),
+        level_capacity=put(np.asarray(capacity, np.int32)),
         dag=dag,
         mode=mode,
     )
