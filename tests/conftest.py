@@ -16,6 +16,14 @@ REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 # run of the suite is warm; the command line and the notebooks (subprocesses) inherit
 # the folder through $JAXVOX_CACHE_DIR. CI starts cold.
 os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
+# Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already
+# keep the cores busy, and a thread pool per worker on top only oversubscribes them
+# (about 10% of the suite's time on two cores). Read when the backend starts, which is
+# after this module runs.
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ["XLA_FLAGS"] = " ".join(
+        [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false"]
+    ).strip()
 jaxvox.enable_compilation_cache()
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 
