@@ -21,9 +21,7 @@ os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
 # (about 10% of the suite's time on two cores). Read when the backend starts, which is
 # after this module runs.
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
-    os.environ["XLA_FLAGS"] = " ".join(
-        [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false"]
-    ).strip()
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false"]).strip()
 jaxvox.enable_compilation_cache()
 SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
 
