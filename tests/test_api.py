@@ -161,6 +161,23 @@ def test_streaming_regions_match_single_pass(meshes_dir):
         np.testing.assert_array_equal(streamed.to_numpy(), whole.to_numpy())
 
 
+def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
+    """The bunny at 256^3 has about 640K candidates in its one region, more than two sort
+    pages (2^18 slots each): every page is written once (the host path checks that it
+    received exactly the counted candidates) and the voxels and their triangle ids are
+    those of 64^3 regions, each of which fits in one page."""
+    from jaxvox.voxelize.host import _PAGE
+
+    mesh = jv.load_mesh(meshes_dir / "stanford-bunny.obj")
+    grid = jv.Grid.fit(mesh, resolution=256)
+    assert jv.voxel_capacities(mesh, grid).candidates > 2 * _PAGE
+    for mode in ("conservative", "6-separating"):
+        whole = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True)
+        small = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True, region_size=64)
+        np.testing.assert_array_equal(whole.to_numpy(), small.to_numpy())
+        np.testing.assert_array_equal(whole.triangle_ids(), small.triangle_ids())
+
+
 def test_high_resolutions_use_two_word_keys():
     tri = jv.Mesh(
         np.array([[0.1, 0.2, 0.3], [0.1001, 0.2, 0.3], [0.1, 0.2002, 0.3001]], np.float32),

@@ -104,10 +104,14 @@ def _emit_chunk(tris_grid, ids, region_lo, region_hi, pages, offset, *, six_sep,
             keys, payload, _ = expand_candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
             slot = start + jnp.arange(_WINDOW_CANDIDATES, dtype=jnp.int32)
             pos = jnp.where((slot < n) & (offset + slot >= 0), offset + slot, 2 * _PAGE)
+            # Slots outside a page go to index _PAGE and are dropped. A negative index would
+            # count from the end (NumPy's rule, which `.at` follows even with mode="drop"):
+            # the first page's slots would land in the second page.
+            local = lambda first: jnp.where(pos >= first, pos - first, _PAGE)
             return start + _WINDOW_CANDIDATES, tuple(
-                tuple(b.at[pos - first].set(v, mode="drop") for b, v in zip(page, keys + payload))
+                tuple(b.at[local(first)].set(v, mode="drop") for b, v in zip(page, keys + payload))
                 for first, page in zip((0, _PAGE), pages)
-            )  # slots outside a page are dropped
+            )
 
         # Only the windows that overlap the pages: from the one holding their first slot.
         first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
