@@ -115,15 +115,15 @@ def _build_tree(tris: np.ndarray) -> _Tree:
     # Tables padded to the ladder (padding nodes have no children and are never reached),
     # so that meshes of similar sizes run the same compiled levels.
     rows = bucket(sum(sizes))
-    pad = lambda x, n, dtype: jax.device_put(np.concatenate([x, np.zeros((n - len(x),) + x.shape[1:])]).astype(dtype))
-    stack = lambda i: pad(np.concatenate([level[i] for level in levels]), rows, np.float32)
+    padded = lambda x, n, dtype: jax.device_put(np.concatenate([x, np.zeros((n - len(x), *x.shape[1:]))]).astype(dtype))
+    stack = lambda i: padded(np.concatenate([level[i] for level in levels]), rows, np.float32)
     return _Tree(
         centre=stack(0),
         radius=stack(1),
         area=stack(2),
-        first=pad(np.concatenate(first), rows, np.int32),
-        count=pad(np.concatenate(count), rows, np.int32),
-        triangles=pad(tris, bucket(len(tris)), np.float32),
+        first=padded(np.concatenate(first), rows, np.int32),
+        count=padded(np.concatenate(count), rows, np.int32),
+        triangles=padded(tris, bucket(len(tris)), np.float32),
         levels=tuple(zip(offsets.tolist(), sizes)),
     )
 

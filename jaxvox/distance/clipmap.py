@@ -179,7 +179,7 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
         d = np.full(size, limit)
     else:
         band = margin if clip.method == "band" else int(clip.method == "jfa+sweep")
-        d = box_distance(
+        field = box_distance(
             near,
             box_grid(corner, h, shape),
             shape,
@@ -188,7 +188,7 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
             sweeps=3,
             clamped=clip.method != "band",
         )
-        cut = np.asarray(d)[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
+        cut = np.asarray(field)[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
         d = np.minimum(cut * np.float32(h), limit)
     sign_shape: tuple[int, int, int] = tuple(_side(n, r, 0) for n in size)  # type: ignore[assignment]
     grid = box_grid(origin + lo * h, h, sign_shape)
@@ -207,7 +207,7 @@ def _refresh(fields: np.ndarray, mesh: Mesh, padded: Mesh, cascade: int, old, ne
     bounds = np.stack([tris.min(1), tris.max(1)])  # [2, F, 3]: once per cascade, not per box
     for lo, hi in _exposed_boxes(old, new, r):
         slots = np.ix_(*(np.mod(np.arange(a, b), r) for a, b in zip(lo, hi)))
-        fields[(cascade, *slots)] = _scissor_values(mesh, padded, bounds, lo, hi, h, clip, sign)
+        fields[cascade][slots] = _scissor_values(mesh, padded, bounds, lo, hi, h, clip, sign)
 
 
 @functools.partial(jax.jit, donate_argnums=0)

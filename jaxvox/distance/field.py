@@ -160,11 +160,11 @@ def box_distance(
         cap = bucket(n, 4096)  # few shapes: similar meshes share the compiled field
         assert vox.triangle is not None  # voxelized with triangle ids
         found, ids = vox.to_numpy(), vox.triangle_ids()  # on the host: no small program per count
-        coords = np.full((cap, 3), UNUSED, np.int32)
-        coords[:n] = np.where(np.all(found < np.asarray(shape), axis=1, keepdims=True), found, UNUSED)  # the box only
-        triangle = np.full(cap, UNUSED, np.int32)
-        triangle[:n] = ids
-        coords, triangle = jnp.asarray(coords), jnp.asarray(triangle)
+        host_coords = np.full((cap, 3), UNUSED, np.int32)
+        host_coords[:n] = np.where(np.all(found < np.asarray(shape), axis=1, keepdims=True), found, UNUSED)  # the box
+        host_triangle = np.full(cap, UNUSED, np.int32)
+        host_triangle[:n] = ids
+        coords, triangle = jax.device_put(host_coords), jax.device_put(host_triangle)
     return _unsigned(tris, coords, triangle, shape=shape, method=method, band=band, sweeps=sweeps, clamped=clamped)
 
 
