@@ -7,6 +7,7 @@ matplotlib import and recompiled programs the tests beside it had already compil
 
 from __future__ import annotations
 
+import ast
 import pathlib
 import runpy
 
@@ -27,6 +28,16 @@ def test_notebook_runs(notebook, meshes_dir, monkeypatch):
     monkeypatch.chdir(notebook.parent)
     monkeypatch.syspath_prepend(str(notebook.parent))
     try:
-        runpy.run_path(str(notebook), run_name="__main__")
+        namespace = runpy.run_path(str(notebook), run_name="__main__")
     finally:
         plt.close("all")
+    # It ran to the end: every name the notebook binds at top level is bound.
+    tree = ast.parse(notebook.read_text())
+    bound = {
+        target.id
+        for node in tree.body
+        if isinstance(node, ast.Assign)
+        for target in node.targets
+        if isinstance(target, ast.Name)
+    }
+    assert bound and bound <= set(namespace), sorted(bound - set(namespace))
