@@ -198,8 +198,8 @@ def _level(
     return w, jnp.where(ok, queries[owner], 0), jnp.where(ok, tree.first[nodes[owner]] + rank, 0)
 
 
-def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach: float, beta: float) -> jax.Array:
-    """Winding numbers [Q, m] float32 at ``centres[q] + offsets[j]`` of float64 triangles
+def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach: float, beta: float) -> np.ndarray:
+    """Winding numbers [Q, m] float32 (host) at ``centres[q] + offsets[j]`` of float64 triangles
     [F, 3, 3] (F >= 1; all grid units), breadth first over the tree (module docstring)."""
     tree = _build_tree(tris)
     n = count = len(centres)
@@ -217,7 +217,7 @@ def _tree_sum(tris: np.ndarray, centres: np.ndarray, offsets: np.ndarray, reach:
             tree, w, at, around, queries, nodes, n, leaves=leaves, capacity=bucket(opened), **settings
         )
         n = opened
-    return w[:count]
+    return np.asarray(w)[:count]  # cut on the host: no program per count
 
 
 LEAF = 8  # triangles per leaf of the point tree (`point_winding_numbers`)
@@ -422,7 +422,7 @@ def box_winding_numbers(
         tris = (host_triangles(mesh) - np.asarray(origin, np.float64)) / float(voxel_size)
         corners = np.stack(np.unravel_index(np.arange(n), per_axis), -1) * block
         reach = block * math.sqrt(3) / 2
-        w = np.asarray(_tree_sum(tris, corners + block / 2, _block_offsets(block), reach, beta))[:n]
+        w = _tree_sum(tris, corners + block / 2, _block_offsets(block), reach, beta)
     else:
         w = np.zeros((n, block**3), np.float32)
     w = w.reshape(per_axis + (block,) * 3).transpose(0, 3, 1, 4, 2, 5)  # on the host: no program per shape

@@ -486,7 +486,7 @@ def update_clipmap(clip: Clipmap, mesh: Mesh, camera, *, cascades=None) -> Clipm
         host = np.array(fields)
         for c in cascades:
             _refresh(host, mesh, padded, c, corner[c], new[c], clip, sign)
-        fields = jnp.asarray(host)
+        fields = jax.device_put(host)
     corner[list(cascades)] = new[list(cascades)]
     return dataclasses.replace(clip, fields=fields, corner=jnp.asarray(corner))
 
