@@ -84,7 +84,7 @@ def _trace_and_render(jv, mesh, tree, spec: dict) -> dict:
         trace_mrays_s=width * height / timing["median_s"] / 1e6,
         trace_hits=int(np.sum(np.asarray(hit.status) == jv.HIT)),
         render_s=render_s,
-        render_png=str(png),
+        render_png=os.path.basename(png),
         render_stopped=int(image.stopped),
         peak_rss_with_trace_mib=_common.peak_rss_mib(),
     )
