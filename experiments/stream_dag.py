@@ -130,6 +130,7 @@ def main() -> None:
         ("bits_per_voxel", "bits/voxel"),
         ("seconds", "time (s)"),
         ("peak_rss_mib", "peak RSS (MiB)"),
+        ("trace_first_s", "1080p first call (s)"),
         ("trace_mrays_s", "1080p Mrays/s"),
         ("peak_rss_with_trace_mib", "peak RSS with tracing (MiB)"),
         ("render_s", "render 480x270x4 (s)"),

@@ -53,7 +53,8 @@ class _Tree(NamedTuple):
     """An implicit 8-ary tree over Morton-ordered triangles, all levels in one table.
 
     Node ``g`` (global id) has children ``first[g] .. first[g] + count[g] - 1``; level 0
-    (the triangles themselves) has ``count == 0``.
+    (the triangles themselves) has ``count == 0``. N and F are padded to the shape ladder
+    (`bucket`); padding nodes have no children and no parent.
     """
 
     centre: jax.Array  # [N, 3] float32, grid units

@@ -370,7 +370,7 @@ def _exact_update(fields, mesh: Mesh, jobs, clip: Clipmap, sign: str):
     negative = np.zeros(rows, bool)
     if mesh.num_faces:
         padded = padded_mesh(mesh)
-        padded_world = np.asarray(padded.vertices, np.float64)[np.asarray(padded.faces)]
+        padded_world = host_triangles(padded)
         for (_, lo, hi), hb, (b, _, _, order), box in zip(jobs, h, layouts, items):
             one = box is None  # the box's sign is one voxel's
             inside = _box_inside(mesh, padded_world, origin + lo * hb, hb, (1, 1, 1) if one else hi - lo, r, sign)
