@@ -52,9 +52,11 @@ def check_choice(what: str, value, options):
 
 
 def check_type(what: str, value, cls):
-    """`value` if it is an instance of `cls`; otherwise raises naming the expected type."""
+    """`value` if it is an instance of `cls` (a class or a tuple of classes); otherwise
+    raises naming the expected type."""
     if not isinstance(value, cls):
-        raise refuse(what, f"expected a jaxvox.{cls.__name__}", type(value))
+        names = " or ".join(f"jaxvox.{c.__name__}" for c in (cls if isinstance(cls, tuple) else (cls,)))
+        raise refuse(what, f"expected a {names}", type(value))
     return value
 
 

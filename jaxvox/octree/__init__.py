@@ -35,12 +35,14 @@ voxel set always gives the same arrays.
 
 from jaxvox.octree.attributes import voxel_attributes
 from jaxvox.octree.build import build_dag, build_octree, check_level_capacities, octree_capacities
+from jaxvox.octree.compact_dag import CompactDag, compact_dag
 from jaxvox.octree.layout import compact, padded
-from jaxvox.octree.queries import expand, voxel_index
+from jaxvox.octree.queries import expand, occupied, voxel_index
 from jaxvox.octree.stream import mesh_to_dag
 from jaxvox.octree.tree import EMPTY, MISSING, OVERFLOW_NODES, Octree, padded_sizes, stored_sizes
 
 __all__ = [
+    "CompactDag",
     "EMPTY",
     "MISSING",
     "OVERFLOW_NODES",
@@ -49,8 +51,10 @@ __all__ = [
     "build_octree",
     "check_level_capacities",
     "compact",
+    "compact_dag",
     "expand",
     "mesh_to_dag",
+    "occupied",
     "octree_capacities",
     "padded",
     "padded_sizes",

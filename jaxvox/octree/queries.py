@@ -12,6 +12,7 @@ from jaxtyping import Array, ArrayLike, Int32, Integer
 
 from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._shapes import expand_counts, voxel_bucket
+from jaxvox.octree.compact_dag import CompactDag, compact_voxel_index
 from jaxvox.octree.layout import padded
 from jaxvox.octree.tree import EMPTY, MISSING, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import Overflow, check_overflow, raise_if_overflow
@@ -24,7 +25,7 @@ for _m in range(256):
     _SELECT[_m, : len(_bits)] = _bits
 
 
-def voxel_index(tree: Octree, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Array, " *batch"]:
+def voxel_index(tree: Octree | CompactDag, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Array, " *batch"]:
     """Morton-order index of each voxel in the tree, `MISSING` (-1) where empty.
 
     A root-to-leaf walk adding the stored prefix sums; the index addresses attribute
@@ -32,7 +33,7 @@ def voxel_index(tree: Octree, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Arra
     jittable; indices outside the grid give -1.
 
     Args:
-      tree: an `Octree` (SVO or DAG).
+      tree: an `Octree` (SVO or DAG), or a `CompactDag` with prefix sums.
       ijk: [..., 3] integer voxel indices. JAX holds them as int32 (without 64-bit
         mode it converts wider integers on entry, wrapping values beyond 2^31).
 
@@ -40,9 +41,12 @@ def voxel_index(tree: Octree, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Arra
       [...] int32.
 
     Raises:
-      JaxvoxError: not an `Octree`, or `ijk` is not an integer array with a last axis of 3.
+      JaxvoxError: not an `Octree` or `CompactDag`, a `CompactDag` without prefix sums,
+        or `ijk` is not an integer array with a last axis of 3.
     """
-    check_type("voxel_index tree", tree, Octree)
+    check_type("voxel_index tree", tree, (Octree, CompactDag))
+    if isinstance(tree, CompactDag) and not tree.prefix:
+        raise refuse("voxel_index tree", "needs prefix sums: use compact_dag(tree, prefix=True)", "prefix=False")
     dtype = ijk.dtype if hasattr(ijk, "dtype") else np.asarray(ijk).dtype
     if not jnp.issubdtype(dtype, jnp.integer) or np.shape(ijk)[-1:] != (3,):
         raise refuse(
@@ -54,8 +58,11 @@ def voxel_index(tree: Octree, ijk: Integer[ArrayLike, "*batch 3"]) -> Int32[Arra
 
 
 @jax.jit
-def _voxel_index(tree: Octree, ijk: jax.Array) -> jax.Array:
+def _voxel_index(tree: Octree | CompactDag, ijk: jax.Array) -> jax.Array:
     ijk = jnp.asarray(ijk).astype(jnp.int32)
+    if isinstance(tree, CompactDag):
+        index, alive = compact_voxel_index(tree, ijk)
+        return jnp.where(alive, index, MISSING)
     depth = tree.depth
     alive = jnp.all((ijk >= 0) & (ijk < tree.grid.resolution), axis=-1) & (tree.voxel_count > 0)
     node = jnp.zeros(ijk.shape[:-1], jnp.int32)
@@ -100,6 +107,15 @@ def _expand_nodes(mask, child, voxel_count, *, depth: int, capacity: int):
             node = jnp.where(valid, child[node[owner], slot].astype(jnp.int32), 0)
     n = jnp.minimum(n, capacity)
     return jnp.where((jnp.arange(ijk.shape[0]) < n)[:, None], ijk, UNUSED), n
+
+
+@jax.jit
+def occupied(tree: Octree | CompactDag, ijk: jax.Array) -> jax.Array:
+    """Whether each voxel [..., 3] (int32) is in the tree: [...] bool (jittable). Unlike
+    `voxel_index` it also reads a `CompactDag` without prefix sums."""
+    if isinstance(tree, CompactDag):
+        return compact_voxel_index(tree, ijk)[1]
+    return _voxel_index(tree, ijk) != MISSING
 
 
 def expand(tree: Octree, *, capacity: int | None = None, checked: bool = False) -> Voxels:

@@ -59,7 +59,7 @@ from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox.camera import check_view, pixel_directions
-from jaxvox.octree import MISSING, Octree, voxel_index
+from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
@@ -136,7 +136,7 @@ def _cosine_direction(normal, u):
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def _voxel_surface(tree: Octree, origin, direction, hit) -> Surface:
+def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit) -> Surface:
     """The surface a voxel `Hit` found; the offset point is inside the face, just outside the voxel."""
     grid = tree.grid
     is_hit = hit.status == HIT
@@ -154,7 +154,7 @@ def _voxel_surface(tree: Octree, origin, direction, hit) -> Surface:
     incoming = jnp.where(direction > 0, v, v + 1)
     touching = (n != 0) | (jnp.abs(p - incoming) <= _OFFSET)
     diagonal = jnp.where(touching, v + 0.5 - jnp.sign(direction) * (0.5 + _OFFSET), inside)
-    blocked = voxel_index(tree, jnp.floor(across).astype(jnp.int32)) != MISSING
+    blocked = occupied(tree, jnp.floor(across).astype(jnp.int32))
     p = jnp.where(blocked[:, None], diagonal, across)
     point = grid.origin + p * grid.voxel_size
     live = valid_rays(origin, direction)
@@ -359,7 +359,7 @@ def progress_bar(total: int, progress: bool | None, what: str):
 
 
 def render(
-    tree: Octree,
+    tree: Octree | CompactDag,
     eye,
     target,
     *,
@@ -381,7 +381,8 @@ def render(
     """Path-traces an image of a voxel octree or DAG (see the module docstring).
 
     Args:
-      tree: an `Octree` (SVO or DAG).
+      tree: an `Octree` (SVO or DAG) or a `CompactDag` (per-voxel albedo and emission
+        need its prefix sums).
       eye, target: [3] camera position and the point it looks at (see `look_at_view`).
       env: the lighting, an `Environment` (default `sky_environment()`).
       albedo: diffuse reflectance in [0, 1], linear: an RGB triple for every voxel, or a
@@ -407,7 +408,7 @@ def render(
       JaxvoxError: not an `Octree` or `Environment`, bad settings, camera, albedo or
         emission, `max_steps` or `lanes` not integers >= 1, or a truncated tree.
     """
-    check_type("render tree", tree, Octree)
+    check_type("render tree", tree, (Octree, CompactDag))
     check_settings("render", width, height, spp, bounces, batch_rays)
     if int(tree.overflow):
         raise JaxvoxError(f"cannot render a truncated tree (overflow flags {int(tree.overflow)})")
@@ -416,6 +417,12 @@ def render(
     resolution = tree.grid.resolution
     albedo = rgb_table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7), resolution)
     emission = rgb_table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0), resolution)
+    if isinstance(tree, CompactDag) and not tree.prefix and max(albedo.shape[0], emission.shape[0]) > 1:
+        raise refuse(
+            "render tree",
+            "per-voxel albedo or emission need prefix sums: compact_dag(tree, prefix=True)",
+            "prefix=False",
+        )
     camera = checked_camera("render", eye, target, up, fov)
     steps = check_int("render max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     if lanes is not None:

@@ -14,7 +14,7 @@ from jaxtyping import ArrayLike, Real, Shaped
 from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
 from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
-from jaxvox.octree import MISSING, Octree, voxel_index
+from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
 from jaxvox.trace.hit import HIT, Hit, default_max_steps
@@ -76,12 +76,14 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard):
     hit = trace_rays(tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes, shard=shard)
+    if isinstance(tree, CompactDag) and not tree.prefix:  # no prefix sums: no Morton index
+        return dataclasses.replace(hit, index=jnp.full_like(hit.status, MISSING))
     index = voxel_index(tree, jnp.maximum(hit.voxel, 0))
     return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
 
 
 def trace(
-    tree: Octree,
+    tree: Octree | CompactDag,
     origins: Real[ArrayLike, "*o 3"],
     directions: Real[ArrayLike, "*d 3"],
     *,
@@ -98,7 +100,8 @@ def trace(
     ladder first, so that similar ray counts (image sizes) share one compiled program.
 
     Args:
-      tree: an `Octree` from `build_octree` or `build_dag`.
+      tree: an `Octree` from `build_octree` or `build_dag`, or a `CompactDag`
+        (`compact_dag`; without prefix sums every ``Hit.index`` is -1).
       origins, directions: [..., 3] float32 in world coordinates, any batch shape;
         directions need not be unit length (``t`` is the parameter of
         ``origin + t * direction``).
@@ -119,7 +122,7 @@ def trace(
     Returns:
       A `Hit` with the batch shape of the rays.
     """
-    check_type("trace tree", tree, Octree)
+    check_type("trace tree", tree, (Octree, CompactDag))
     check_choice("trace method", method, TRACE_METHODS)
     _check_rays("trace", origins, directions, t_max, lanes)
     steps = check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)

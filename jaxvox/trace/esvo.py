@@ -19,6 +19,7 @@ from jaxvox.trace.ray import (
     max3,
     min3,
     pick,
+    root_row,
     select,
     slot_bits,
     stack_set,
@@ -39,7 +40,7 @@ class _Esvo(NamedTuple):
 def esvo_init(tree: Octree, ray: Ray, t_start, status) -> _Esvo:
     res = tree.grid.resolution
     corner = first_cell(ray, (jnp.int32(0),) * 3, res // 2, t_start)
-    return _Esvo(jnp.int32(1), corner, jnp.int32(0), (jnp.int32(0),) * tree.depth, status)
+    return _Esvo(jnp.int32(1), corner, root_row(tree), (root_row(tree),) * tree.depth, status)
 
 
 def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
@@ -50,7 +51,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     t1 = times(ray, vec(lambda c: c + size, s.corner))
     t_in, t_out = max3(t0), min3(t1)
     slot = slot_bits(s.corner, shift) ^ ray.flip
-    live = mask_bit(tree, s.parent, slot) & (t_out > 0) & (t_in < t_out)
+    live = mask_bit(tree, s.parent, slot, s.level - 1) & (t_out > 0) & (t_in < t_out)
     push = live & (s.level < depth)
     axis = argmin3(t1)
     before = pick(s.corner, axis)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox.octree import Octree
+from jaxvox.octree.compact_dag import CompactDag, compact_child, compact_mask_bit
 from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING, valid_rays
 
 _TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
@@ -74,11 +75,22 @@ def slot_bits(corner, shift):
     return x | y << 1 | z << 2
 
 
-def mask_bit(tree: Octree, row, slot):
+def root_row(tree: Octree | CompactDag):
+    """The root's row (`Octree`) or reference (`CompactDag`), int32."""
+    return tree.root.astype(jnp.int32) if isinstance(tree, CompactDag) else jnp.int32(0)
+
+
+def mask_bit(tree: Octree | CompactDag, row, slot, level):
+    """Whether child `slot` of the level-`level` node at `row` is present."""
+    if isinstance(tree, CompactDag):
+        return compact_mask_bit(tree, row, slot, level == tree.depth - 1)
     return ((tree.mask[row].astype(jnp.int32) >> slot) & 1) == 1
 
 
-def child_row(tree: Octree, row, slot):
+def child_row(tree: Octree | CompactDag, row, slot):
+    """Row (reference) of child `slot` of the node at `row` above level D - 1."""
+    if isinstance(tree, CompactDag):
+        return compact_child(tree, row, slot)
     if tree.child.shape[0] == 0:  # depth 1: the root's children are voxels
         return jnp.int32(0)
     flat = tree.child.reshape(-1)

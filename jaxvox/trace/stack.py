@@ -19,6 +19,7 @@ from jaxvox.trace.ray import (
     max3,
     min3,
     pick,
+    root_row,
     select,
     slot_bits,
     stack_set,
@@ -43,7 +44,7 @@ def stacked_init(tree: Octree, ray: Ray, t_start, status) -> _Stacked:
     zero = (jnp.int32(0),) * 3
     child = slot_bits(first_cell(ray, zero, res // 2, t_start), depth - 1)
     zeros = (jnp.int32(0),) * depth
-    return _Stacked(jnp.int32(0), jnp.int32(0), zero, child, zeros, zeros, status)
+    return _Stacked(jnp.int32(0), root_row(tree), zero, child, zeros, zeros, status)
 
 
 def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
@@ -57,7 +58,7 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
     t1 = times(ray, vec(lambda a: a + half, child_corner))
     t_in, t_out = max3(t0), min3(t1)
     slot = c ^ ray.flip
-    live = ~popping & mask_bit(tree, s.node, slot) & (t_out > 0) & (t_in < t_out)
+    live = ~popping & mask_bit(tree, s.node, slot, s.level) & (t_out > 0) & (t_in < t_out)
     descend = live & (s.level < depth - 1)
     # the moved bit: the child across the nearest exit plane, if still inside this node
     exit_bit = jnp.left_shift(1, argmin3(t1))
