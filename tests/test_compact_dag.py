@@ -12,9 +12,19 @@ from hypothesis import given, settings
 import jaxvox as jv
 from jaxvox.trace import HIT
 
-from .test_trace import assert_matches, assert_same, rays, scene, trees  # noqa: F401 (fixtures)
+from .test_trace import assert_matches, assert_same, rays, spot_scene
 
 LAYOUTS = [True, False]  # with and without prefix sums
+
+
+@pytest.fixture(scope="module")
+def scene(meshes_dir):
+    return spot_scene(meshes_dir)
+
+
+@pytest.fixture(scope="module")
+def trees(scene):
+    return {"svo": jv.build_octree(scene[0]), "dag": jv.build_dag(scene[0])}
 
 
 def assert_traces_alike(tree, compact, o, d, **kwargs):

@@ -71,8 +71,8 @@ def rays(rng, n, resolution, ijk):
     return o, d
 
 
-@pytest.fixture(scope="module")
-def scene(meshes_dir):
+def spot_scene(meshes_dir):
+    """(voxels, ijk, origins, directions): spot at 32^3 in grid units and `rays` at it."""
     resolution = 32
     mesh = jv.load_mesh(meshes_dir / "spot.obj")
     v = np.asarray(mesh.vertices)
@@ -82,6 +82,11 @@ def scene(meshes_dir):
     ijk = vox.to_numpy()
     o, d = rays(np.random.default_rng(0), 1200, resolution, ijk)
     return vox, ijk, o, d
+
+
+@pytest.fixture(scope="module")
+def scene(meshes_dir):
+    return spot_scene(meshes_dir)
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float32, Int32
 
 from jaxvox._pytree import pytree_dataclass
-from jaxvox.octree import Octree
+from jaxvox.octree import CompactDag, Octree
 
 # `Hit.status` values.
 HIT = 0
@@ -71,7 +71,7 @@ def valid_rays(origins: jax.Array | np.ndarray, directions: jax.Array | np.ndarr
     )
 
 
-def default_max_steps(tree: Octree) -> int:
+def default_max_steps(tree: Octree | CompactDag) -> int:
     """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
     ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
     return 6 * tree.grid.resolution + 16 * tree.depth
