@@ -23,15 +23,27 @@ octree-sparse       1 byte + 1 uint32 first-child pointer per inner node, 1 byte
 dag-33B             the DAG, 33 bytes per node
 dag                 the DAG in jaxvox's table without prefix sums
 dag+prefix          ``dag.compact_nbytes``: jaxvox's DAG as saved (no ladder padding)
-dag-sparse          empty slots dropped: per inner node a uint32 header (mask) and one
-                    uint32 pointer per present child, addressed by the popcount of the
-                    mask bits below the slot; 1 byte per mask-only node
-dag-sparse+prefix   the above plus a uint32 prefix sum per present child but the first
-                    (always 0)
+dag-sparse          `jv.compact_dag` without prefix sums, as built (``CompactDag.nbytes``):
+                    per node above the mask-only level a uint32 mask word and one uint32
+                    per present child, addressed by the popcount of the mask bits below
+                    the slot; a child at the mask-only level is stored as its mask, so
+                    that level takes no bytes of its own
+dag-sparse+prefix   `jv.compact_dag` with prefix sums: the above plus a uint32 prefix sum
+                    per present child but the first (always 0)
 ==================  ===================================================================
 
-The sparse layouts' sizes are computed from the built DAG's masks (exact popcounts), not
-by writing the packed stream. Bits per voxel divide each size by the voxel count.
+The SVO layouts' sizes and the DAG's 33-byte count are computed from the built trees'
+masks (exact popcounts); the DAG tables and the sparse DAGs are the arrays themselves.
+Bits per voxel divide each size by the voxel count.
+
+Speed against bytes (the first mesh, ``--trace``): 1920x1080 primary rays of
+`jv.look_at_view` traced by `jv.trace` (esvo, the default lanes, all CPU devices) on
+every layout that traverses: the SVO's and the DAG's 8-slot tables (``octree+prefix``,
+``dag+prefix``) and the two sparse DAGs. Mrays/s is the median of 3 calls after a first
+call (reported with its compilation); every layout must give the same hits.
+
+Resolutions in ``--stream`` (first mesh; default 16384) build the DAG with
+`jv.mesh_to_dag` (regions, never the whole voxel list), so they have no SVO columns.
 
 Outputs ``memory_ablation.json`` (all numbers and the machine), ``.png`` (bytes against
 resolution for the first mesh; octree/DAG ratio and bits per voxel for every mesh) and
@@ -41,6 +53,7 @@ Examples:
   python experiments/memory_ablation.py                     # 8 meshes up to 2048^3, the bunny to 8192^3
   python experiments/memory_ablation.py --smoke             # R = 64, 128 on two meshes
   python experiments/memory_ablation.py --meshes stanford-bunny --resolutions 8192
+  python experiments/memory_ablation.py --meshes stanford-bunny --resolutions 1024 --huge --stream --update
 """
 
 from __future__ import annotations
@@ -70,8 +83,9 @@ LAYOUTS = (
 )
 
 
-def layout_bytes(svo, dag, resolution: int) -> dict[str, int]:
-    """Bytes of every layout in the module docstring, from the built trees."""
+def layout_bytes(svo, dag, sparse: dict, resolution: int) -> dict[str, int | None]:
+    """Bytes of every layout in the module docstring, from the built trees (`svo` None:
+    the SVO layouts are None)."""
 
     def parts(tree):
         sizes = tree.level_sizes
@@ -79,22 +93,50 @@ def layout_bytes(svo, dag, resolution: int) -> dict[str, int]:
         children = int(np.unpackbits(np.asarray(tree.mask[:inner])[:, None], axis=1).sum())
         return nodes, inner, sizes[-1], children
 
-    s_nodes, s_inner, _, _ = parts(svo)
-    d_nodes, d_inner, d_last, d_children = parts(dag)
-    return {
-        "dense bits": resolution**3 // 8,
-        "spc": s_nodes,
-        "spc+exsum": 5 * s_nodes,
-        "octree-33B": 33 * s_nodes,
-        "octree": s_nodes + 32 * s_inner,
-        "octree+prefix": svo.compact_nbytes,
-        "octree-sparse": s_nodes + 4 * s_inner,
-        "dag-33B": 33 * d_nodes,
-        "dag": d_nodes + 32 * d_inner,
-        "dag+prefix": dag.compact_nbytes,
-        "dag-sparse": 4 * (d_inner + d_children) + d_last,
-        "dag-sparse+prefix": 4 * (d_inner + d_children) + d_last + 4 * (d_children - d_inner),
-    }
+    d_nodes, d_inner, _, _ = parts(dag)
+    sizes: dict[str, int | None] = dict.fromkeys(LAYOUTS)
+    if svo is not None:
+        s_nodes, s_inner, _, _ = parts(svo)
+        sizes.update(
+            {
+                "spc": s_nodes,
+                "spc+exsum": 5 * s_nodes,
+                "octree-33B": 33 * s_nodes,
+                "octree": s_nodes + 32 * s_inner,
+                "octree+prefix": svo.compact_nbytes,
+                "octree-sparse": s_nodes + 4 * s_inner,
+            }
+        )
+    sizes.update(
+        {
+            "dense bits": resolution**3 // 8,
+            "dag-33B": 33 * d_nodes,
+            "dag": d_nodes + 32 * d_inner,
+            "dag+prefix": dag.compact_nbytes,
+            "dag-sparse": sparse["dag-sparse"].nbytes,
+            "dag-sparse+prefix": sparse["dag-sparse+prefix"].nbytes,
+        }
+    )
+    return sizes
+
+
+def trace_layouts(mesh, layouts: dict, repeats: int = 3) -> dict:
+    """1920x1080 primary rays on every layout: {layout: timing with Mrays/s}, and whether
+    all layouts gave the same hits (status, voxel, t)."""
+    import jax
+    import jax.numpy as jnp
+
+    import jaxvox as jv
+
+    eye, target = jv.look_at_view(mesh)
+    o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=1920, height=1080))
+    timings, hits = {}, []
+    for name, tree in layouts.items():
+        timing, hit = _common.time_calls(lambda: jax.block_until_ready(jv.trace(tree, o, d)), repeats)
+        timings[name] = dict(timing, mrays_s=o.shape[0] / timing["median_s"] / 1e6)
+        hits.append([np.asarray(x) for x in (hit.status, hit.voxel, hit.t)])
+    same = all(all(np.array_equal(a, b) for a, b in zip(h, hits[0])) for h in hits)
+    return dict(timings=timings, same_hits=same, hit_pixels=int((hits[0][0] == jv.HIT).sum()))
 
 
 def worker(spec: dict) -> dict:
@@ -105,34 +147,54 @@ def worker(spec: dict) -> dict:
 
     mesh = jv.load_mesh(spec["path"])
     resolution = spec["resolution"]
-    vox_timing, vox = _common.time_calls(
-        lambda: jax.block_until_ready(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution))), 0
-    )
-    trees, timings = {}, {}
-    for name, build in (("octree", jv.build_octree), ("dag", jv.build_dag)):
-        timing, tree = _common.time_calls(lambda: jax.block_until_ready(build(vox)), spec["repeats"])
-        trees[name], timings[name] = tree, timing
-    count = int(vox.count)
-    sizes = layout_bytes(trees["octree"], trees["dag"], resolution)
+    grid = jv.Grid.fit(mesh, resolution)
+    trees, timings = {"octree": None}, {"octree": None}
+    if spec.get("stream"):
+        timing, dag = _common.time_calls(lambda: jax.block_until_ready(jv.mesh_to_dag(mesh, grid)), 0)
+        trees["dag"], timings["dag"], vox_s = dag, timing, None
+    else:
+        vox_timing, vox = _common.time_calls(lambda: jax.block_until_ready(jv.voxelize(mesh, grid)), 0)
+        vox_s = vox_timing["first_s"]
+        for name, build in (("octree", jv.build_octree), ("dag", jv.build_dag)):
+            timing, tree = _common.time_calls(lambda: jax.block_until_ready(build(vox)), spec["repeats"])
+            trees[name], timings[name] = tree, timing
+        del vox
+    count = int(trees["dag"].voxel_count)
+    sparse = {f"dag-sparse{s}": jv.compact_dag(trees["dag"], prefix=bool(s)) for s in ("", "+prefix")}
+    sizes = layout_bytes(trees["octree"], trees["dag"], sparse, resolution)
+    speed = None
+    if spec.get("trace"):
+        layouts = {"octree+prefix": trees["octree"], "dag+prefix": trees["dag"], **sparse}
+        speed = trace_layouts(mesh, {k: v for k, v in layouts.items() if v is not None})
     return dict(
         voxels=count,
-        voxelize_s=vox_timing["first_s"],
-        octree_levels=list(trees["octree"].level_sizes),
+        streamed=bool(spec.get("stream")),
+        voxelize_s=vox_s,
+        octree_levels=list(trees["octree"].level_sizes) if trees["octree"] else None,
         dag_levels=list(trees["dag"].level_sizes),
-        octree_nodes=trees["octree"].num_nodes,
+        octree_nodes=trees["octree"].num_nodes if trees["octree"] else None,
         dag_nodes=trees["dag"].num_nodes,
         build_octree=timings["octree"],
         build_dag=timings["dag"],
         bytes=sizes,
-        bits_per_voxel={k: 8 * v / max(count, 1) for k, v in sizes.items()},
+        bits_per_voxel={k: None if v is None else 8 * v / max(count, 1) for k, v in sizes.items()},
+        trace=speed,
         peak_rss_mib=_common.peak_rss_mib(),
         backend=jax.default_backend(),
         device=str(jax.devices()[0]),
     )
 
 
-def mib(n: float) -> str:
-    return f"{n / 2**20:,.1f}"
+def mib(n: float | None) -> str:
+    return "-" if n is None else f"{n / 2**20:,.1f}"
+
+
+def ratio(a: float | None, b: float | None) -> str:
+    return "-" if a is None or b is None else f"{a / b:.1f}x"
+
+
+def seconds(timing: dict | None) -> str:
+    return "-" if timing is None else f"{timing['median_s']:.2f}"
 
 
 def table(rows: list[dict]) -> str:
@@ -155,11 +217,12 @@ def table(rows: list[dict]) -> str:
                 "dag+prefix": mib(b["dag+prefix"]),
                 "dag-sparse": mib(b["dag-sparse"]),
                 "dag-sparse+prefix": mib(b["dag-sparse+prefix"]),
-                "ratio": f"{b['octree'] / b['dag']:.1f}x",
-                "ratio33": f"{b['octree-33B'] / b['dag-33B']:.1f}x",
+                "ratio": ratio(b["octree"], b["dag"]),
+                "ratio33": ratio(b["octree-33B"], b["dag-33B"]),
                 "bpv": f"{row['bits_per_voxel']['dag+prefix']:.2f}",
-                "t_svo": f"{row['build_octree']['median_s']:.2f}",
-                "t_dag": f"{row['build_dag']['median_s']:.2f}",
+                "bpv_sparse": f"{row['bits_per_voxel']['dag-sparse']:.2f}",
+                "t_svo": seconds(row["build_octree"]),
+                "t_dag": seconds(row["build_dag"]) + (" (streamed)" if row.get("streamed") else ""),
                 "peak": f"{row['peak_rss_mib'] / 1024:.1f}",
             }
         )
@@ -177,25 +240,64 @@ def table(rows: list[dict]) -> str:
         ("ratio", "octree/DAG bytes"),
         ("ratio33", "octree/DAG, 33 B/node (slides)"),
         ("bpv", "DAG+prefix bits/voxel"),
+        ("bpv_sparse", "sparse DAG bits/voxel"),
         ("t_svo", "SVO build s"),
         ("t_dag", "DAG build s"),
         ("peak", "peak RSS GiB"),
     ]
-    return _common.markdown_table(out, columns)
+    return _common.markdown_table(out, columns) + speed_table(rows)
+
+
+SPEED_LAYOUTS = ("octree+prefix", "dag+prefix", "dag-sparse+prefix", "dag-sparse")
+
+
+def speed_table(rows: list[dict]) -> str:
+    """Markdown: Mrays/s against bits per voxel per traversable layout (cases with --trace)."""
+    out = []
+    for row in rows:
+        if not row.get("trace"):
+            continue
+        for layout, timing in row["trace"]["timings"].items():
+            out.append(
+                {
+                    "case": f"{row['mesh']} {row['resolution']}^3",
+                    "layout": layout,
+                    "mib": mib(row["bytes"][layout]),
+                    "bpv": f"{row['bits_per_voxel'][layout]:.2f}",
+                    "mrays": f"{timing['mrays_s']:.2f}",
+                    "first": f"{timing['first_s']:.2f}",
+                    "same": str(row["trace"]["same_hits"]),
+                }
+            )
+    if not out:
+        return ""
+    columns = [
+        ("case", "case"),
+        ("layout", "layout"),
+        ("mib", "MiB"),
+        ("bpv", "bits/voxel"),
+        ("mrays", "1080p Mrays/s"),
+        ("first", "first call s"),
+        ("same", "same hits as the others"),
+    ]
+    return "\n\nTraversal speed against bytes (`jv.trace`, esvo, 1920x1080 primary rays):\n\n" + _common.markdown_table(
+        out, columns
+    )
 
 
 def plot(rows: list[dict], path: Path) -> None:
     """Bytes vs R (first mesh), octree/DAG ratio vs R and DAG bits per voxel vs R (all meshes)."""
     rows = [r for r in rows if "error" not in r]
-    fig, (ax_bytes, ax_ratio, ax_bits) = _common.new_figure(3, width=5.5)
+    fig, (ax_bytes, ax_ratio, ax_bits, ax_speed) = _common.new_figure(4, width=5.5)
     first = rows[0]["mesh"]
     mine = sorted((r for r in rows if r["mesh"] == first), key=lambda r: r["resolution"])
     res = [r["resolution"] for r in mine]
     colours = [f"C{i % 10}" for i in range(len(LAYOUTS))]
     for i, layout in enumerate(LAYOUTS):
+        have = [r for r in mine if r["bytes"][layout] is not None]
         ax_bytes.plot(
-            res,
-            [r["bytes"][layout] for r in mine],
+            [r["resolution"] for r in have],
+            [r["bytes"][layout] for r in have],
             marker="os^"[i // 10 % 3],
             color=colours[i],
             ls="-" if i < 10 else "--",
@@ -206,9 +308,11 @@ def plot(rows: list[dict], path: Path) -> None:
     for mesh in dict.fromkeys(r["mesh"] for r in rows):
         part = sorted((r for r in rows if r["mesh"] == mesh), key=lambda r: r["resolution"])
         x = [r["resolution"] for r in part]
-        ax_ratio.plot(x, [r["bytes"]["octree-33B"] / r["bytes"]["dag-33B"] for r in part], marker="o", label=mesh)
+        svo = [r for r in part if r["bytes"]["octree"] is not None]
+        xs = [r["resolution"] for r in svo]
+        ax_ratio.plot(xs, [r["bytes"]["octree-33B"] / r["bytes"]["dag-33B"] for r in svo], marker="o", label=mesh)
         ax_ratio.plot(
-            x, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in part], ls=":", color=ax_ratio.lines[-1].get_color()
+            xs, [r["bytes"]["octree"] / r["bytes"]["dag"] for r in svo], ls=":", color=ax_ratio.lines[-1].get_color()
         )
         ax_bits.plot(x, [r["bits_per_voxel"]["dag+prefix"] for r in part], marker="o", label=mesh)
     ax_ratio.set(
@@ -229,6 +333,22 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.set_xticks(res, [str(r) for r in res])
         ax.grid(True, which="both", alpha=0.3)
     ax_ratio.legend(fontsize=7)
+    traced = [r for r in mine if r.get("trace")]
+    for i, layout in enumerate(SPEED_LAYOUTS):
+        have = [r for r in traced if layout in r["trace"]["timings"]]
+        bits = [r["bits_per_voxel"][layout] for r in have]
+        speed = [r["trace"]["timings"][layout]["mrays_s"] for r in have]
+        ax_speed.plot(bits, speed, marker="os^D"[i], label=layout)
+        for r, b, v in zip(have, bits, speed):
+            ax_speed.annotate(str(r["resolution"]), (b, v), fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax_speed.set(
+        xscale="log",
+        xlabel="bits per voxel",
+        ylabel="Mrays/s (1920x1080 primary rays)",
+        title=f"{first}: traversal speed against bytes (labels: R)",
+    )
+    ax_speed.grid(True, which="both", alpha=0.3)
+    ax_speed.legend(fontsize=7)
     _common.save_figure(fig, path)
 
 
@@ -246,6 +366,17 @@ def parse_args(argv=None) -> argparse.Namespace:
         metavar="R",
         help="resolutions run for the first mesh only (default 4096 8192)",
     )
+    parser.add_argument(
+        "--stream",
+        nargs="*",
+        type=int,
+        default=[16384],
+        metavar="R",
+        help="resolutions built with mesh_to_dag, first mesh only, no SVO (default 16384)",
+    )
+    parser.add_argument(
+        "--no-trace", dest="trace", action="store_false", help="skip the traversal speed of each layout (first mesh)"
+    )
     parser.add_argument("--repeats", type=int, default=2, help="timed builds after the first (0 above 2048)")
     parser.add_argument("--timeout", type=float, default=3600)
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
@@ -259,7 +390,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.smoke:
-        args.meshes, args.resolutions, args.huge = args.meshes[:2], [64, 128], []
+        args.meshes, args.resolutions, args.huge, args.stream = args.meshes[:2], [64, 128], [], [256]
     return args
 
 
@@ -274,20 +405,31 @@ def main(argv=None) -> None:
         (args.out / f"{stem}.md").write_text(table(rows))
         plot(rows, args.out / f"{stem}.png")
         return
-    cases = [(mesh, r) for mesh in args.meshes for r in args.resolutions]
-    cases += [(args.meshes[0], r) for r in args.huge if r not in args.resolutions]
+    first = args.meshes[0]
+    cases = [(mesh, r, False) for mesh in args.meshes for r in args.resolutions]
+    cases += [(first, r, False) for r in args.huge if r not in args.resolutions]
+    cases += [(first, r, True) for r in args.stream]
     rows = []
-    for mesh, resolution in _common.progress(cases, desc="cases"):
+    for mesh, resolution, stream in _common.progress(cases, desc="cases"):
         spec = dict(
             path=str(args.mesh_dir / f"{mesh}.obj"),
             resolution=resolution,
             repeats=args.repeats if resolution <= 2048 else 0,
+            stream=stream,
+            trace=args.trace and mesh == first and resolution >= (64 if args.smoke else 512),
         )
         row = dict(mesh=mesh, resolution=resolution)
         row.update(_common.run_worker(__file__, spec, timeout=args.timeout))
         rows.append(row)
         print(table([row]).splitlines()[-1], file=sys.stderr, flush=True)
-    settings = dict(meshes=args.meshes, resolutions=args.resolutions, huge=args.huge, repeats=args.repeats)
+    settings = dict(
+        meshes=args.meshes,
+        resolutions=args.resolutions,
+        huge=args.huge,
+        stream=args.stream,
+        trace=args.trace,
+        repeats=args.repeats,
+    )
     if args.update:
         old = json.loads((args.out / f"{stem}.json").read_text())
         done = {(r["mesh"], r["resolution"]) for r in rows}
