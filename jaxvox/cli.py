@@ -104,19 +104,21 @@ _STREAM_REGION: int | None = None
 _ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
 
 
-def _streamed_dag_timed(mesh, grid):
+def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool):
     """The DAG of `mesh` built region by region and its per-voxel attributes, gathered
-    region by region (the same arrays as `voxel_attributes` of the whole voxel set);
-    returns (tree, attributes, seconds of voxelization and build)."""
+    region by region (the same arrays as `voxel_attributes` of the whole voxel set; with
+    `distributed`, every process's regions); returns (tree, attributes, seconds of
+    voxelization and build)."""
+    import jax
     import jax.numpy as jnp
 
     import jaxvox as jv
-    from jaxvox.octree.stream import stream_dag
+    from jaxvox.octree.stream import all_processes, stream_dag
     from jaxvox.voxelize.host import join_rows
 
-    parts: dict[str, list[np.ndarray]] = {}
+    parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes)
 
-    def gather(vox) -> None:
+    def gather(position: int, vox) -> None:
         # The attributes are per voxel, but XLA's CPU code for short buffers (measured:
         # 256 and 1,024 slots, not 2,048 and up) rounds some normals and colours
         # differently in the last bit, so every region runs on a long buffer.
@@ -124,39 +126,88 @@ def _streamed_dag_timed(mesh, grid):
         coords = np.pad(np.asarray(vox.coords), ((0, pad), (0, 0)), constant_values=jv.UNUSED)
         triangle = np.pad(np.asarray(vox.triangle), (0, pad), constant_values=jv.UNUSED)
         vox = jv.Voxels(jnp.asarray(coords), vox.count, vox.overflow, jnp.asarray(triangle), vox.grid, vox.mode)
-        for key, value in jv.voxel_attributes(mesh, vox).items():
-            parts.setdefault(key, []).append(np.asarray(value)[:n])
+        parts.append((position, {key: np.asarray(value)[:n] for key, value in jv.voxel_attributes(mesh, vox).items()}))
 
     start = time.perf_counter()
-    tree = stream_dag(mesh, grid, region=_STREAM_REGION, triangle_ids=True, on_region=gather, caller="build")
+    quiet = distributed and jax.process_index() > 0  # one progress bar: process 0's
+    tree = stream_dag(
+        mesh,
+        grid,
+        region=region,
+        progress=False if quiet else None,
+        distributed=distributed,
+        triangle_ids=True,
+        on_region=gather,
+        caller="build",
+    )
     tree.mask.block_until_ready()
     seconds = time.perf_counter() - start
+    if distributed:  # regions in Morton order, whichever process voxelized them
+        parts = sorted((p for process in all_processes(parts) for p in process), key=lambda p: p[0])
     if not parts:  # no voxels: empty attribute arrays, as voxel_attributes gives them
         none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
-        gather(jv.Voxels(*none, grid, tree.mode))
-    return tree, {key: join_rows(value) for key, value in parts.items()}, seconds
+        gather(0, jv.Voxels(*none, grid, tree.mode))
+    return tree, {key: join_rows([p[key] for _, p in parts]) for key in parts[0][1]}, seconds
+
+
+def _launch_processes(args) -> int:
+    """Runs this `build` as `args.processes` local processes coordinated by
+    `jax.distributed` (CPU collectives over gloo); process 0 writes the file and reports."""
+    import socket
+    import subprocess
+
+    with socket.socket() as probe:  # a free port for the coordinator
+        probe.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{probe.getsockname()[1]}"
+    command = [sys.executable, "-m", "jaxvox", "build", *([args.mesh] if args.mesh else [])]
+    command += ["--resolution", str(args.resolution), "--out", args.out, "--processes", str(args.processes)]
+    command += ["--coordinator", address] + (["--region", str(args.region)] if args.region else [])
+    workers = [
+        subprocess.Popen(command + ["--process-id", str(k)], stdout=None if k == 0 else subprocess.DEVNULL)
+        for k in range(args.processes)
+    ]
+    codes = [w.wait() for w in workers]
+    return next((c for c in codes if c), 0)
 
 
 def cmd_build(args) -> int:
     """Voxelizes a mesh, builds its octree or DAG and saves it with per-voxel attributes.
 
-    DAGs above `_STREAM_ABOVE`^3 are built region by region (`mesh_to_dag`; the time
-    reported then includes the voxelization); the file is the same.
+    DAGs above `_STREAM_ABOVE`^3, or with ``--region`` or ``--processes`` given, are built
+    region by region (`mesh_to_dag`; the time reported then includes the voxelization);
+    the file is the same. ``--processes N`` splits the regions over N local processes
+    (`jax.distributed`); process 0 writes the file.
     """
     import jaxvox as jv
-    from jaxvox._checks import check_output_path
+    from jaxvox._checks import check_int, check_output_path, refuse
 
     check_output_path("--out", args.out)  # before the work
+    processes = check_int("--processes", args.processes, minimum=1)
+    streamed = args.resolution > _STREAM_ABOVE or args.region is not None or processes > 1
+    if processes > 1 and args.kind != "dag":
+        raise refuse("--processes", "splits the DAG build only (--kind dag)", processes)
+    if processes > 1 and args.process_id is None:
+        return _launch_processes(args)
+    if args.process_id is not None:
+        import jax
+
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(args.coordinator, num_processes=processes, process_id=args.process_id)
     mesh, name = _load(args.mesh)
     grid = jv.Grid.fit(mesh, resolution=args.resolution)
-    if args.kind == "dag" and args.resolution > _STREAM_ABOVE:
-        tree, attributes, seconds = _streamed_dag_timed(mesh, grid)
+    if args.kind == "dag" and streamed:
+        region = _STREAM_REGION if args.region is None else args.region
+        tree, attributes, seconds = _streamed_dag_timed(mesh, grid, region, distributed=processes > 1)
     else:
         vox = jv.voxelize(mesh, grid, triangle_ids=True)
         tree, seconds = _build_timed(vox, args.kind)
         attributes = jv.voxel_attributes(mesh, vox)
+    if args.process_id:  # not process 0
+        return 0
     jv.save(args.out, tree, attributes=attributes)
     print(f"{name}: {int(tree.voxel_count):,} voxels at {args.resolution}^3 -> " + _tree_line(tree, seconds))
+    if processes > 1:
+        print(f"  built by {processes} processes (jax.distributed)")
     print(f"  nodes per level: {list(tree.level_sizes)}")
     print(f"wrote {args.out} (attributes: {', '.join(sorted(attributes))})")
     return 0
@@ -442,6 +493,21 @@ def build_parser() -> argparse.ArgumentParser:
         "output tree file",
     )
     build.add_argument("--kind", choices=["dag", "octree"], default="dag")
+    build.add_argument(
+        "--region",
+        type=int,
+        default=None,
+        help="build the DAG region by region with regions of this edge, a power of two up to 1024 "
+        "(default: 1024 regions above 1024^3, one pass below)",
+    )
+    build.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="split the regions over this many local processes coordinated by jax.distributed (default 1)",
+    )
+    build.add_argument("--process-id", type=int, default=None, help=argparse.SUPPRESS)
+    build.add_argument("--coordinator", default=None, help=argparse.SUPPRESS)
     render = command(
         "render",
         cmd_render,

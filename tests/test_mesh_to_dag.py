@@ -131,3 +131,79 @@ def test_cli_build_streams_the_same_file(tmp_path, monkeypatch):
     assert cli.main(["build", "--resolution", "32", "--out", str(streamed)]) == 0
     assert set(jv.load_attributes(streamed)) == {"triangle", "normal", "color"}
     assert streamed.read_bytes() == whole.read_bytes()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+_DISTRIBUTED = """
+import sys
+import jax
+import numpy as np
+jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.distributed.initialize(sys.argv[1], num_processes=int(sys.argv[2]), process_id=int(sys.argv[3]))
+import jaxvox as jv
+mesh = jv.load_mesh(sys.argv[4])
+dag = jv.mesh_to_dag(mesh, jv.Grid.fit(mesh, 64), region=8, progress=False, distributed=True)
+np.savez(sys.argv[5], **{f: np.asarray(getattr(dag, f)) for f in sys.argv[6].split(",")})
+"""
+
+
+def _run_processes(commands: list[list[str]]) -> None:
+    """Runs the commands at once (local processes); every one must succeed."""
+    import os
+    import subprocess
+
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    workers = [
+        subprocess.Popen(c, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in commands
+    ]
+    for w in workers:
+        out, err = w.communicate(timeout=600)
+        assert w.returncode == 0, err[-3000:]
+
+
+def test_two_processes_build_the_same_dag(meshes_dir, tmp_path):
+    """`mesh_to_dag(distributed=True)` in two jax.distributed processes on this machine:
+    both end with the DAG one process builds from the whole voxel list (512 regions of
+    8^3, many empty, split between them)."""
+    import sys
+
+    mesh_path = meshes_dir / "spot.obj"
+    address = f"127.0.0.1:{_free_port()}"
+    outs = [tmp_path / f"p{k}.npz" for k in range(2)]
+    _run_processes(
+        [
+            [sys.executable, "-c", _DISTRIBUTED, address, "2", str(k), str(mesh_path), str(outs[k]), ",".join(FIELDS)]
+            for k in range(2)
+        ]
+    )
+    mesh = jv.load_mesh(mesh_path)
+    want = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, 64)))
+    for out in outs:
+        got = np.load(out)
+        for field in FIELDS:
+            np.testing.assert_array_equal(got[field], np.asarray(getattr(want, field)), err_msg=field)
+
+
+def test_cli_build_with_two_processes_writes_the_same_file(meshes_dir, tmp_path):
+    """``jaxvox build --processes 2`` (two local jax.distributed processes) writes the bytes
+    of the one-process, in-memory build, attributes included."""
+    import sys
+
+    from jaxvox import cli
+
+    mesh_path = str(meshes_dir / "spot.obj")
+    whole, split = tmp_path / "whole.jvx", tmp_path / "split.jvx"
+    assert cli.main(["build", mesh_path, "--resolution", "64", "--out", str(whole)]) == 0
+    command = [sys.executable, "-m", "jaxvox", "build", mesh_path, "--resolution", "64", "--region", "16"]
+    _run_processes([command + ["--processes", "2", "--out", str(split)]])
+    assert split.read_bytes() == whole.read_bytes()
+    with pytest.raises(SystemExit):
+        cli.main(["build", mesh_path, "--processes", "two"])
+    assert cli.main(["build", mesh_path, "--kind", "octree", "--processes", "2", "--out", str(split)]) == 2

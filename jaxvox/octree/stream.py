@@ -25,7 +25,9 @@ The result is laid out on the shape ladder, as `build_dag` returns it.
 from __future__ import annotations
 
 import dataclasses
+import pickle
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -145,32 +147,33 @@ def stream_dag(
     mode: Mode = CONSERVATIVE,
     region: int | None = None,
     progress: bool | None = None,
+    distributed: bool = False,
     triangle_ids: bool = False,
-    on_region: Callable[[Voxels], None] | None = None,
+    on_region: Callable[[int, Voxels], None] | None = None,
     caller: str = "mesh_to_dag",
 ) -> Octree:
     """`mesh_to_dag`, which also hands every non-empty region's voxels (global indices,
-    with triangle ids if asked) to `on_region`, in Morton order (e.g. to gather per-voxel
-    attributes region by region)."""
+    with triangle ids if asked) to ``on_region(position, voxels)``, in Morton order
+    (`position` is the region's place in that order; with ``distributed=True`` a process
+    sees only its own regions), e.g. to gather per-voxel attributes region by region."""
     check_type(f"{caller} mesh", mesh, Mesh)
     check_type(f"{caller} grid", grid, Grid)
     six_sep = check_choice(f"{caller} mode", mode, MODES) == SIX_SEPARATING
     region = min(check_region(f"{caller} region", region), grid.resolution)
     validate_mesh(mesh)
+    share = (jax.process_index(), jax.process_count()) if distributed else (0, 1)
     stack: list[_Partial] = []
     voxels = 0
-    parts = region_voxels(mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress)
-    for region_lo, coords, triangle in parts:
+    parts = region_voxels(
+        mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress, share=share
+    )
+    for position, region_lo, coords, triangle in parts:
         if not len(coords):
             continue
         voxels += len(coords)
-        if voxels > MAX_VOXELS:
-            raise JaxvoxError(
-                f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the int32 voxel "
-                "count of an Octree"
-            )
+        _check_count(voxels, grid, caller)
         if on_region is not None:
-            on_region(_global_voxels(coords, triangle, grid, mode))
+            on_region(position, _global_voxels(coords, triangle, grid, mode))
         stack.append(_region_dag(coords, region_lo, region))
         del coords, triangle
         while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
@@ -179,17 +182,50 @@ def stream_dag(
     while len(stack) > 1:
         b, a = stack.pop(), stack.pop()
         stack.append(_merge(a, b))
+    if share[1] > 1:  # every process merges every process's sub-DAG, in process order
+        stack = [p for p in all_processes(stack[0] if stack else None) if p is not None]
+        voxels = sum(int(p.counts.sum()) for p in stack)
+        _check_count(voxels, grid, caller)
+        while len(stack) > 1:
+            b, a = stack.pop(), stack.pop()
+            stack.append(_merge(a, b))
     if not stack:
         return build_dag(_empty(grid, mode))
     dag = stack.pop()
     depth_above = grid.resolution.bit_length() - region.bit_length()  # L = D - s
     levels: list = []
-    if depth_above:  # the levels above the regions, over their roots
-        roots = Nodes(morton.encode_host(dag.cells), dag.counts, dag.roots, len(dag.masks[0]))
+    if depth_above:  # the levels above the regions, over their roots (cells in Morton order)
+        codes = morton.encode_host(dag.cells)
+        order = np.argsort(codes, kind="stable")
+        roots = Nodes(codes[order], dag.counts[order], dag.roots[order], len(dag.masks[0]))
         levels = levels_above(roots, depth_above, dag=True)
     levels += [(m, c, p) for m, c, p in zip(dag.masks, dag.child + [None], dag.prefix + [None])]
     del dag
     return tree_from_levels(levels, grid, mode, voxels, dag=True)
+
+
+def _check_count(voxels: int, grid: Grid, caller: str) -> None:
+    if voxels > MAX_VOXELS:
+        raise JaxvoxError(
+            f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the int32 voxel "
+            "count of an Octree"
+        )
+
+
+def all_processes(value: Any) -> list[Any]:
+    """`value` (any picklable object) of every JAX process, in process order, on every
+    process: a `jax.experimental.multihost_utils.process_allgather` of the pickled bytes
+    (lengths first, then the bytes padded to the longest). Needs the processes' collectives
+    (on CPU: ``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` before
+    `jax.distributed.initialize`)."""
+    from jax.experimental import multihost_utils
+
+    data = np.frombuffer(pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL), np.uint8)
+    lengths = np.asarray(multihost_utils.process_allgather(np.array([len(data)], np.int32))).reshape(-1)
+    padded = np.zeros(int(lengths.max()), np.uint8)
+    padded[: len(data)] = data
+    gathered = np.asarray(multihost_utils.process_allgather(padded))
+    return [pickle.loads(gathered[k, :n].tobytes()) for k, n in enumerate(lengths)]
 
 
 def _global_voxels(coords: np.ndarray, triangle: np.ndarray | None, grid: Grid, mode: str) -> Voxels:
@@ -212,6 +248,7 @@ def mesh_to_dag(
     mode: Mode = CONSERVATIVE,
     region: int | None = None,
     progress: bool | None = None,
+    distributed: bool = False,
 ) -> Octree:
     """Voxelizes a mesh straight into its sparse voxel DAG, one region at a time.
 
@@ -232,6 +269,13 @@ def mesh_to_dag(
         voxelizer's region); clipped to the grid's resolution. Smaller regions hold
         fewer voxels at once but run more, smaller steps.
       progress: show a progress bar over regions (default: when there are several).
+      distributed: in a program started under `jax.distributed.initialize`, split the
+        regions over the ``jax.process_count()`` processes (every n-th region in Morton
+        order to each), gather their sub-DAGs and merge them, so that every process
+        returns the same DAG as one process would. On CPU the processes need collectives:
+        ``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` before
+        `jax.distributed.initialize` (see the guide's "Across processes"). Every process
+        must call it with the same arguments. With one process it changes nothing.
 
     Returns:
       An `Octree` with ``dag=True`` and ``overflow == 0``, laid out on the shape ladder
@@ -242,4 +286,4 @@ def mesh_to_dag(
       JaxvoxError: not a `Mesh` or `Grid`, a malformed mesh, a bad mode or region, or
         more than ``2^31 - 1`` voxels (the int32 voxel count of an `Octree`).
     """
-    return stream_dag(mesh, grid, mode=mode, region=region, progress=progress)
+    return stream_dag(mesh, grid, mode=mode, region=region, progress=progress, distributed=distributed)

@@ -251,23 +251,32 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
 
 
 def region_voxels(
-    mesh: Mesh, grid: Grid, *, six_sep: bool, region_size: int, triangle_ids: bool, progress: bool | None
-) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray | None]]:
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    six_sep: bool,
+    region_size: int,
+    triangle_ids: bool,
+    progress: bool | None,
+    share: tuple[int, int] = (0, 1),
+) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
     """`voxelize`'s regions one at a time, for consumers that keep only a summary of each
     (`jaxvox.octree.stream`); the caller has checked the mesh, grid and region size.
+    ``share=(k, n)`` takes only every n-th region from the k-th on (one of n processes).
 
     Yields:
       Per aligned region that a triangle's bounding box touches, in Morton order:
-      (region_lo int32 [3], coords [n, 3] int32 voxel indices in Morton order,
-      triangle [n] int32 ids or None) host arrays; n may be 0.
+      (its position in that order, region_lo int32 [3], coords [n, 3] int32 voxel
+      indices in Morton order, triangle [n] int32 ids or None) host arrays; n may be 0.
     """
     tris = _grid_triangles(mesh, grid)
     regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
     from tqdm.auto import tqdm
 
-    disable = len(regions) < 2 if progress is None else not progress
-    for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        yield (region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
+    mine = list(enumerate(regions))[share[0] :: share[1]]
+    disable = len(mine) < 2 if progress is None else not progress
+    for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
+        yield (position, region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
 
 
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
