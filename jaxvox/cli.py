@@ -10,6 +10,7 @@ import argparse
 import os
 import resource
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -104,21 +105,46 @@ _STREAM_REGION: int | None = None
 _ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
 
 
-def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool):
+class _Spool:
+    """Per-voxel attribute arrays appended region by region to raw files in `folder`, so
+    that they never need to fit in memory; `arrays` maps them back (read-only memmaps)."""
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        self.layout: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}  # dtype and row shape per name
+        self.rows = 0
+
+    def append(self, attributes: dict[str, np.ndarray]) -> None:
+        for key, value in attributes.items():
+            self.layout.setdefault(key, (value.dtype, value.shape[1:]))
+            with open(os.path.join(self.folder, key), "ab") as fh:
+                fh.write(np.ascontiguousarray(value).tobytes())
+        self.rows += len(next(iter(attributes.values())))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {
+            key: np.memmap(os.path.join(self.folder, key), dtype, "r", shape=(self.rows, *shape))
+            if self.rows
+            else np.zeros((0, *shape), dtype)
+            for key, (dtype, shape) in self.layout.items()
+        }
+
+
+def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool, spool: _Spool):
     """The DAG of `mesh` built region by region and its per-voxel attributes, gathered
-    region by region (the same arrays as `voxel_attributes` of the whole voxel set; with
-    `distributed`, every process's regions); returns (tree, attributes, seconds of
-    voxelization and build)."""
+    region by region (the same arrays as `voxel_attributes` of the whole voxel set): one
+    process appends them to `spool`'s files as the regions come, in Morton order; with
+    `distributed`, every process's regions are gathered in memory and process 0 writes
+    them in Morton order. Returns (tree, attributes, seconds of voxelization and build)."""
     import jax
     import jax.numpy as jnp
 
     import jaxvox as jv
     from jaxvox.octree.stream import all_processes, stream_dag
-    from jaxvox.voxelize.host import join_rows
 
-    parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes)
+    parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes), distributed
 
-    def gather(position: int, vox) -> None:
+    def attributes_of(vox) -> dict[str, np.ndarray]:
         # The attributes are per voxel, but XLA's CPU code for short buffers (measured:
         # 256 and 1,024 slots, not 2,048 and up) rounds some normals and colours
         # differently in the last bit, so every region runs on a long buffer.
@@ -126,10 +152,16 @@ def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool):
         coords = np.pad(np.asarray(vox.coords), ((0, pad), (0, 0)), constant_values=jv.UNUSED)
         triangle = np.pad(np.asarray(vox.triangle), (0, pad), constant_values=jv.UNUSED)
         vox = jv.Voxels(jnp.asarray(coords), vox.count, vox.overflow, jnp.asarray(triangle), vox.grid, vox.mode)
-        parts.append((position, {key: np.asarray(value)[:n] for key, value in jv.voxel_attributes(mesh, vox).items()}))
+        return {key: np.asarray(value)[:n] for key, value in jv.voxel_attributes(mesh, vox).items()}
 
-    start = time.perf_counter()
+    def gather(position: int, vox) -> None:
+        if distributed:
+            parts.append((position, attributes_of(vox)))
+        else:
+            spool.append(attributes_of(vox))
+
     quiet = distributed and jax.process_index() > 0  # one progress bar: process 0's
+    start = time.perf_counter()
     tree = stream_dag(
         mesh,
         grid,
@@ -143,11 +175,12 @@ def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool):
     tree.mask.block_until_ready()
     seconds = time.perf_counter() - start
     if distributed:  # regions in Morton order, whichever process voxelized them
-        parts = sorted((p for process in all_processes(parts) for p in process), key=lambda p: p[0])
-    if not parts:  # no voxels: empty attribute arrays, as voxel_attributes gives them
+        for _, attributes in sorted((p for process in all_processes(parts) for p in process), key=lambda p: p[0]):
+            spool.append(attributes)
+    if not spool.layout:  # no voxels: empty attribute arrays, as voxel_attributes gives them
         none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
-        gather(0, jv.Voxels(*none, grid, tree.mode))
-    return tree, {key: join_rows([p[key] for _, p in parts]) for key in parts[0][1]}, seconds
+        spool.append(attributes_of(jv.Voxels(*none, grid, tree.mode)))
+    return tree, spool.arrays(), seconds
 
 
 def _launch_processes(args) -> int:
@@ -175,8 +208,10 @@ def cmd_build(args) -> int:
 
     DAGs above `_STREAM_ABOVE`^3, or with ``--region`` or ``--processes`` given, are built
     region by region (`mesh_to_dag`; the time reported then includes the voxelization);
-    the file is the same. ``--processes N`` splits the regions over N local processes
-    (`jax.distributed`); process 0 writes the file.
+    the file is the same. Their attributes go to files beside ``--out`` region by region,
+    so they need not fit in memory. ``--processes N`` splits the regions over N local
+    processes (`jax.distributed`; the attributes are then gathered in memory); process 0
+    writes the file.
     """
     import jaxvox as jv
     from jaxvox._checks import check_int, check_output_path, refuse
@@ -195,21 +230,24 @@ def cmd_build(args) -> int:
         jax.distributed.initialize(args.coordinator, num_processes=processes, process_id=args.process_id)
     mesh, name = _load(args.mesh)
     grid = jv.Grid.fit(mesh, resolution=args.resolution)
-    if args.kind == "dag" and streamed:
-        region = _STREAM_REGION if args.region is None else args.region
-        tree, attributes, seconds = _streamed_dag_timed(mesh, grid, region, distributed=processes > 1)
-    else:
-        vox = jv.voxelize(mesh, grid, triangle_ids=True)
-        tree, seconds = _build_timed(vox, args.kind)
-        attributes = jv.voxel_attributes(mesh, vox)
-    if args.process_id:  # not process 0
-        return 0
-    jv.save(args.out, tree, attributes=attributes)
+    with tempfile.TemporaryDirectory(prefix=".jaxvox-attributes-", dir=os.path.dirname(args.out) or ".") as folder:
+        if args.kind == "dag" and streamed:
+            region = _STREAM_REGION if args.region is None else args.region
+            tree, attributes, seconds = _streamed_dag_timed(mesh, grid, region, processes > 1, _Spool(folder))
+        else:
+            vox = jv.voxelize(mesh, grid, triangle_ids=True)
+            tree, seconds = _build_timed(vox, args.kind)
+            attributes = jv.voxel_attributes(mesh, vox)
+        if args.process_id:  # not process 0
+            return 0
+        jv.save(args.out, tree, attributes=attributes)
+        names = sorted(attributes)
+        del attributes  # the memmaps, before their folder goes
     print(f"{name}: {int(tree.voxel_count):,} voxels at {args.resolution}^3 -> " + _tree_line(tree, seconds))
     if processes > 1:
         print(f"  built by {processes} processes (jax.distributed)")
     print(f"  nodes per level: {list(tree.level_sizes)}")
-    print(f"wrote {args.out} (attributes: {', '.join(sorted(attributes))})")
+    print(f"wrote {args.out} (attributes: {', '.join(names)})")
     return 0
 
 

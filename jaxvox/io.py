@@ -31,6 +31,8 @@ import os
 import struct
 import zlib
 from collections.abc import Mapping
+from mmap import ACCESS_READ
+from mmap import mmap as memory_map
 from typing import Any
 
 import jax.numpy as jnp
@@ -85,7 +87,7 @@ def save(path: str | os.PathLike, tree: Octree, *, attributes: dict | None = Non
     entries, blobs, offset = [], [], 0
     for name, value in arrays.items():
         value = np.ascontiguousarray(np.asarray(value))
-        value = value.astype(value.dtype.newbyteorder("<"))  # a no-op unless big-endian
+        value = value.astype(value.dtype.newbyteorder("<"), copy=False)  # no copy unless big-endian
         entries.append(dict(name=name, dtype=value.dtype.str, shape=list(value.shape), offset=offset))
         blobs.append(value)
         offset += -(-value.nbytes // _ALIGN) * _ALIGN
@@ -141,11 +143,25 @@ def _entry_bytes(entry: dict) -> int:
     return int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
 
 
-def _read(what: str, path) -> tuple[dict, dict[str, np.ndarray]]:
-    """Reads and verifies a file; returns (header, arrays by name). Errors name `what`."""
+def _mapped(what: str, path: str) -> Any:
+    """The file at `path` memory-mapped read-only (bytes if it is empty, which mmap refuses);
+    errors as `read_bytes`."""
+    if not os.path.isfile(path) or os.path.getsize(path) == 0:
+        return read_bytes(what, path)  # its errors, or the empty file's bytes
+    try:
+        with open(path, "rb") as fh:
+            return memory_map(fh.fileno(), 0, access=ACCESS_READ)
+    except OSError as exc:
+        raise refuse(what, f"cannot read it ({exc.strerror or exc})", path) from exc
+
+
+def _read(what: str, path, *, mapped: bool = False) -> tuple[dict, dict[str, np.ndarray]]:
+    """Reads and verifies a file; returns (header, arrays by name). Errors name `what`.
+    With `mapped` the arrays are read-only views of the file memory-mapped (the checksum
+    still reads every byte once, through the page cache)."""
     path = os.fspath(path)
-    data = read_bytes(what, path)
-    if len(data) < _PREFIX.size or data[:8] != MAGIC:
+    data = _mapped(what, path) if mapped else read_bytes(what, path)
+    if len(data) < _PREFIX.size or bytes(data[:8]) != MAGIC:
         raise refuse(what, "not a jaxvox tree file (bad magic bytes)", path)
     _, version, head_len = _PREFIX.unpack_from(data)
     if version != FORMAT_VERSION:
@@ -267,12 +283,19 @@ def load(path: str | os.PathLike) -> Octree:
     )
 
 
-def load_attributes(path: str | os.PathLike) -> dict[str, np.ndarray]:
+def load_attributes(path: str | os.PathLike, *, mmap: bool = False) -> dict[str, np.ndarray]:
     """The attribute arrays saved with a tree (``{}`` if none), each [voxel_count, ...].
+
+    Args:
+      path: a file written by `save` (or ``jaxvox build``).
+      mmap: return read-only views of the file memory-mapped instead of reading it into
+        memory, for attributes larger than memory (e.g. a DAG built by `mesh_to_dag` at
+        16384^3): rows are read from disk as they are indexed, e.g. by `voxel_index`.
+        The checksum is still verified, reading the file once.
 
     Raises:
       JaxvoxError: as `load`.
     """
-    _, arrays = _read("load_attributes path", path)
+    _, arrays = _read("load_attributes path", path, mapped=mmap)
     prefix = "attribute/"
     return {name[len(prefix) :]: a for name, a in arrays.items() if name.startswith(prefix)}

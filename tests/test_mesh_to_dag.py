@@ -131,6 +131,20 @@ def test_cli_build_streams_the_same_file(tmp_path, monkeypatch):
     assert cli.main(["build", "--resolution", "32", "--out", str(streamed)]) == 0
     assert set(jv.load_attributes(streamed)) == {"triangle", "normal", "color"}
     assert streamed.read_bytes() == whole.read_bytes()
+    # File-backed attributes: memory-mapped views, addressed by voxel_index as in memory.
+    mapped, read = jv.load_attributes(streamed, mmap=True), jv.load_attributes(streamed)
+    tree = jv.load(streamed)
+    voxels = jv.expand(tree).to_numpy()[::7]
+    index = np.asarray(jv.voxel_index(tree, voxels))
+    for key, value in read.items():
+        assert not mapped[key].flags.writeable and not mapped[key].flags.owndata
+        np.testing.assert_array_equal(mapped[key], value)
+        np.testing.assert_array_equal(mapped[key][index], value[index])
+    corrupt = bytearray(streamed.read_bytes())
+    corrupt[len(corrupt) // 2] ^= 1
+    streamed.write_bytes(bytes(corrupt))
+    with pytest.raises(jv.JaxvoxError, match="checksum"):
+        jv.load_attributes(streamed, mmap=True)
 
 
 def _free_port() -> int:
