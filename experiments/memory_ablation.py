@@ -42,7 +42,7 @@ every layout that traverses: the SVO's and the DAG's 8-slot tables (``octree+pre
 ``dag+prefix``) and the two sparse DAGs. Mrays/s is the median of 3 calls after a first
 call (reported with its compilation); every layout must give the same hits.
 
-Resolutions in ``--stream`` (first mesh; default 16384) build the DAG with
+Resolutions in ``--stream`` (first mesh; default 8192 and 16384) build the DAG with
 `jv.mesh_to_dag` (regions, never the whole voxel list), so they have no SVO columns.
 
 Outputs ``memory_ablation.json`` (all numbers and the machine), ``.png`` (bytes against
@@ -50,7 +50,7 @@ resolution for the first mesh; octree/DAG ratio and bits per voxel for every mes
 ``.md`` (tables) in ``--out``.
 
 Examples:
-  python experiments/memory_ablation.py                     # 8 meshes up to 2048^3, the bunny to 8192^3
+  python experiments/memory_ablation.py                     # 8 meshes up to 2048^3, the bunny to 16384^3
   python experiments/memory_ablation.py --smoke             # R = 64, 128 on two meshes
   python experiments/memory_ablation.py --meshes stanford-bunny --resolutions 8192
   python experiments/memory_ablation.py --meshes stanford-bunny --resolutions 1024 --huge --stream --update
@@ -362,17 +362,18 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--huge",
         nargs="*",
         type=int,
-        default=[4096, 8192],
+        default=[4096],
         metavar="R",
-        help="resolutions run for the first mesh only (default 4096 8192)",
+        help="resolutions run for the first mesh only (default 4096)",
     )
     parser.add_argument(
         "--stream",
         nargs="*",
         type=int,
-        default=[16384],
+        default=[8192, 16384],
         metavar="R",
-        help="resolutions built with mesh_to_dag, first mesh only, no SVO (default 16384)",
+        help="resolutions built with mesh_to_dag, first mesh only, no SVO (default 8192 16384; the in-memory "
+        "SVO and DAG at 8192^3 need more than this machine's 24 GiB)",
     )
     parser.add_argument(
         "--no-trace", dest="trace", action="store_false", help="skip the traversal speed of each layout (first mesh)"
