@@ -42,7 +42,7 @@ from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.octree.build import build_dag
 from jaxvox.octree.host import Nodes, levels_above, tree_from_levels, unique_rows, voxel_levels
 from jaxvox.octree.tree import EMPTY, Octree
-from jaxvox.voxelize.host import region_voxels
+from jaxvox.voxelize.host import region_coords, region_voxels
 from jaxvox.voxelize.voxels import CONSERVATIVE, MODES, REGION_SIZE, SIX_SEPARATING, UNUSED, Mode, Voxels
 
 MAX_VOXELS = 2**31 - 1  # `Octree.voxel_count` is int32
@@ -66,17 +66,19 @@ class _Partial:
         return sum(len(m) for m in self.masks)
 
 
-def _region_dag(coords: np.ndarray, region_lo: np.ndarray, region: int) -> _Partial:
-    """The sub-DAG of one region's voxels (host int32 [n, 3] global indices, Morton
-    order), by `build_dag`'s host levels in the region's own grid."""
-    levels, _ = voxel_levels(morton.encode_host(coords - region_lo), region.bit_length() - 1, dag=True)
+def _region_dag(keys: np.ndarray, region_lo: np.ndarray, region: int) -> _Partial:
+    """The sub-DAG of one region's voxels (host uint32 [n] Morton words, Morton order, as
+    `region_voxels` yields them), by `build_dag`'s host levels in the region's own grid."""
+    depth = region.bit_length() - 1
+    local = (keys & np.uint32((1 << 3 * depth) - 1)).astype(np.uint64)  # the region is aligned
+    levels, _ = voxel_levels(local, depth, dag=True)
     return _Partial(
         masks=[m for m, _, _ in levels],
         child=[c for _, c, _ in levels[:-1] if c is not None],
         prefix=[p for _, _, p in levels[:-1] if p is not None],
         cells=(region_lo // region).astype(np.int32)[None],
         roots=np.zeros(1, np.int64),
-        counts=np.array([len(coords)], np.int64),
+        counts=np.array([len(keys)], np.int64),
     )
 
 
@@ -167,15 +169,15 @@ def stream_dag(
     parts = region_voxels(
         mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress, share=share
     )
-    for position, region_lo, coords, triangle in parts:
-        if not len(coords):
+    for position, region_lo, keys, triangle in parts:
+        if not len(keys):
             continue
-        voxels += len(coords)
+        voxels += len(keys)
         _check_count(voxels, grid, caller)
         if on_region is not None:
-            on_region(position, _global_voxels(coords, triangle, grid, mode))
-        stack.append(_region_dag(coords, region_lo, region))
-        del coords, triangle
+            on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
+        stack.append(_region_dag(keys, region_lo, region))
+        del keys, triangle
         while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
             b, a = stack.pop(), stack.pop()
             stack.append(_merge(a, b))
