@@ -44,6 +44,8 @@ call (reported with its compilation); every layout must give the same hits.
 
 Resolutions in ``--stream`` (first mesh; default 8192 and 16384) build the DAG with
 `jv.mesh_to_dag` (regions, never the whole voxel list), so they have no SVO columns.
+Above 2^31 - 1 voxels (32768^3) only the sparse DAG without prefix sums is traced: the
+other layouts' hits carry int32 Morton indices.
 
 Outputs ``memory_ablation.json`` (all numbers and the machine), ``.png`` (bytes against
 resolution for the first mesh; octree/DAG ratio and bits per voxel for every mesh) and
@@ -165,6 +167,8 @@ def worker(spec: dict) -> dict:
     speed = None
     if spec.get("trace"):
         layouts = {"octree+prefix": trees["octree"], "dag+prefix": trees["dag"], **sparse}
+        if count > jv.octree.MAX_INDEXED:  # int32 Morton indices: only the layout without them traces
+            layouts = {"dag-sparse": sparse["dag-sparse"]}
         speed = trace_layouts(mesh, {k: v for k, v in layouts.items() if v is not None})
     return dict(
         voxels=count,

@@ -16,11 +16,13 @@ Examples:
   python experiments/stream_dag.py --smoke             # R = 128, 256
   python experiments/stream_dag.py                     # R = 1024, 8192
   python experiments/stream_dag.py --resolutions 1024 8192 16384
+  python experiments/stream_dag.py --resolutions 32768 --update   # adds a row
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 
@@ -45,6 +47,9 @@ def worker(spec: dict) -> dict:
     seconds = time.perf_counter() - start
     build_peak = _common.peak_rss_mib()
     small = jv.compact(tree)
+    sparse = {
+        name: jv.compact_dag(small, prefix=prefix) for name, prefix in (("sparse", False), ("sparse_prefix", True))
+    }
     digest = hashlib.sha256()
     for leaf in (small.mask, small.child, small.prefix):
         digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
@@ -56,9 +61,14 @@ def worker(spec: dict) -> dict:
         bits_per_voxel=8 * small.compact_nbytes / max(int(tree.voxel_count), 1),
         peak_rss_mib=build_peak,
         tables_sha256=digest.hexdigest(),
+        **{f"{name}_mib": s.nbytes / 2**20 for name, s in sparse.items()},
+        **{f"{name}_bits_per_voxel": 8 * s.nbytes / max(int(tree.voxel_count), 1) for name, s in sparse.items()},
     )
     if spec.get("trace"):
-        result.update(_trace_and_render(jv, mesh, small, spec))
+        # Beyond int32 Morton indices only the sparse layout without prefix sums traces.
+        indexed = int(tree.voxel_count) <= jv.octree.MAX_INDEXED
+        result["traced_layout"] = "dag+prefix" if indexed else "sparse DAG"
+        result.update(_trace_and_render(jv, mesh, small if indexed else sparse["sparse"], spec))
     return result
 
 
@@ -96,6 +106,7 @@ def main() -> None:
     parser.add_argument("--smoke", action="store_true")
     parser.add_argument("--resolutions", type=int, nargs="*", default=None)
     parser.add_argument("--whole-max", type=int, default=1024)
+    parser.add_argument("--update", action="store_true", help="merge into the existing JSON and table")
     parser.add_argument("--timeout", type=float, default=3600)
     parser.add_argument(
         "--trace-from", type=int, default=8192, help="trace 1920x1080 rays and render the stream DAG from this R on"
@@ -120,6 +131,13 @@ def main() -> None:
             for c in both:
                 c["same_tables"] = both[0]["tables_sha256"] == both[1]["tables_sha256"]
     name = "stream_dag_smoke" if args.smoke else "stream_dag"
+    if args.update:  # keep the earlier cases that were not run again
+        old = json.loads((_common.RESULTS_DIR / f"{name}.json").read_text())["cases"]
+        done = {(c["resolution"], c["kind"]) for c in cases}
+        cases = sorted(
+            [c for c in old if (c["resolution"], c["kind"]) not in done] + cases,
+            key=lambda c: (c["resolution"], c["kind"]),
+        )
     _common.write_json(_common.RESULTS_DIR / f"{name}.json", dict(cases=cases, machine=_common.machine_info(["jax"])))
     columns = [
         ("resolution", "R"),
@@ -128,10 +146,12 @@ def main() -> None:
         ("dag_mib", "DAG (MiB)"),
         ("nodes", "nodes"),
         ("bits_per_voxel", "bits/voxel"),
+        ("sparse_bits_per_voxel", "sparse DAG bits/voxel"),
         ("seconds", "time (s)"),
         ("peak_rss_mib", "peak RSS (MiB)"),
         ("trace_first_s", "1080p first call (s)"),
         ("trace_mrays_s", "1080p Mrays/s"),
+        ("traced_layout", "traced"),
         ("peak_rss_with_trace_mib", "peak RSS with tracing (MiB)"),
         ("render_s", "render 480x270x4 (s)"),
         ("same_tables", "same tables"),

@@ -35,6 +35,7 @@ from mmap import ACCESS_READ
 from mmap import mmap as memory_map
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -273,7 +274,7 @@ def load(path: str | os.PathLike) -> Octree:
             child=jnp.asarray(arrays["child"]),
             prefix=jnp.asarray(arrays["prefix"]),
             level_count=jnp.asarray(sizes, jnp.int32),
-            voxel_count=jnp.int32(header["voxel_count"]),
+            voxel_count=jax.device_put(np.uint32(header["voxel_count"])),
             overflow=jnp.int32(0),
             grid=grid,
             level_capacity=jnp.asarray(stored_sizes(sizes), jnp.int32),

@@ -39,11 +39,12 @@ from jaxvox.octree.compact_dag import CompactDag, compact_dag
 from jaxvox.octree.layout import compact, padded
 from jaxvox.octree.queries import expand, occupied, voxel_index
 from jaxvox.octree.stream import mesh_to_dag
-from jaxvox.octree.tree import EMPTY, MISSING, OVERFLOW_NODES, Octree, padded_sizes, stored_sizes
+from jaxvox.octree.tree import EMPTY, MAX_INDEXED, MISSING, OVERFLOW_NODES, Octree, padded_sizes, stored_sizes
 
 __all__ = [
     "CompactDag",
     "EMPTY",
+    "MAX_INDEXED",
     "MISSING",
     "OVERFLOW_NODES",
     "Octree",

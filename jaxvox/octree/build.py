@@ -197,7 +197,7 @@ def _tree(vox: Voxels, mask, child, prefix, level_count, overflow, capacity, dag
         child=child,
         prefix=prefix,
         level_count=level_count,
-        voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.int32),
+        voxel_count=jnp.minimum(vox.count, vox.coords.shape[0]).astype(jnp.uint32),
         overflow=(vox.overflow | jnp.where(overflow, OVERFLOW_NODES, 0)).astype(jnp.int32),
         grid=vox.grid,
         level_capacity=jnp.asarray(capacity, jnp.int32),

@@ -49,7 +49,7 @@ class CompactDag:
       root: [] uint32 word offset of the root (0), or the root's mask when ``D == 1``.
       word_count: [] int32 words in use (the rest is padding).
       level_count: [D] int32 nodes per level of the source tree.
-      voxel_count: [] int32 voxels in the tree.
+      voxel_count: [] uint32 voxels in the tree.
       overflow: [] int32 the source tree's overflow flags.
       grid: the `Grid` the tree covers.
       prefix: static bool, whether per-child prefix sums are stored (needed by
@@ -62,7 +62,7 @@ class CompactDag:
     root: UInt32[Array, ""]
     word_count: Int32[Array, ""]
     level_count: Int32[Array, " D"]
-    voxel_count: Int32[Array, ""]
+    voxel_count: UInt32[Array, ""]
     overflow: Int32[Array, ""]
     grid: Grid
     prefix: bool = dataclasses.field(metadata=dict(static=True))
@@ -139,7 +139,7 @@ def compact_dag(tree: Octree, *, prefix: bool = True) -> CompactDag:
         root=put(np.uint32(root)),
         word_count=put(np.int32(used)),
         level_count=put(np.asarray(tree.level_count, np.int32)),
-        voxel_count=put(np.asarray(tree.voxel_count, np.int32)),
+        voxel_count=put(np.asarray(tree.voxel_count, np.uint32)),
         overflow=put(np.asarray(tree.overflow, np.int32)),
         grid=tree.grid,
         prefix=prefix,

@@ -164,7 +164,7 @@ def tree_from_levels(levels: list, grid: Grid, mode: str, voxels: int, dag: bool
         child=put(child),
         prefix=put(prefix),
         level_count=put(np.asarray(sizes, np.int32)),
-        voxel_count=jnp.int32(voxels),
+        voxel_count=jax.device_put(np.uint32(voxels)),
         overflow=jnp.int32(0),
         grid=grid,
         level_capacity=put(np.asarray(capacity, np.int32)),

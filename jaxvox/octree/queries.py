@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Int32, Integer
 
-from jaxvox._checks import check_int, check_type, refuse
+from jaxvox._checks import check_int, check_type, is_concrete, refuse
 from jaxvox._shapes import expand_counts, voxel_bucket
 from jaxvox.octree.compact_dag import CompactDag, compact_voxel_index
 from jaxvox.octree.layout import padded
-from jaxvox.octree.tree import EMPTY, MISSING, SLOTS, Octree, child_slot, popcount8
+from jaxvox.octree.tree import EMPTY, MAX_INDEXED, MISSING, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import Overflow, check_overflow, raise_if_overflow
 from jaxvox.voxelize import UNUSED, Voxels
 
@@ -42,11 +42,14 @@ def voxel_index(tree: Octree | CompactDag, ijk: Integer[ArrayLike, "*batch 3"]) 
 
     Raises:
       JaxvoxError: not an `Octree` or `CompactDag`, a `CompactDag` without prefix sums,
-        or `ijk` is not an integer array with a last axis of 3.
+        a tree of more than `MAX_INDEXED` (2^31 - 1) voxels, whose indices do not fit
+        int32 (checked when the tree is concrete), or `ijk` is not an integer array with
+        a last axis of 3.
     """
     check_type("voxel_index tree", tree, (Octree, CompactDag))
     if isinstance(tree, CompactDag) and not tree.prefix:
         raise refuse("voxel_index tree", "needs prefix sums: use compact_dag(tree, prefix=True)", "prefix=False")
+    check_indexed("voxel_index tree", tree)
     dtype = ijk.dtype if hasattr(ijk, "dtype") else np.asarray(ijk).dtype
     if not jnp.issubdtype(dtype, jnp.integer) or np.shape(ijk)[-1:] != (3,):
         raise refuse(
@@ -55,6 +58,18 @@ def voxel_index(tree: Octree | CompactDag, ijk: Integer[ArrayLike, "*batch 3"]) 
             ijk if jnp.issubdtype(dtype, jnp.integer) else f"{dtype} indices of shape {np.shape(ijk)}",
         )
     return _voxel_index(tree, ijk)
+
+
+def check_indexed(what: str, tree) -> None:
+    """Refuses a concrete tree of more than `MAX_INDEXED` voxels, whose Morton indices do
+    not fit int32 (a traced tree is not checked)."""
+    if is_concrete(tree.voxel_count) and int(tree.voxel_count) > MAX_INDEXED:
+        raise refuse(
+            what,
+            f"holds more than {MAX_INDEXED:,} voxels, beyond int32 Morton indices; trace it as "
+            "compact_dag(tree, prefix=False)",
+            int(tree.voxel_count),
+        )
 
 
 @jax.jit

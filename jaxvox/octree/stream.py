@@ -45,7 +45,7 @@ from jaxvox.octree.tree import EMPTY, Octree
 from jaxvox.voxelize.host import region_coords, region_voxels
 from jaxvox.voxelize.voxels import CONSERVATIVE, MODES, REGION_SIZE, SIX_SEPARATING, UNUSED, Mode, Voxels
 
-MAX_VOXELS = 2**31 - 1  # `Octree.voxel_count` is int32
+MAX_VOXELS = 2**32 - 1  # `Octree.voxel_count` is uint32
 _BLOCK = 1 << 20  # rows remapped at once (bounds the index temporaries)
 
 
@@ -209,7 +209,7 @@ def stream_dag(
 def _check_count(voxels: int, grid: Grid, caller: str) -> None:
     if voxels > MAX_VOXELS:
         raise JaxvoxError(
-            f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the int32 voxel "
+            f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the uint32 voxel "
             "count of an Octree"
         )
 
@@ -286,6 +286,8 @@ def mesh_to_dag(
 
     Raises:
       JaxvoxError: not a `Mesh` or `Grid`, a malformed mesh, a bad mode or region, or
-        more than ``2^31 - 1`` voxels (the int32 voxel count of an `Octree`).
+        more than ``2^32 - 1`` voxels (the uint32 voxel count of an `Octree`). A DAG of
+        more than ``2^31 - 1`` voxels traces as ``compact_dag(dag, prefix=False)``: its
+        Morton indices do not fit `voxel_index`'s int32.
     """
     return stream_dag(mesh, grid, mode=mode, region=region, progress=progress, distributed=distributed)

@@ -20,6 +20,7 @@ from jaxvox.overflow import Overflow
 EMPTY = morton.EMPTY  # uint32 0xFFFFFFFF: an absent child (no node has that row index)
 OVERFLOW_NODES = Overflow.NODES  # bit of `Octree.overflow`: a level held more nodes than its capacity
 MISSING = -1  # `voxel_index` of an empty voxel
+MAX_INDEXED = 2**31 - 1  # voxels an int32 Morton index addresses (`voxel_index`, `Hit.index`)
 
 SLOTS = np.arange(8)  # child slots, slot = x | y << 1 | z << 2
 
@@ -47,7 +48,8 @@ class Octree:
         (``M = N - level_capacity[-1]``), `EMPTY` where absent.
       prefix: [M, 8] uint32 voxels in the children before each slot.
       level_count: [D] int32 nodes per level.
-      voxel_count: [] int32 voxels in the tree.
+      voxel_count: [] uint32 voxels in the tree (up to 2^32 - 1; Morton indices, which
+        are int32, address the first `MAX_INDEXED` of them).
       overflow: [] int32 bitmask: the source voxels' ``OVERFLOW_*`` flags and
         `OVERFLOW_NODES`; nonzero means the tree is truncated.
       grid: the `Grid` the tree covers.
@@ -60,7 +62,7 @@ class Octree:
     child: UInt32[Array, "*batch M 8"]  # [M, 8] uint32
     prefix: UInt32[Array, "*batch M 8"]  # [M, 8] uint32
     level_count: Int32[Array, "*batch D"]  # [D] int32
-    voxel_count: Int32[Array, " *batch"]  # [] int32
+    voxel_count: UInt32[Array, " *batch"]  # [] uint32
     overflow: Int32[Array, " *batch"]  # [] int32
     grid: Grid
     level_capacity: Int32[Array, "*batch D"]  # [D] int32

@@ -15,6 +15,7 @@ from jaxvox._checks import check_choice, check_int, check_type, is_concrete, ref
 from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
+from jaxvox.octree.queries import check_indexed
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
 from jaxvox.trace.hit import HIT, Hit, default_max_steps
@@ -121,9 +122,16 @@ def trace(
 
     Returns:
       A `Hit` with the batch shape of the rays.
+
+    Raises:
+      JaxvoxError: not a tree, a bad method, rays or lane count, or a concrete tree of
+        more than 2^31 - 1 voxels, whose Morton indices (``Hit.index``) do not fit int32
+        (trace it as ``compact_dag(tree, prefix=False)``).
     """
     check_type("trace tree", tree, (Octree, CompactDag))
     check_choice("trace method", method, TRACE_METHODS)
+    if not (isinstance(tree, CompactDag) and not tree.prefix):  # the hit index is computed
+        check_indexed("trace tree", tree)
     _check_rays("trace", origins, directions, t_max, lanes)
     steps = check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     return _rays_on_ladder(

@@ -416,6 +416,11 @@ def voxelize(
         if triangle_ids:
             tri_parts.append(triangle)
     total = sum(len(k) for _, k in parts)
+    if total > 2**31 - 1:  # `Voxels.count` is int32
+        raise JaxvoxError(
+            f"voxelize: {total:,} voxels at {grid.resolution}^3, more than an int32 count holds; "
+            "build the DAG region by region with mesh_to_dag"
+        )
     cap = voxel_bucket(total, grid.resolution)
     coords = aligned_empty((cap, 3), np.int32)
     start = 0
