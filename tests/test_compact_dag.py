@@ -163,3 +163,31 @@ def test_bad_input():
         jv.compact_dag(np.zeros((4, 4, 4), bool))
     with pytest.raises(jv.JaxvoxError, match="Octree or jaxvox.CompactDag"):
         jv.trace("tree", np.zeros((1, 3)), np.ones((1, 3)))
+
+
+def test_trees_beyond_int32_indices(scene, trees, monkeypatch):
+    """A tree of more than 2^31 - 1 voxels (the count is uint32; a 32768^3 bunny holds
+    3.5 G) has no int32 Morton index: `voxel_index` and `trace` refuse it, the sparse
+    layout without prefix sums traces it, and `mesh_to_dag` refuses only past 2^32 - 1."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from jaxvox.octree import stream
+
+    vox, ijk, o, d = scene
+    dag = trees["dag"]
+    assert dag.voxel_count.dtype == jnp.uint32
+    huge = dataclasses.replace(dag, voxel_count=jnp.uint32(2**31))
+    for call in (lambda t: jv.voxel_index(t, ijk), lambda t: jv.trace(t, o, d)):
+        with pytest.raises(jv.JaxvoxError, match="beyond int32 Morton indices"):
+            call(huge)
+        with pytest.raises(jv.JaxvoxError, match="beyond int32 Morton indices"):
+            call(jv.compact_dag(huge))
+    traced = jv.trace(jv.compact_dag(huge, prefix=False), o, d)
+    assert_same(jax.tree.map(np.asarray, traced), jv.trace(jv.compact_dag(dag, prefix=False), o, d))
+    assert stream.MAX_VOXELS == 2**32 - 1
+    monkeypatch.setattr(stream, "MAX_VOXELS", 100)
+    mesh = jv.Mesh(np.array([[1, 1, 1], [30, 2, 2], [2, 30, 29]], np.float32), np.array([[0, 1, 2]], np.int32))
+    with pytest.raises(jv.JaxvoxError, match="more than 100 voxels"):
+        jv.mesh_to_dag(mesh, vox.grid, region=8)
