@@ -160,7 +160,9 @@ import sys
 import jax
 import numpy as np
 jax.config.update("jax_cpu_collectives_implementation", "gloo")
+jax.config.update("jax_num_cpu_devices", 2)  # two local devices: a thread each
 jax.distributed.initialize(sys.argv[1], num_processes=int(sys.argv[2]), process_id=int(sys.argv[3]))
+assert len(jax.local_devices()) == 2, jax.local_devices()
 import jaxvox as jv
 mesh = jv.load_mesh(sys.argv[4])
 dag = jv.mesh_to_dag(mesh, jv.Grid.fit(mesh, 64), region=8, progress=False, distributed=True)
@@ -183,9 +185,10 @@ def _run_processes(commands: list[list[str]]) -> None:
 
 
 def test_two_processes_build_the_same_dag(meshes_dir, tmp_path):
-    """`mesh_to_dag(distributed=True)` in two jax.distributed processes on this machine:
-    both end with the DAG one process builds from the whole voxel list (512 regions of
-    8^3, many empty, split between them)."""
+    """`mesh_to_dag(distributed=True)` in two jax.distributed processes on this machine,
+    each with two local CPU devices (a thread each): both processes end with the DAG one
+    process builds from the whole voxel list (512 regions of 8^3, many empty, split four
+    ways)."""
     import sys
 
     mesh_path = meshes_dir / "spot.obj"

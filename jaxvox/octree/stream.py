@@ -24,8 +24,10 @@ The result is laid out on the shape ladder, as `build_dag` returns it.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import pickle
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -163,34 +165,54 @@ def stream_dag(
     six_sep = check_choice(f"{caller} mode", mode, MODES) == SIX_SEPARATING
     region = min(check_region(f"{caller} region", region), grid.resolution)
     validate_mesh(mesh)
-    share = (jax.process_index(), jax.process_count()) if distributed else (0, 1)
-    stack: list[_Partial] = []
-    voxels = 0
-    parts = region_voxels(
-        mesh, grid, six_sep=six_sep, region_size=region, triangle_ids=triangle_ids, progress=progress, share=share
-    )
-    for position, region_lo, keys, triangle in parts:
-        if not len(keys):
-            continue
-        voxels += len(keys)
-        _check_count(voxels, grid, caller)
-        if on_region is not None:
-            on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
-        stack.append(_region_dag(keys, region_lo, region))
-        del keys, triangle
-        while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
-            b, a = stack.pop(), stack.pop()
-            stack.append(_merge(a, b))
-    while len(stack) > 1:
-        b, a = stack.pop(), stack.pop()
-        stack.append(_merge(a, b))
-    if share[1] > 1:  # every process merges every process's sub-DAG, in process order
-        stack = [p for p in all_processes(stack[0] if stack else None) if p is not None]
-        voxels = sum(int(p.counts.sum()) for p in stack)
-        _check_count(voxels, grid, caller)
-        while len(stack) > 1:
-            b, a = stack.pop(), stack.pop()
-            stack.append(_merge(a, b))
+    processes = jax.process_count() if distributed else 1
+    devices = jax.local_devices() if distributed else [None]
+    threads = len(devices)
+    total = [0]  # voxels so far, over this process's threads
+    lock = threading.Lock()
+
+    def build(thread: int) -> _Partial | None:
+        """The merged sub-DAG of one share of the regions: this process's (every
+        `processes`-th region) and, of those, this thread's (every `threads`-th), with
+        their programs on the thread's local device."""
+        share = (jax.process_index() + processes * thread, processes * threads)
+        stack: list[_Partial] = []
+        with jax.default_device(devices[thread]):
+            parts = region_voxels(
+                mesh,
+                grid,
+                six_sep=six_sep,
+                region_size=region,
+                triangle_ids=triangle_ids,
+                progress=progress if thread == 0 else False,
+                share=share,
+            )
+            for position, region_lo, keys, triangle in parts:
+                if not len(keys):
+                    continue
+                with lock:
+                    total[0] += len(keys)
+                    _check_count(total[0], grid, caller)
+                    if on_region is not None:
+                        on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
+                stack.append(_region_dag(keys, region_lo, region))
+                del keys, triangle
+                while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
+                    b, a = stack.pop(), stack.pop()
+                    stack.append(_merge(a, b))
+        return _merge_all(stack)
+
+    if threads > 1:  # one thread per local device: XLA runs and numpy sorts release the GIL
+        with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+            mine = _merge_all([p for p in pool.map(build, range(threads)) if p is not None])
+    else:
+        mine = build(0)
+    stack = [mine] if mine is not None else []
+    if processes > 1:  # every process merges every process's sub-DAG, in process order
+        stack = [p for p in all_processes(mine) if p is not None]
+    voxels = sum(int(p.counts.sum()) for p in stack)
+    _check_count(voxels, grid, caller)
+    stack = [p for p in [_merge_all(stack)] if p is not None]
     if not stack:
         return build_dag(_empty(grid, mode))
     dag = stack.pop()
@@ -204,6 +226,14 @@ def stream_dag(
     levels += [(m, c, p) for m, c, p in zip(dag.masks, dag.child + [None], dag.prefix + [None])]
     del dag
     return tree_from_levels(levels, grid, mode, voxels, dag=True)
+
+
+def _merge_all(parts: list[_Partial]) -> _Partial | None:
+    """The canonical DAG of all `parts` (None for none): merged pairwise from the back."""
+    while len(parts) > 1:
+        b, a = parts.pop(), parts.pop()
+        parts.append(_merge(a, b))
+    return parts[0] if parts else None
 
 
 def _check_count(voxels: int, grid: Grid, caller: str) -> None:
@@ -273,8 +303,10 @@ def mesh_to_dag(
       progress: show a progress bar over regions (default: when there are several).
       distributed: in a program started under `jax.distributed.initialize`, split the
         regions over the ``jax.process_count()`` processes (every n-th region in Morton
-        order to each), gather their sub-DAGs and merge them, so that every process
-        returns the same DAG as one process would. On CPU the processes need collectives:
+        order to each) and a process's regions over its local devices (one thread per
+        device, e.g. ``jax.config.update("jax_num_cpu_devices", 2)``), gather their
+        sub-DAGs and merge them, so that every process returns the same DAG as one
+        process would. On CPU the processes need collectives:
         ``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` before
         `jax.distributed.initialize` (see the guide's "Across processes"). Every process
         must call it with the same arguments. With one process it changes nothing.
