@@ -87,6 +87,21 @@ def run_worker(script: str | Path, spec: dict, *, timeout: float) -> dict:
     return json.loads(lines[-1])
 
 
+def experiment_parser(doc: str | None):
+    """An argument parser with the options every sweep shares: ``--worker`` (internal),
+    ``--smoke``, ``--resolutions`` (None: the script's default), ``--timeout`` per case in
+    seconds (3600) and ``--out`` (the results folder)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--smoke", action="store_true", help="small sizes, *_smoke outputs")
+    parser.add_argument("--resolutions", type=int, nargs="*", default=None)
+    parser.add_argument("--timeout", type=float, default=3600, help="seconds per case")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR)
+    return parser
+
+
 def answer_as_worker(args, worker: Callable[[dict], dict]) -> bool:
     """When the script runs as a worker (``--worker '<spec>'``), prints `worker(spec)` as
     the JSON line `run_worker` reads and returns True; otherwise returns False."""

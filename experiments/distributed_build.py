@@ -7,7 +7,11 @@ For each resolution R (default 1024, 2048, 4096) and each process count in ``--p
 time, the build time it reports (voxelization and DAG, first call), the largest resident
 peak of its processes (``ru_maxrss`` of the worker's children: the launcher and the N
 build processes, which are local jax.distributed processes with CPU collectives over
-gloo), and the SHA-256 of the file written, which must be the same for every N.
+gloo), and the SHA-256 of the file written, which must be the same for every N. Then,
+for each device count in ``--devices`` (default 1 and 2), one process runs
+``jv.mesh_to_dag(mesh, grid, region=S, distributed=True)`` with that many local CPU devices
+(``jax_num_cpu_devices``; a thread per device): a first and a second call, and whether
+the tables are those of one device.
 
 Writes ``distributed_build[_smoke].json``, ``.md`` and ``.png`` (wall time and build time
 against N per R) in ``--out``.
@@ -19,7 +23,6 @@ Examples:
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -35,6 +38,8 @@ import _common
 
 
 def worker(spec: dict) -> dict:
+    if spec.get("devices"):
+        return devices_worker(spec)
     with tempfile.TemporaryDirectory() as folder:
         out = os.path.join(folder, "tree.jvx")
         command = [sys.executable, "-m", "jaxvox", "build", spec["mesh"], "--resolution", str(spec["resolution"])]
@@ -61,9 +66,73 @@ def worker(spec: dict) -> dict:
     )
 
 
+def devices_worker(spec: dict) -> dict:
+    """`jv.mesh_to_dag(distributed=True)` in this one process with ``spec["devices"]`` local
+    CPU devices (a thread each): seconds of a first and a second call, and the tables' hash."""
+    import jax
+
+    jax.config.update("jax_num_cpu_devices", spec["devices"])
+    import numpy as np
+
+    import jaxvox as jv
+
+    mesh = jv.load_mesh(spec["mesh"])
+    grid = jv.Grid.fit(mesh, spec["resolution"])
+    times = []
+    for _ in range(2):
+        start = time.perf_counter()
+        dag = jv.mesh_to_dag(mesh, grid, region=spec["region"], distributed=True, progress=False)
+        dag.mask.block_until_ready()
+        times.append(time.perf_counter() - start)
+    digest = hashlib.sha256()
+    for leaf in (dag.mask, dag.child, dag.prefix):
+        digest.update(np.ascontiguousarray(np.asarray(leaf)).tobytes())
+    return dict(
+        first_s=times[0],
+        second_s=times[1],
+        voxels=int(dag.voxel_count),
+        tables_sha256=digest.hexdigest(),
+        peak_rss_mib=_common.peak_rss_mib(),
+        local_devices=len(jax.local_devices()),
+    )
+
+
+def _table(cases: list[dict], split: str, speed_key: str, same_key: str, columns, cells) -> str:
+    """Markdown: one row per case with `cells(case)`, the speed-up of `speed_key` and
+    whether `same_key` matches the case with ``split == 1`` at the same resolution."""
+    rows = []
+    for c in cases:
+        if "error" in c:
+            rows.append({"resolution": c["resolution"], split: c[split], "first": c["error"]})
+            continue
+        one = next(o for o in cases if o["resolution"] == c["resolution"] and o[split] == 1)
+        rows.append(
+            dict(
+                resolution=c["resolution"],
+                **{split: c[split]},
+                **cells(c),
+                speedup=f"{one[speed_key] / c[speed_key]:.2f}x",
+                same=str(c[same_key] == one[same_key]),
+            )
+        )
+    return _common.markdown_table(rows, [("resolution", "R"), *columns])
+
+
+def devices_table(cases: list[dict]) -> str:
+    columns = [
+        ("devices", "local devices (threads)"),
+        ("first", "first call (s)"),
+        ("second", "second call (s)"),
+        ("speedup", "speed-up"),
+        ("peak", "peak RSS (MiB)"),
+        ("same", "same tables as 1 device"),
+    ]
+    cells = lambda c: dict(first=f"{c['first_s']:.1f}", second=f"{c['second_s']:.1f}", peak=f"{c['peak_rss_mib']:.0f}")
+    return _table(cases, "devices", "second_s", "tables_sha256", columns, cells)
+
+
 def table(cases: list[dict]) -> str:
     columns = [
-        ("resolution", "R"),
         ("processes", "processes"),
         ("voxels", "voxels"),
         ("wall", "wall (s)"),
@@ -73,26 +142,14 @@ def table(cases: list[dict]) -> str:
         ("mib", "file (MiB)"),
         ("same", "same file as 1 process"),
     ]
-    rows = []
-    for c in cases:
-        if "error" in c:
-            rows.append(dict(resolution=c["resolution"], processes=c["processes"], voxels=c["error"]))
-            continue
-        one = next(o for o in cases if o["resolution"] == c["resolution"] and o["processes"] == 1)
-        rows.append(
-            dict(
-                resolution=c["resolution"],
-                processes=c["processes"],
-                voxels=f"{c['voxels']:,}",
-                wall=f"{c['wall_s']:.1f}",
-                build=f"{c['build_s']:.1f}",
-                speedup=f"{one['build_s'] / c['build_s']:.2f}x",
-                peak=f"{c['largest_process_peak_mib']:.0f}",
-                mib=f"{c['file_bytes'] / 2**20:.1f}",
-                same=str(c["file_sha256"] == one["file_sha256"]),
-            )
-        )
-    return _common.markdown_table(rows, columns)
+    cells = lambda c: dict(
+        voxels=f"{c['voxels']:,}",
+        wall=f"{c['wall_s']:.1f}",
+        build=f"{c['build_s']:.1f}",
+        peak=f"{c['largest_process_peak_mib']:.0f}",
+        mib=f"{c['file_bytes'] / 2**20:.1f}",
+    )
+    return _table(cases, "processes", "build_s", "file_sha256", columns, cells)
 
 
 def plot(cases: list[dict], path: Path) -> None:
@@ -122,14 +179,10 @@ def plot(cases: list[dict], path: Path) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--worker")
-    parser.add_argument("--smoke", action="store_true")
-    parser.add_argument("--resolutions", type=int, nargs="*", default=None)
+    parser = _common.experiment_parser(__doc__)
     parser.add_argument("--processes", type=int, nargs="*", default=[1, 2])
     parser.add_argument("--region", type=int, default=256)
-    parser.add_argument("--timeout", type=float, default=3600)
-    parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
+    parser.add_argument("--devices", type=int, nargs="*", default=[1, 2], help="local CPU device counts (threads)")
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
@@ -143,14 +196,28 @@ def main() -> None:
             case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, processes=n)
             cases.append(case)
             print(json.dumps({k: v for k, v in case.items() if k != "stdout"}), flush=True)
+    device_cases = []
+    for r in resolutions:
+        for n in sorted(args.devices):
+            spec = dict(mesh=mesh, resolution=r, devices=n, region=min(region, r))
+            case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, devices=n)
+            device_cases.append(case)
+            print(json.dumps(case), flush=True)
     name = "distributed_build_smoke" if args.smoke else "distributed_build"
     _common.write_json(
         args.out / f"{name}.json",
-        dict(cases=cases, settings=dict(region=region), machine=_common.machine_info(["jax", "jaxlib"])),
+        dict(
+            cases=cases,
+            device_cases=device_cases,
+            settings=dict(region=region),
+            machine=_common.machine_info(["jax", "jaxlib"]),
+        ),
     )
-    (args.out / f"{name}.md").write_text(table(cases))
+    report = table(cases) + "\nOne process, regions split over local CPU devices (`mesh_to_dag(distributed=True)`):\n\n"
+    report += devices_table(device_cases)
+    (args.out / f"{name}.md").write_text(report)
     plot(cases, args.out / f"{name}.png")
-    print(table(cases))
+    print(report)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,6 @@ Examples:
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import time
@@ -155,15 +154,10 @@ def plot(cases: list[dict], path: Path) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--worker")
-    parser.add_argument("--smoke", action="store_true")
-    parser.add_argument("--resolutions", type=int, nargs="*", default=None)
+    parser = _common.experiment_parser(__doc__)
     parser.add_argument("--repeat-max", type=int, default=4096)
     parser.add_argument("--hako", help="path of the hako-bench binary (shared/anchors/hako)")
     parser.add_argument("--hako-max", type=int, default=8192)
-    parser.add_argument("--timeout", type=float, default=3600)
-    parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
