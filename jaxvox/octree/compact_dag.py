@@ -37,6 +37,9 @@ from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree.tree import EMPTY, Octree, child_slot, stored_sizes
 
+_POPCOUNT = np.array([bin(m).count("1") for m in range(256)], np.uint8)  # set bits per mask
+_BLOCK = 1 << 20  # rows converted at once
+
 
 @pytree_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -107,35 +110,38 @@ def compact_dag(tree: Octree, *, prefix: bool = True) -> CompactDag:
     mask = np.asarray(tree.mask)
     leaf = slice(offsets[-1], offsets[-1] + sizes[-1])
     if depth == 1:
-        root, words = int(mask[0]), np.zeros(1, np.uint32)
+        root, used, words = int(mask[0]), 1, np.zeros(bucket(1), np.uint32)
     else:
         rows = np.concatenate([np.arange(offsets[lv], offsets[lv] + sizes[lv]) for lv in range(depth - 1)])
         masks = mask[rows]
-        count = np.unpackbits(masks[:, None], axis=1).sum(axis=1).astype(np.int64)
+        count = _POPCOUNT[masks].astype(np.int64)
         size = 1 + count + (np.maximum(count - 1, 0) if prefix else 0)
-        start = np.concatenate([[0], np.cumsum(size)[:-1]])
+        start = np.cumsum(size) - size
+        used = int(size.sum())
+        del size
         # What a parent stores for each row: the word offset of a node above level D - 1,
         # the mask of a node at level D - 1.
         ref = np.zeros(mask.shape[0], np.uint32)
         ref[rows] = start
         ref[leaf] = mask[leaf]
-        child = np.asarray(tree.child)[rows]
-        present = child != EMPTY  # [n, 8], in slot order
-        node, slot = np.nonzero(present)
-        rank = np.cumsum(present, axis=1)[node, slot] - 1  # k: the child's position among the present ones
-        words = np.zeros(int(size.sum()), np.uint32)
+        words = np.zeros(bucket(used), np.uint32)
         words[start] = masks
-        words[start[node] + 1 + rank] = ref[child[node, slot]]
-        if prefix:
-            later = rank > 0  # the first child's prefix is 0 and not stored
-            words[(start[node] + count[node] + rank)[later]] = np.asarray(tree.prefix)[rows][node, slot][later]
+        child, prefix_sums = np.asarray(tree.child), np.asarray(tree.prefix)
+        for first in range(0, len(rows), _BLOCK):  # blocks of rows bound the temporaries
+            block = rows[first : first + _BLOCK]
+            kids = child[block]
+            present = kids != EMPTY  # [b, 8], in slot order
+            node, slot = np.nonzero(present)
+            rank = np.cumsum(present, axis=1, dtype=np.int32)[node, slot] - 1  # position among the present
+            at = start[first + node]
+            words[at + 1 + rank] = ref[kids[node, slot]]
+            if prefix:
+                later = rank > 0  # the first child's prefix is 0 and not stored
+                words[(at + count[first + node] + rank)[later]] = prefix_sums[block][node, slot][later]
         root = 0
-    used = len(words)
-    padded = np.zeros(bucket(used), np.uint32)
-    padded[:used] = words
     put = jax.device_put
     return CompactDag(
-        words=put(padded),
+        words=put(words),
         root=put(np.uint32(root)),
         word_count=put(np.int32(used)),
         level_count=put(np.asarray(tree.level_count, np.int32)),
