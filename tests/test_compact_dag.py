@@ -64,8 +64,8 @@ def test_traces_as_the_tables_over_hard_rays(scene, trees, kind, prefix):
     compact = jv.compact_dag(tree, prefix=prefix)
     assert compact.dag == tree.dag and compact.level_sizes == tree.level_sizes
     assert compact.nbytes == expected_nbytes(tree, prefix)
-    for method in jv.TRACE_METHODS:
-        for lanes in (None, 64):
+    for method in jv.TRACE_METHODS:  # persistent lanes, and a plain vmap on the DAG
+        for lanes in (64, None) if kind == "dag" else (64,):
             assert_traces_alike(tree, compact, o, d, method=method, lanes=lanes)
     assert_matches(jv.trace(compact, o, d), ijk, o, d)
 
@@ -101,8 +101,8 @@ def test_shared_meshes(meshes_dir, name):
     )
 
 
-@settings(max_examples=15, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 4, 16]))
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 16]))
 def test_random_sets_and_lattice_rays(seed, resolution):
     """Random voxel sets at small R (depth 1 included: the root is a mask), with rays on
     integer and half-integer coordinates; the full grid and the empty set among them."""

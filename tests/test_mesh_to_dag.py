@@ -165,7 +165,7 @@ jax.distributed.initialize(sys.argv[1], num_processes=int(sys.argv[2]), process_
 assert len(jax.local_devices()) == 2, jax.local_devices()
 import jaxvox as jv
 mesh = jv.load_mesh(sys.argv[4])
-dag = jv.mesh_to_dag(mesh, jv.Grid.fit(mesh, 64), region=8, progress=False, distributed=True)
+dag = jv.mesh_to_dag(mesh, jv.Grid.fit(mesh, 32), region=8, progress=False, distributed=True)
 np.savez(sys.argv[5], **{f: np.asarray(getattr(dag, f)) for f in sys.argv[6].split(",")})
 """
 
@@ -187,7 +187,7 @@ def _run_processes(commands: list[list[str]]) -> None:
 def test_two_processes_build_the_same_dag(meshes_dir, tmp_path):
     """`mesh_to_dag(distributed=True)` in two jax.distributed processes on this machine,
     each with two local CPU devices (a thread each): both processes end with the DAG one
-    process builds from the whole voxel list (512 regions of 8^3, many empty, split four
+    process builds from the whole voxel list (64 regions of 8^3, some empty, split four
     ways)."""
     import sys
 
@@ -201,7 +201,7 @@ def test_two_processes_build_the_same_dag(meshes_dir, tmp_path):
         ]
     )
     mesh = jv.load_mesh(mesh_path)
-    want = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, 64)))
+    want = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, 32)))
     for out in outs:
         got = np.load(out)
         for field in FIELDS:
@@ -217,8 +217,8 @@ def test_cli_build_with_two_processes_writes_the_same_file(meshes_dir, tmp_path)
 
     mesh_path = str(meshes_dir / "spot.obj")
     whole, split = tmp_path / "whole.jvx", tmp_path / "split.jvx"
-    assert cli.main(["build", mesh_path, "--resolution", "64", "--out", str(whole)]) == 0
-    command = [sys.executable, "-m", "jaxvox", "build", mesh_path, "--resolution", "64", "--region", "16"]
+    assert cli.main(["build", mesh_path, "--resolution", "32", "--out", str(whole)]) == 0
+    command = [sys.executable, "-m", "jaxvox", "build", mesh_path, "--resolution", "32", "--region", "8"]
     _run_processes([command + ["--processes", "2", "--out", str(split)]])
     assert split.read_bytes() == whole.read_bytes()
     with pytest.raises(SystemExit):
