@@ -159,7 +159,8 @@ def stream_dag(
     """`mesh_to_dag`, which also hands every non-empty region's voxels (global indices,
     with triangle ids if asked) to ``on_region(position, voxels)``, in Morton order
     (`position` is the region's place in that order; with ``distributed=True`` a process
-    sees only its own regions), e.g. to gather per-voxel attributes region by region."""
+    sees only its own regions, from one thread per local device, so not in order), e.g.
+    to gather per-voxel attributes region by region."""
     check_type(f"{caller} mesh", mesh, Mesh)
     check_type(f"{caller} grid", grid, Grid)
     six_sep = check_choice(f"{caller} mode", mode, MODES) == SIX_SEPARATING
@@ -193,8 +194,8 @@ def stream_dag(
                 with lock:
                     total[0] += len(keys)
                     _check_count(total[0], grid, caller)
-                    if on_region is not None:
-                        on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
+                if on_region is not None:  # from this thread
+                    on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
                 stack.append(_region_dag(keys, region_lo, region))
                 del keys, triangle
                 while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:

@@ -220,9 +220,9 @@ def _page_groups(per_triangle: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
-    """Host-side passes for one region: a counting pass places every chunk's candidates
-    in the sort buffer, the chunks write them page by page and one sort makes them
-    unique.
+    """Host-side passes for one region: a counting pass counts every triangle's
+    candidates, which places them in the sort buffer; runs of triangles whose candidates
+    start in the same page write them (`_page_groups`), and one sort makes them unique.
 
     Returns:
       (keys [n] uint32 Morton words of the voxels, see `region_coords`; triangle [n]
