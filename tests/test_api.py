@@ -178,6 +178,36 @@ def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
         np.testing.assert_array_equal(whole.triangle_ids(), small.triangle_ids())
 
 
+def test_page_groups_and_a_triangle_larger_than_two_pages():
+    """Emit runs: every triangle once, in order, at most `_CHUNK` per run, all starting in
+    one page; and a single triangle with more candidates than four pages (written by
+    three calls) sets each of its counted candidates once, as it does (up to near-ties) in
+    regions small enough for one page."""
+    from jaxvox.voxelize import host
+    from jaxvox.voxelize.host import _CHUNK, _PAGE, _page_groups
+
+    rng = np.random.default_rng(0)
+    per = rng.integers(0, 200, 20_000)
+    per[[5, 6000, 6001]] = [3 * _PAGE, _PAGE - 1, 5 * _PAGE + 7]  # triangles larger than a page
+    groups = _page_groups(per)
+    assert [a for a, _ in groups] == [0] + [b for _, b in groups[:-1]] and groups[-1][1] == len(per)
+    starts = np.cumsum(per) - per
+    for a, b in groups:
+        assert 0 < b - a <= _CHUNK and len(set(starts[a:b] // _PAGE)) == 1
+    corners = np.array([[0.01, 0.02, 0.05], [0.98, 0.03, 0.95], [0.02, 0.97, 0.5]], np.float32)
+    tri = jv.Mesh(corners, np.array([[0, 1, 2]], np.int32))
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / 1024, resolution=1024)
+    lo, hi = host._region_bounds(np.zeros(3, np.int32), 1024)
+    counted = host._count_chunks(host._chunks(host._grid_triangles(tri, grid), np.arange(1)), lo, hi, False)[0]
+    assert counted[0, 2] > 4 * _PAGE  # 1.16 M candidates: three emit calls
+    whole = jv.voxelize(tri, grid).to_numpy()
+    assert len(whole) == counted[0, 2]  # one triangle never repeats a voxel: every candidate, once
+    # In 256^3 regions the candidates of each fit one page. The region's coordinates scale
+    # the half-plane tolerance, so 39 of the 1.16 M voxels (near-ties) are not set there.
+    parts = {tuple(v) for v in jv.voxelize(tri, grid, region_size=256).to_numpy()}
+    assert parts <= {tuple(v) for v in whole} and len(whole) - len(parts) < 1e-4 * len(whole)
+
+
 def test_high_resolutions_use_two_word_keys():
     tri = jv.Mesh(
         np.array([[0.1, 0.2, 0.3], [0.1001, 0.2, 0.3], [0.1, 0.2002, 0.3001]], np.float32),
