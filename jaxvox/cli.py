@@ -102,85 +102,22 @@ def _render_dag(tree, mesh, path: str, width: int = 640, height: int = 480) -> N
 # edge (None: `mesh_to_dag`'s default, 1024, so below it there is one region).
 _STREAM_ABOVE = 1024
 _STREAM_REGION: int | None = None
-_ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
 
 
-class _Spool:
-    """Per-voxel attribute arrays appended region by region to raw files in `folder`, so
-    that they never need to fit in memory; `arrays` maps them back (read-only memmaps)."""
-
-    def __init__(self, folder: str):
-        self.folder = folder
-        self.layout: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}  # dtype and row shape per name
-        self.rows = 0
-
-    def append(self, attributes: dict[str, np.ndarray]) -> None:
-        for key, value in attributes.items():
-            self.layout.setdefault(key, (value.dtype, value.shape[1:]))
-            with open(os.path.join(self.folder, key), "ab") as fh:
-                fh.write(np.ascontiguousarray(value).tobytes())
-        self.rows += len(next(iter(attributes.values())))
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        return {
-            key: np.memmap(os.path.join(self.folder, key), dtype, "r", shape=(self.rows, *shape))
-            if self.rows
-            else np.zeros((0, *shape), dtype)
-            for key, (dtype, shape) in self.layout.items()
-        }
-
-
-def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool, spool: _Spool):
-    """The DAG of `mesh` built region by region and its per-voxel attributes, gathered
-    region by region (the same arrays as `voxel_attributes` of the whole voxel set): one
-    process appends them to `spool`'s files as the regions come, in Morton order; with
-    `distributed`, every process's regions are gathered in memory and process 0 writes
-    them in Morton order. Returns (tree, attributes, seconds of voxelization and build)."""
+def _streamed_dag_timed(mesh, grid, region: int | None, distributed: bool, folder: str):
+    """`mesh_to_dag` with its per-voxel attributes spooled to `folder`; returns (tree,
+    attributes as read-only memmaps, seconds of voxelization, build and attributes)."""
     import jax
-    import jax.numpy as jnp
 
-    import jaxvox as jv
-    from jaxvox.octree.stream import all_processes, stream_dag
-
-    parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes), distributed
-
-    def attributes_of(vox) -> dict[str, np.ndarray]:
-        # The attributes are per voxel, but XLA's CPU code for short buffers (measured:
-        # 256 and 1,024 slots, not 2,048 and up) rounds some normals and colours
-        # differently in the last bit, so every region runs on a long buffer.
-        n, pad = int(vox.count), max(_ATTRIBUTE_SLOTS - vox.capacity, 0)
-        coords = np.pad(np.asarray(vox.coords), ((0, pad), (0, 0)), constant_values=jv.UNUSED)
-        triangle = np.pad(np.asarray(vox.triangle), (0, pad), constant_values=jv.UNUSED)
-        vox = jv.Voxels(jnp.asarray(coords), vox.count, vox.overflow, jnp.asarray(triangle), vox.grid, vox.mode)
-        return {key: np.asarray(value)[:n] for key, value in jv.voxel_attributes(mesh, vox).items()}
-
-    def gather(position: int, vox) -> None:
-        if distributed:
-            parts.append((position, attributes_of(vox)))
-        else:
-            spool.append(attributes_of(vox))
+    from jaxvox.octree.stream import dag_with_attributes
 
     quiet = distributed and jax.process_index() > 0  # one progress bar: process 0's
     start = time.perf_counter()
-    tree = stream_dag(
-        mesh,
-        grid,
-        region=region,
-        progress=False if quiet else None,
-        distributed=distributed,
-        triangle_ids=True,
-        on_region=gather,
-        caller="build",
+    tree, attributes = dag_with_attributes(
+        mesh, grid, folder, region=region, progress=False if quiet else None, distributed=distributed, caller="build"
     )
     tree.mask.block_until_ready()
-    seconds = time.perf_counter() - start
-    if distributed:  # regions in Morton order, whichever process voxelized them
-        for _, attributes in sorted((p for process in all_processes(parts) for p in process), key=lambda p: p[0]):
-            spool.append(attributes)
-    if not spool.layout:  # no voxels: empty attribute arrays, as voxel_attributes gives them
-        none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
-        spool.append(attributes_of(jv.Voxels(*none, grid, tree.mode)))
-    return tree, spool.arrays(), seconds
+    return tree, attributes, time.perf_counter() - start
 
 
 def _launch_processes(args) -> int:
@@ -233,7 +170,7 @@ def cmd_build(args) -> int:
     with tempfile.TemporaryDirectory(prefix=".jaxvox-attributes-", dir=os.path.dirname(args.out) or ".") as folder:
         if args.kind == "dag" and streamed:
             region = _STREAM_REGION if args.region is None else args.region
-            tree, attributes, seconds = _streamed_dag_timed(mesh, grid, region, processes > 1, _Spool(folder))
+            tree, attributes, seconds = _streamed_dag_timed(mesh, grid, region, processes > 1, folder)
         else:
             vox = jv.voxelize(mesh, grid, triangle_ids=True)
             tree, seconds = _build_timed(vox, args.kind)

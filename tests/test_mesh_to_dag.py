@@ -224,3 +224,25 @@ def test_cli_build_with_two_processes_writes_the_same_file(meshes_dir, tmp_path)
     with pytest.raises(SystemExit):
         cli.main(["build", mesh_path, "--processes", "two"])
     assert cli.main(["build", mesh_path, "--kind", "octree", "--processes", "2", "--out", str(split)]) == 2
+
+
+def test_attributes_go_to_files_region_by_region(meshes_dir, tmp_path):
+    """``mesh_to_dag(..., attributes=folder)``: the same DAG, and attributes written region
+    by region as read-only memmaps equal to `voxel_attributes` of the whole voxel list
+    (spot has colours); `voxel_index` addresses them; a missing or used folder is refused."""
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, 64)
+    vox = jv.voxelize(mesh, grid, triangle_ids=True)
+    want = jv.voxel_attributes(mesh, vox)
+    dag, attributes = jv.mesh_to_dag(mesh, grid, region=16, progress=False, attributes=tmp_path)
+    _assert_same_tree(dag, jv.build_dag(vox))
+    assert set(attributes) == set(want) == {"triangle", "normal", "color"}
+    index = np.asarray(jv.voxel_index(dag, vox.to_numpy()))
+    for key, value in attributes.items():
+        assert isinstance(value, np.memmap) and not value.flags.writeable
+        np.testing.assert_array_equal(value, np.asarray(want[key])[: int(vox.count)], err_msg=key)
+        np.testing.assert_array_equal(value[index], np.asarray(want[key])[: int(vox.count)], err_msg=key)
+    with pytest.raises(jv.JaxvoxError, match="already holds"):
+        jv.mesh_to_dag(mesh, grid, attributes=tmp_path)
+    with pytest.raises(jv.JaxvoxError, match="existing folder"):
+        jv.mesh_to_dag(mesh, grid, attributes=tmp_path / "missing")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import os
 import pickle
 import threading
 from collections.abc import Callable
@@ -41,6 +42,7 @@ from jaxvox._errors import JaxvoxError
 from jaxvox._shapes import bucket, voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
+from jaxvox.octree.attributes import voxel_attributes
 from jaxvox.octree.build import build_dag
 from jaxvox.octree.host import Nodes, levels_above, tree_from_levels, unique_rows, voxel_levels
 from jaxvox.octree.tree import EMPTY, Octree
@@ -261,6 +263,96 @@ def all_processes(value: Any) -> list[Any]:
     return [pickle.loads(gathered[k, :n].tobytes()) for k, n in enumerate(lengths)]
 
 
+_ATTRIBUTE_SLOTS = 1 << 16  # the least buffer the streamed build computes attributes on
+
+
+class _Spool:
+    """Per-voxel attribute arrays appended region by region to raw files in `folder`, so
+    that they never need to fit in memory; `arrays` maps them back (read-only memmaps)."""
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        self.layout: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}  # dtype and row shape per name
+        self.rows = 0
+
+    def append(self, attributes: dict[str, np.ndarray]) -> None:
+        for key, value in attributes.items():
+            self.layout.setdefault(key, (value.dtype, value.shape[1:]))
+            with open(os.path.join(self.folder, key), "ab") as fh:
+                fh.write(np.ascontiguousarray(value).tobytes())
+        self.rows += len(next(iter(attributes.values())))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {
+            key: np.memmap(os.path.join(self.folder, key), dtype, "r", shape=(self.rows, *shape))
+            if self.rows
+            else np.zeros((0, *shape), dtype)
+            for key, (dtype, shape) in self.layout.items()
+        }
+
+
+def dag_with_attributes(
+    mesh: Mesh,
+    grid: Grid,
+    folder,
+    *,
+    mode: Mode = CONSERVATIVE,
+    region: int | None = None,
+    progress: bool | None = None,
+    distributed: bool = False,
+    caller: str = "mesh_to_dag",
+) -> tuple[Octree, dict[str, np.ndarray]]:
+    """`mesh_to_dag` and the `voxel_attributes` of its voxels, computed region by region and
+    appended to one raw file per attribute in `folder` in Morton order; returns (tree,
+    attributes as read-only memmaps of those files). With `distributed` every process's
+    (and thread's) regions are gathered in memory and every process writes them, in Morton
+    order, to its own `folder`."""
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        raise refuse(f"{caller} attributes", "must be an existing folder", folder)
+    for name in ("triangle", "normal", "color"):
+        if os.path.exists(os.path.join(folder, name)):
+            raise refuse(f"{caller} attributes", f"already holds a file {name!r}", folder)
+    spool = _Spool(folder)
+    parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes), distributed
+
+    def attributes_of(vox: Voxels) -> dict[str, np.ndarray]:
+        # The attributes are per voxel, but XLA's CPU code for short buffers (measured:
+        # 256 and 1,024 slots, not 2,048 and up) rounds some normals and colours
+        # differently in the last bit, so every region runs on a long buffer.
+        n, pad = int(vox.count), max(_ATTRIBUTE_SLOTS - vox.capacity, 0)
+        coords = np.pad(np.asarray(vox.coords), ((0, pad), (0, 0)), constant_values=UNUSED)
+        triangle = np.pad(np.asarray(vox.triangle), (0, pad), constant_values=UNUSED)
+        vox = Voxels(jnp.asarray(coords), vox.count, vox.overflow, jnp.asarray(triangle), vox.grid, vox.mode)
+        return {key: np.asarray(value)[:n] for key, value in voxel_attributes(mesh, vox).items()}
+
+    def gather(position: int, vox: Voxels) -> None:
+        if distributed:
+            parts.append((position, attributes_of(vox)))
+        else:
+            spool.append(attributes_of(vox))
+
+    tree = stream_dag(
+        mesh,
+        grid,
+        mode=mode,
+        region=region,
+        progress=progress,
+        distributed=distributed,
+        triangle_ids=True,
+        on_region=gather,
+        caller=caller,
+    )
+    if distributed:  # regions in Morton order, whichever process or thread voxelized them
+        everyone = all_processes(parts) if jax.process_count() > 1 else [parts]
+        for _, attributes in sorted((p for process in everyone for p in process), key=lambda p: p[0]):
+            spool.append(attributes)
+    if not spool.layout:  # no voxels: empty attribute arrays, as voxel_attributes gives them
+        none = jnp.zeros((0, 3), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.zeros(0, jnp.int32)
+        spool.append(attributes_of(Voxels(*none, grid, tree.mode)))
+    return tree, spool.arrays()
+
+
 def _global_voxels(coords: np.ndarray, triangle: np.ndarray | None, grid: Grid, mode: str) -> Voxels:
     """One region's voxels as `Voxels` of the whole grid (buffer on the shape ladder)."""
     n = len(coords)
@@ -282,7 +374,8 @@ def mesh_to_dag(
     region: int | None = None,
     progress: bool | None = None,
     distributed: bool = False,
-) -> Octree:
+    attributes: str | os.PathLike | None = None,
+) -> Octree | tuple[Octree, dict[str, np.ndarray]]:
     """Voxelizes a mesh straight into its sparse voxel DAG, one region at a time.
 
     Returns the DAG of ``build_dag(voxelize(mesh, grid, mode=mode))``, table for table
@@ -311,16 +404,29 @@ def mesh_to_dag(
         ``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` before
         `jax.distributed.initialize` (see the guide's "Across processes"). Every process
         must call it with the same arguments. With one process it changes nothing.
+      attributes: an existing, empty folder: also compute `voxel_attributes` (triangle
+        id, normal, and colour for a coloured mesh) region by region and append them, in
+        Morton order, to one raw file per attribute there, so that they need not fit in
+        memory; the call then returns ``(dag, attributes)``, the attributes as read-only
+        `numpy.memmap` arrays [voxel_count, ...] of those files, which `voxel_index`
+        addresses and `save` writes without loading them. With `distributed` each
+        process gathers them in memory and writes its own folder.
 
     Returns:
-      An `Octree` with ``dag=True`` and ``overflow == 0``, laid out on the shape ladder
-      (`compact` drops the padding); for a mesh that sets no voxel, what `build_dag`
-      returns for no voxels (a root with mask 0).
+      An `Octree` (with `attributes`: the pair above) with ``dag=True`` and
+      ``overflow == 0``, laid out on the shape ladder (`compact` drops the padding); for
+      a mesh that sets no voxel, what `build_dag` returns for no voxels (a root with
+      mask 0).
 
     Raises:
-      JaxvoxError: not a `Mesh` or `Grid`, a malformed mesh, a bad mode or region, or
+      JaxvoxError: not a `Mesh` or `Grid`, a malformed mesh, a bad mode or region, an
+        `attributes` folder that does not exist or already holds attribute files, or
         more than ``2^32 - 1`` voxels (the uint32 voxel count of an `Octree`). A DAG of
         more than ``2^31 - 1`` voxels traces as ``compact_dag(dag, prefix=False)``: its
         Morton indices do not fit `voxel_index`'s int32.
     """
+    if attributes is not None:
+        return dag_with_attributes(
+            mesh, grid, attributes, mode=mode, region=region, progress=progress, distributed=distributed
+        )
     return stream_dag(mesh, grid, mode=mode, region=region, progress=progress, distributed=distributed)
