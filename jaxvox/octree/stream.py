@@ -210,15 +210,13 @@ def stream_dag(
             mine = _merge_all([p for p in pool.map(build, range(threads)) if p is not None])
     else:
         mine = build(0)
-    stack = [mine] if mine is not None else []
-    if processes > 1:  # every process merges every process's sub-DAG, in process order
-        stack = [p for p in all_processes(mine) if p is not None]
-    voxels = sum(int(p.counts.sum()) for p in stack)
+    # every process merges every process's sub-DAG, in process order
+    parts = [p for p in (all_processes(mine) if processes > 1 else [mine]) if p is not None]
+    voxels = sum(int(p.counts.sum()) for p in parts)
     _check_count(voxels, grid, caller)
-    stack = [p for p in [_merge_all(stack)] if p is not None]
-    if not stack:
+    dag = _merge_all(parts)
+    if dag is None:
         return build_dag(_empty(grid, mode))
-    dag = stack.pop()
     depth_above = grid.resolution.bit_length() - region.bit_length()  # L = D - s
     levels: list = []
     if depth_above:  # the levels above the regions, over their roots (cells in Morton order)
