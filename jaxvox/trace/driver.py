@@ -12,10 +12,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox.trace.beam import BEAM_RAYS, beam_starts
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
 from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
-from jaxvox.trace.ray import AXES, Ray, setup_ray
+from jaxvox.trace.ray import Ray, argmax3, max3, setup_ray
 from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
 
 _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
@@ -116,41 +117,51 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
     return c.out_status, c.out_voxel
 
 
-def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes):
-    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0)."""
+def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes, beam):
+    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With `beam`
+    (N a multiple of `BEAM_RAYS`), the rays start at their group's beam distance."""
     res = structure.grid.resolution
     rays, t_start, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
+    if beam:
+        t_beam = beam_starts(structure, o, d, status == RUNNING)
+        status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
+        t_start = jnp.maximum(t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam))
     if lanes is None or o.shape[0] == 0:
         status, cell = _vmapped(structure, rays, t_start, status, method, max_steps)
     else:
         status, cell = _lanes(structure, rays, t_start, status, method, max_steps, min(lanes, o.shape[0]))
     hit = status == HIT
-    t0 = (cell - jnp.stack(rays.o, -1)) * jnp.stack(rays.inv, -1)
-    t_in = jnp.max(t0, axis=-1)
-    flip = ((rays.flip[:, None] >> AXES) & 1) == 1
-    entry = jnp.where(t_in > 0, jnp.argmax(t0, axis=-1), -1)
-    normal = jnp.where(AXES == entry[:, None], jnp.where(flip, 1.0, -1.0), 0.0)
+    t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
+    t_in = max3(t0)
+    entry = jnp.where(t_in > 0, argmax3(t0), -1)
+    flip = [((rays.flip >> a) & 1) == 1 for a in range(3)]
+    normal = [jnp.where(entry == a, jnp.where(flip[a], 1.0, -1.0), 0.0) for a in range(3)]
+    voxel = [jnp.where(flip[a], res - 1 - cell[:, a], cell[:, a]) for a in range(3)]
     return Hit(
         t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
-        voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
-        normal=jnp.where(hit[:, None], normal, 0.0).astype(jnp.float32),
+        voxel=jnp.where(hit[:, None], jnp.stack(voxel, -1), -1),
+        normal=jnp.where(hit[:, None], jnp.stack(normal, -1), 0.0).astype(jnp.float32),
         index=jnp.zeros_like(status),
         status=status,
     )
 
 
-def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard):
-    """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`."""
+def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=False):
+    """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`.
+    With `beam`, consecutive runs of `BEAM_RAYS` rays start at their beam distance (the
+    caller orders them by tiles)."""
     grid = structure.grid
     o = grid.to_grid_units(origins)
     d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
     shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
     o, d = jnp.broadcast_to(o, shape + (3,)).reshape(-1, 3), jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape).reshape(-1)
-    run = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes)
     devices = jax.devices()
     n = o.shape[0]
-    if shard and len(devices) > 1 and n >= len(devices):
+    sharded = shard and len(devices) > 1 and n >= len(devices)
+    beam = beam and n % (BEAM_RAYS * (len(devices) if sharded else 1)) == 0
+    run = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes, beam=beam)
+    if sharded:
         # Each device traces its own slice of the rays with its own lanes and queue.
         pad = -n % len(devices)
         o, d, t_max = (jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) for x in (o, d, t_max))

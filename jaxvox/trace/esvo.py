@@ -16,8 +16,10 @@ from jaxvox.trace.ray import (
     child_row,
     first_cell,
     mask_bit,
+    materialize,
     max3,
     min3,
+    opaque,
     pick,
     root_row,
     select,
@@ -51,19 +53,18 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     t1 = times(ray, vec(lambda c: c + size, s.corner))
     t_in, t_out = max3(t0), min3(t1)
     slot = slot_bits(s.corner, shift) ^ ray.flip
+    t_in, axis, t_out, slot = materialize((t_in, argmin3(t1), t_out, slot), opaque(tree))
     live = mask_bit(tree, s.parent, slot, s.level - 1) & (t_out > 0) & (t_in < t_out)
     push = live & (s.level < depth)
-    axis = argmin3(t1)
     before = pick(s.corner, axis)
     status = step_status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
     row = child_row(tree, s.parent, slot)
-    # XLA would otherwise recompute these in the fusion of every output.
-    t_in, axis, before, push, status, row = jax.lax.optimization_barrier((t_in, axis, before, push, status, row))
+    high = 31 - jax.lax.clz(before ^ (before + size))  # after ADVANCE the cell has size 2^high
+    t_in, axis, push, status, row, high = materialize((t_in, axis, push, status, row, high), opaque(tree))
     # PUSH: the cell is an occupied node; enter its child the ray is in at entry.
     pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, 0.0))
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
-    high = 31 - jax.lax.clz(before ^ (before + size))  # the new cell has size 2^high
-    moved = tuple(jnp.where(axis == a, before + size, c) for a, c in enumerate(s.corner))
+    moved = tuple(jnp.where(axis == a, c + size, c) for a, c in enumerate(s.corner))
     popped = vec(lambda c: c & -jnp.left_shift(1, high), moved)
     pop_level = depth - high
     stepped = _Esvo(

@@ -3,18 +3,17 @@ of `jaxvox.trace` (esvo, stack, dda)."""
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxvox.octree import Octree
 from jaxvox.octree.compact_dag import CompactDag, compact_child, compact_mask_bit
-from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING, valid_rays
+from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING
 
 _TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
-AXES = np.arange(3, dtype=np.int32)
 
 
 class Ray(NamedTuple):
@@ -39,23 +38,34 @@ def min3(v):
     return jnp.minimum(jnp.minimum(v[0], v[1]), v[2])
 
 
+def argmax3(v):
+    """Axis of the largest entry, ties to the lower axis (as `jnp.argmax`)."""
+    return jnp.where((v[0] >= v[1]) & (v[0] >= v[2]), 0, jnp.where(v[1] >= v[2], 1, 2)).astype(jnp.int32)
+
+
 def argmin3(v):
     """Axis of the smallest entry, ties to the lower axis (as `jnp.argmin`)."""
     return jnp.where((v[0] <= v[1]) & (v[0] <= v[2]), 0, jnp.where(v[1] <= v[2], 1, 2)).astype(jnp.int32)
 
 
 def setup_ray(o, d, t_max, res: int):
-    """Mirrors one ray ([3] origin and direction); returns (ray, entry t, initial status)."""
-    bad = ~valid_rays(o, d) | jnp.isnan(t_max)
-    neg = d < 0
-    o = jnp.where(bad, 0.0, jnp.where(neg, res - o, o))
-    inv = 1.0 / jnp.maximum(jnp.where(bad, 1.0, jnp.abs(d)), _TINY)
-    t_in, t_out = jnp.max(-o * inv), jnp.min((res - o) * inv)
+    """Mirrors one ray ([3] origin and direction); returns (ray, entry t, initial status).
+
+    Works per axis: batched over rays, XLA's CPU code for [N, 3] arrays reduced over the
+    last axis is several times slower than the same maths on three [N] arrays.
+    """
+    o, d = tuple(o[a] for a in range(3)), tuple(d[a] for a in range(3))
+    nan = functools.reduce(jnp.logical_or, (jnp.isnan(c) for c in o + d)) | jnp.isnan(t_max)
+    bad = nan | ((d[0] == 0) & (d[1] == 0) & (d[2] == 0))
+    neg = tuple(c < 0 for c in d)
+    o = vec(lambda p, n: jnp.where(bad, 0.0, jnp.where(n, res - p, p)), o, neg)
+    inv = vec(lambda c: 1.0 / jnp.maximum(jnp.where(bad, 1.0, jnp.abs(c)), _TINY), d)
+    t_in = max3(vec(lambda p, i: -p * i, o, inv))
+    t_out = min3(vec(lambda p, i: (res - p) * i, o, inv))
     enters = (t_in < t_out) & (t_out > 0) & (t_in <= t_max) & ~bad
     status = jnp.where(enters, RUNNING, jnp.where(bad, INVALID, MISS)).astype(jnp.int32)
-    flip = jnp.sum(jnp.where(neg, 1 << AXES, 0)).astype(jnp.int32)
-    ray = Ray(tuple(o[a] for a in range(3)), tuple(inv[a] for a in range(3)), flip, t_max)
-    return ray, jnp.maximum(t_in, 0.0), status
+    flip = neg[0].astype(jnp.int32) | neg[1].astype(jnp.int32) << 1 | neg[2].astype(jnp.int32) << 2
+    return Ray(o, inv, flip, t_max), jnp.maximum(t_in, 0.0), status
 
 
 def times(ray: Ray, planes):
@@ -107,6 +117,35 @@ def pick(values, index):
 
 def stack_set(stack, level, value, when):
     return tuple(jnp.where(when & (level == k), value, s) for k, s in enumerate(stack))
+
+
+def opaque(tree) -> jax.Array:
+    """A [] int32 0 or 1 that XLA cannot fold: the token of `materialize`."""
+    return (tree.voxel_count == 0).astype(jnp.int32)
+
+
+def materialize(values, token):
+    """`values` (a pytree of int32/float32/bool arrays) computed once and stored, not
+    recomputed by every consumer.
+
+    XLA's CPU fusion copies a shared producer into the fusion of each consumer, so a loop
+    step whose decision feeds a dozen state fields computed the whole step a dozen times
+    (`jax.lax.optimization_barrier` is expanded away before fusion, and a conditional
+    with equal branches is turned into selects). A while loop is never fused: this one
+    runs once (`token` is a [] int32 zero that XLA cannot see is zero) and XORs its
+    values with ``token``.
+    """
+
+    def body(carry):
+        k, v = carry
+        flip = lambda x: (
+            x ^ k.astype(x.dtype)
+            if x.dtype != jnp.float32
+            else jax.lax.bitcast_convert_type(jax.lax.bitcast_convert_type(x, jnp.int32) ^ k, jnp.float32)
+        )
+        return k + 1, jax.tree.map(flip, v)
+
+    return jax.lax.while_loop(lambda c: c[0] < 1, body, (token, values))[1]
 
 
 def select(keep, new, old):
