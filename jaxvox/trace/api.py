@@ -3,7 +3,6 @@ checks, padding of concrete rays to the shape ladder, and the jitted entry point
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -84,13 +83,49 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
 
 @functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard", "beam"))
 def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard, beam):
-    hit = trace_rays(
-        tree, origins, directions, t_max, method=method, max_steps=max_steps, lanes=lanes, shard=shard, beam=beam
+    indexed = not (isinstance(tree, CompactDag) and not tree.prefix)  # no prefix sums: no Morton index
+    return trace_rays(
+        tree,
+        origins,
+        directions,
+        t_max,
+        method=method,
+        max_steps=max_steps,
+        lanes=lanes,
+        shard=shard,
+        beam=beam,
+        index=_hit_indices if indexed else lambda tree, hit: jnp.full_like(hit.status, MISSING),
     )
-    if isinstance(tree, CompactDag) and not tree.prefix:  # no prefix sums: no Morton index
-        return dataclasses.replace(hit, index=jnp.full_like(hit.status, MISSING))
-    index = voxel_index(tree, jnp.maximum(hit.voxel, 0))
-    return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
+
+
+_INDEX_CHUNK = 16384
+
+
+def _hit_indices(tree, hit: Hit):
+    """`voxel_index` of the hit voxels only ([...] int32, `MISSING` elsewhere): the hits
+    are compacted and looked up in chunks of `_INDEX_CHUNK`, so the walks cost what the
+    hits cost, not what the rays cost (an image of the bunny: 14% of its rays hit)."""
+    shape = hit.status.shape
+    hits, voxel = hit.status.reshape(-1) == HIT, hit.voxel.reshape(-1, 3)
+    n = hits.shape[0]
+    size = n + -n % _INDEX_CHUNK
+    order = (
+        jnp.zeros(size, jnp.int32)
+        .at[jnp.where(hits, jnp.cumsum(hits) - 1, size)]
+        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+    )
+    count = jnp.sum(hits)
+
+    def chunk(carry):
+        k, index = carry
+        ids = jax.lax.dynamic_slice(order, (k * _INDEX_CHUNK,), (_INDEX_CHUNK,))
+        live = k * _INDEX_CHUNK + jnp.arange(_INDEX_CHUNK) < count
+        found = voxel_index(tree, jnp.maximum(voxel[ids], 0))
+        return k + 1, index.at[jnp.where(live, ids, n)].set(found, mode="drop")
+
+    index = jnp.full(n, MISSING, jnp.int32)
+    _, index = jax.lax.while_loop(lambda c: c[0] * _INDEX_CHUNK < count, chunk, (jnp.int32(0), index))
+    return index.reshape(shape)
 
 
 def trace(
@@ -101,7 +136,7 @@ def trace(
     t_max: Real[ArrayLike, "*t"] = float("inf"),
     method: str = "esvo",
     max_steps: int | None = None,
-    lanes: int | None = 16384,
+    lanes: int | None = 8192,
     shard: bool | None = None,
     beam: bool = True,
 ) -> Hit:
@@ -160,13 +195,25 @@ def trace(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
-def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
-    hit = trace_rays(dense, origins, directions, t_max, method="dda", max_steps=max_steps, lanes=lanes, shard=shard)
+def _dense_index(dense, hit: Hit):
     res = dense.grid.resolution
     v = jnp.maximum(hit.voxel, 0)
-    index = (v[..., 0] * res + v[..., 1]) * res + v[..., 2]
-    return dataclasses.replace(hit, index=jnp.where(hit.status == HIT, index, MISSING))
+    return jnp.where(hit.status == HIT, (v[..., 0] * res + v[..., 1]) * res + v[..., 2], MISSING)
+
+
+@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
+def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
+    return trace_rays(
+        dense,
+        origins,
+        directions,
+        t_max,
+        method="dda",
+        max_steps=max_steps,
+        lanes=lanes,
+        shard=shard,
+        index=_dense_index,
+    )
 
 
 def trace_dense(

@@ -43,8 +43,9 @@ def dda_step(dense: DenseGrid, ray: Ray, s: _Dda) -> _Dda:
     live = dense.occupancy[(i * res + j) * res + k] & (t_out > 0) & (t_in < t_out)
     axis = argmin3(t1)
     status = step_status((t_in > ray.t_max) | (~live & (pick(s.cell, axis) + 1 >= res)), live)
-    cell = tuple(jnp.where((axis == a) & (status == RUNNING), c + 1, c) for a, c in enumerate(s.cell))
-    return _Dda(cell, status)
+    go = (s.status == RUNNING) & (status == RUNNING)
+    cell = tuple(jnp.where((axis == a) & go, c + 1, c) for a, c in enumerate(s.cell))
+    return _Dda(cell, jnp.where(s.status == RUNNING, status, s.status))
 
 
 def dda_voxel(dense, s: _Dda):

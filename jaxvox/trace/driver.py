@@ -4,6 +4,7 @@ flattening, sharding over devices); see `jaxvox.trace`."""
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Callable
 from typing import NamedTuple
@@ -91,15 +92,21 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
         # a loop, not unrolled: XLA would fuse consecutive steps and recompute each one
         state = jax.lax.fori_loop(0, steps_per_refill, lambda _, s: lane_step(c.ray, s), c.state)
         steps = c.steps + steps_per_refill
-        capped = steps >= max_steps
-        done = (state.status != RUNNING) | capped
-        final = jnp.where(state.status == RUNNING, STEP_CAP, state.status)
+        state = state._replace(
+            status=jnp.where((state.status == RUNNING) & (steps >= max_steps), STEP_CAP, state.status)
+        )
+        done = (state.status != RUNNING) & (c.ids < n)
+        # Refilling costs about two steps; it waits until an eighth of the lanes are done
+        # (ended rays keep their state meanwhile) or the queue is empty.
+        refill_now = (jnp.sum(done) * 8 >= lanes) | (c.next >= queued)
+        return jax.lax.cond(refill_now, refill, lambda c, s, t, _: c._replace(state=s, steps=t), c, state, steps, done)
+
+    def refill(c: Carry, state, steps, done) -> Carry:
         slot = jnp.where(done, c.ids, n)
-        out_status = c.out_status.at[slot].set(final, mode="drop")
+        out_status = c.out_status.at[slot].set(state.status, mode="drop")
         out_voxel = c.out_voxel.at[slot].set(jax.vmap(lambda s: jnp.stack(voxel(structure, s)))(state), mode="drop")
-        ended = done & (c.ids < n)
-        pos = c.next + jnp.cumsum(ended) - 1
-        fresh = ended & (pos < queued)
+        pos = c.next + jnp.cumsum(done) - 1
+        fresh = done & (pos < queued)
         new_ids = queue[jnp.clip(pos, 0, n - 1)]
         new_ray, new_state = fetch(new_ids, fresh)
         refill = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
@@ -108,7 +115,7 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
             jax.tree.map(refill, new_ray, c.ray),
             jax.tree.map(refill, new_state, state),
             jnp.where(done, 0, steps),
-            c.next + jnp.sum(ended),
+            c.next + jnp.sum(done),
             out_status,
             out_voxel,
         )
@@ -146,10 +153,12 @@ def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes, beam):
     )
 
 
-def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=False):
+def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=False, index=None):
     """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`.
     With `beam`, consecutive runs of `BEAM_RAYS` rays start at their beam distance (the
-    caller orders them by tiles)."""
+    caller orders them by tiles). `index(structure, hit)` fills ``Hit.index`` on each
+    device's own rays (work on a sharded array across devices would be partitioned by
+    XLA, with communication in every step of its loops)."""
     grid = structure.grid
     o = grid.to_grid_units(origins)
     d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
@@ -160,7 +169,12 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
     n = o.shape[0]
     sharded = shard and len(devices) > 1 and n >= len(devices)
     beam = beam and n % (BEAM_RAYS * (len(devices) if sharded else 1)) == 0
-    run = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes, beam=beam)
+    flat = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes, beam=beam)
+
+    def run(structure, o, d, t_max):
+        hit = flat(structure, o, d, t_max)
+        return hit if index is None else dataclasses.replace(hit, index=index(structure, hit))
+
     if sharded:
         # Each device traces its own slice of the rays with its own lanes and queue.
         pad = -n % len(devices)

@@ -152,5 +152,13 @@ def select(keep, new, old):
     return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
 
 
+def settle(s, stepped, status):
+    """The state after a step: `stepped` while the ray runs on; a ray that ended, in this
+    step (`status`) or before (``s.status``, e.g. `STEP_CAP` set by the driver), keeps
+    its state and first status."""
+    go = (s.status == RUNNING) & (status == RUNNING)
+    return select(go, stepped, s._replace(status=jnp.where(s.status == RUNNING, status, s.status)))
+
+
 def step_status(miss, hit):
     return jnp.where(miss, MISS, jnp.where(hit, HIT, RUNNING)).astype(jnp.int32)

@@ -9,7 +9,6 @@ import jax
 import jax.numpy as jnp
 
 from jaxvox.octree import Octree
-from jaxvox.trace.hit import RUNNING
 from jaxvox.trace.ray import (
     Ray,
     argmin3,
@@ -20,7 +19,7 @@ from jaxvox.trace.ray import (
     min3,
     pick,
     root_row,
-    select,
+    settle,
     slot_bits,
     stack_set,
     step_status,
@@ -80,7 +79,7 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
         stack_child=stack_set(s.stack_child, s.level, next_child, descend),
         status=status,
     )
-    return select(status == RUNNING, stepped, s._replace(status=status))
+    return settle(s, stepped, status)
 
 
 def stacked_voxel(tree: Octree, s: _Stacked):
