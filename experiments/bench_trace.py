@@ -17,6 +17,11 @@ For each mesh and resolution R, in one fresh subprocess per case:
 * at R <= ``--naive-max`` the naive baseline: a plain vmapped dense-grid DDA
   (`jv.trace_dense` with ``lanes=None``) on 256x256 of the primary rays.
 
+Primary rays are passed as the [H, W, 3] image, so that the beam start groups 8 x 8
+tiles; the DAG is also timed without it. ``--devices`` sets the number of JAX CPU
+devices the workers start with (default: one per core; `jaxvox.trace` shards concrete
+rays over them); ``--device gpu`` runs on JAX's GPU backend with lanes sized for it.
+
 Timings are the median of ``--repeats`` calls after a warm-up call (its excess over the
 median is reported as compile time), with `jax.block_until_ready`.
 
@@ -33,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -82,7 +88,11 @@ def worker(spec: dict) -> dict:
         mesh_bytes=int(np.asarray(mesh.vertices).nbytes + np.asarray(mesh.faces).nbytes),
     )
     eye, target = jv.look_at_view(mesh)
-    o, d = (jnp.reshape(x, (-1, 3)) for x in jv.pinhole_rays(eye, target, width=width, height=height))
+    o_img, d_img = jv.pinhole_rays(eye, target, width=width, height=height)  # [H, W, 3]: beams are image tiles
+    o, d = (jnp.reshape(x, (-1, 3)) for x in (o_img, d_img))
+    # lanes sized for the device: a few thousand per CPU device, a million on a GPU
+    lanes = 8192 if jax.default_backend() == "cpu" else 1 << 20
+    result.update(backend=jax.default_backend(), devices=len(jax.devices()), lanes=lanes)
     rng = np.random.default_rng(0)
     lo, hi = np.asarray(grid.origin), np.asarray(grid.origin) + R * h
     centre, radius = (lo + hi) / 2, 1.5 * np.linalg.norm(hi - lo)
@@ -104,9 +114,12 @@ def worker(spec: dict) -> dict:
 
     cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
     for name, kind, method in cases[: len(trees) + 1]:
-        hits[name] = timed(
-            f"primary/{name}", lambda: jax.block_until_ready(jv.trace(trees[kind], o, d, method=method)), width * height
+        trace = lambda: jax.block_until_ready(jv.trace(trees[kind], o_img, d_img, method=method, lanes=lanes))
+        hits[name] = jax.tree.map(
+            lambda x: x.reshape((-1,) + x.shape[2:]), timed(f"primary/{name}", trace, width * height)
         )
+    no_beam = lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img, lanes=lanes, beam=False))
+    timed("primary/dag-esvo-no-beam", no_beam, width * height)
     hit = hits["dag-esvo"]
     o_np, d_np = np.asarray(o), np.asarray(d)
     t_mesh = timed("primary/embree", lambda: embree(o_np, d_np), width * height)
@@ -132,7 +145,7 @@ def worker(spec: dict) -> dict:
     for name, kind, method in cases[:2]:
         timed(
             f"incoherent/{name}",
-            lambda: jax.block_until_ready(jv.trace(trees[kind], o_inc, d_inc, method=method)),
+            lambda: jax.block_until_ready(jv.trace(trees[kind], o_inc, d_inc, method=method, lanes=lanes)),
             n_inc,
         )
     timed("incoherent/embree", lambda: embree(o_inc, d_inc), n_inc)
@@ -140,7 +153,7 @@ def worker(spec: dict) -> dict:
     s_dir = np.broadcast_to(light, p.shape).astype(np.float32)
     p = p.astype(np.float32)
     result["shadow_rays"] = len(p)
-    timed("shadow/dag-esvo", lambda: jax.block_until_ready(jv.trace(trees["dag"], p, s_dir)), len(p))
+    timed("shadow/dag-esvo", lambda: jax.block_until_ready(jv.trace(trees["dag"], p, s_dir, lanes=lanes)), len(p))
     timed("shadow/embree", lambda: embree(p, s_dir), len(p))
     if R <= spec["naive_max"]:
         occupancy = np.zeros((R,) * 3, bool)
@@ -222,6 +235,10 @@ def main():
     parser.add_argument("--naive-max", type=int, default=1024)
     parser.add_argument("--svo-max", type=int, default=4096, help="largest R at which the SVO is built too")
     parser.add_argument("--smoke", action="store_true")
+    parser.add_argument(
+        "--devices", type=int, default=os.cpu_count(), help="JAX CPU devices (rays are sharded over them)"
+    )
+    parser.add_argument("--device", default=None, help="cpu or gpu (JAX_PLATFORMS); default: JAX's default backend")
     parser.add_argument("--update", action="store_true", help="merge into the existing JSON instead of replacing it")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--plot-only", action="store_true", help="redraw the table and chart from the JSON")
@@ -229,6 +246,9 @@ def main():
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
+    os.environ["JAX_NUM_CPU_DEVICES"] = str(args.devices)  # read by every worker's JAX at start
+    if args.device:
+        os.environ["JAX_PLATFORMS"] = args.device
     width, height, n_inc = (1920, 1080, 2**20) if not args.smoke else (480, 270, 2**16)
     resolutions = args.resolutions if not args.smoke else [64, 128]
     stem = "bench_trace" + ("_smoke" if args.smoke else "")
@@ -250,7 +270,8 @@ def main():
             if "error" in row:
                 print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
                 continue
-            rows = [r for r in rows if (r["mesh"], r["resolution"]) != (mesh, R)] + [row]
+            key = lambda r: (r["mesh"], r["resolution"], r.get("devices", 1), r.get("backend", "cpu"))
+            rows = [r for r in rows if key(r) != key(row)] + [row]
             t = row["timings"]
             print(
                 f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
@@ -265,7 +286,9 @@ def main():
     columns = [
         ("mesh", "mesh"),
         ("resolution", "R"),
+        ("devices", "devices"),
         ("dag_esvo", "DAG esvo Mrays/s"),
+        ("no_beam", "without beam"),
         ("dag_stack", "DAG stack"),
         ("svo_esvo", "SVO esvo"),
         ("embree", "Embree"),
@@ -286,7 +309,9 @@ def main():
             dict(
                 mesh=r["mesh"],
                 resolution=r["resolution"],
+                devices=r.get("devices", 1),
                 dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
+                no_beam=f"{rate('primary/dag-esvo-no-beam'):.2f}" if "primary/dag-esvo-no-beam" in t else "-",
                 dag_stack=f"{rate('primary/dag-stack'):.2f}",
                 svo_esvo=f"{rate('primary/svo-esvo'):.2f}" if "primary/svo-esvo" in t else "-",
                 embree=f"{rate('primary/embree'):.2f}",

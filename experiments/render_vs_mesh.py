@@ -5,7 +5,10 @@ For each mesh (default: the Stanford bunny and spot):
 * a reference: the triangle mesh path-traced with Embree (`jaxvox.render_mesh`) at many
   samples per pixel (``--reference-spp``);
 * the mesh again at the sweep's samples per pixel (``--spp``), its noise level;
-* the mesh's DAG at each resolution, rendered by `jaxvox.render` with the same settings.
+* the mesh's DAG at each resolution, rendered by `jaxvox.render` with the same settings,
+  shaded with the normal of the voxel face each ray enters (``dag``) and with per-voxel
+  shading normals, the face normal of the triangle that set each voxel (``dag-normals``:
+  `jaxvox.mesh_to_dag` with ``attributes=``, so that 8192^3 fits).
 
 The lighting is the procedural sky with its sun, 8 bounces, grey albedo 0.7. Every case
 runs in a fresh subprocess (peak memory is its own). Time per sample is the median of
@@ -15,12 +18,14 @@ tone-mapped sRGB image (what a viewer sees; values in [0, 1]) against the refere
 
 Writes ``experiments/results/render_vs_mesh.{json,md,png}`` (chart: time per sample
 against PSNR, SSIM against resolution) and ``render_vs_mesh_strip.png`` (the images).
-``--smoke`` runs two small resolutions at a small size in a few minutes.
+``--smoke`` runs two small resolutions at a small size in a few minutes. ``--device gpu``
+runs every case on JAX's GPU backend (``JAX_PLATFORMS``); the default is JAX's default.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -65,7 +70,15 @@ def worker(spec: dict) -> dict:
     else:
         R = spec["resolution"]
         start = time.perf_counter()
-        tree = jv.build_dag(jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=R)))
+        grid = jv.Grid.fit(mesh, resolution=R)
+        if spec["case"] == "dag-normals":
+            import tempfile
+
+            folder = tempfile.mkdtemp(dir=out)
+            tree, attributes = jv.mesh_to_dag(mesh, grid, attributes=folder)
+            settings["normals"] = attributes["normal"]
+        else:
+            tree = jv.build_dag(jv.voxelize(mesh, grid))
         tree.mask.block_until_ready()
         row.update(
             resolution=R,
@@ -84,7 +97,7 @@ def worker(spec: dict) -> dict:
         stopped=int(result.stopped),
     )
     image = jv.tonemap(result.radiance)
-    name = f"{spec['mesh']}_{spec['case']}" + (f"_{spec['resolution']}" if spec["case"] == "dag" else "")
+    name = f"{spec['mesh']}_{spec['case']}" + (f"_{spec['resolution']}" if spec["case"].startswith("dag") else "")
     write_png(out / f"{name}.png", image)
     if spec["case"] == "reference":
         jv.save_render(out / f"{name}.exr", result)
@@ -93,29 +106,46 @@ def worker(spec: dict) -> dict:
 
         row.update(_metrics(image, iio.imread(out / f"{spec['mesh']}_reference.png")))
     row["image"] = f"{name}.png"
+    row["backend"] = jax.default_backend()
+    if spec["case"] == "dag-normals":
+        import shutil
+
+        del settings["normals"], attributes
+        shutil.rmtree(folder, ignore_errors=True)
     return row
 
 
 def chart(rows: list[dict], path: Path) -> None:
     fig, (left, right) = _common.new_figure(2)
     for mesh in sorted({r["mesh"] for r in rows}):
-        dags = sorted((r for r in rows if r["mesh"] == mesh and r["case"] == "dag"), key=lambda r: r["resolution"])
-        (line,) = left.plot([r["ns_per_sample"] for r in dags], [r["psnr"] for r in dags], "o-", label=f"{mesh} DAG")
-        for r in dags:
-            left.annotate(
-                f"{r['resolution']}",
-                (r["ns_per_sample"], r["psnr"]),
-                textcoords="offset points",
-                xytext=(4, 4),
-                fontsize=8,
+        line = None
+        for case, style, label in (("dag", "o-", "DAG, face normals"), ("dag-normals", "s--", "DAG, voxel normals")):
+            dags = sorted((r for r in rows if r["mesh"] == mesh and r["case"] == case), key=lambda r: r["resolution"])
+            if not dags:
+                continue
+            colour = None if line is None else line.get_color()
+            (line,) = left.plot(
+                [r["ns_per_sample"] for r in dags],
+                [r["psnr"] for r in dags],
+                style,
+                color=colour,
+                label=f"{mesh} {label}",
             )
-        right.plot(
-            [r["resolution"] for r in dags],
-            [r["ssim"] for r in dags],
-            "o-",
-            color=line.get_color(),
-            label=f"{mesh} DAG",
-        )
+            for r in dags:
+                left.annotate(
+                    f"{r['resolution']}",
+                    (r["ns_per_sample"], r["psnr"]),
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                    fontsize=8,
+                )
+            right.plot(
+                [r["resolution"] for r in dags],
+                [r["ssim"] for r in dags],
+                style,
+                color=line.get_color(),
+                label=f"{mesh} {label}",
+            )
         for r in rows:
             if r["mesh"] == mesh and r["case"] == "mesh":
                 left.plot(
@@ -150,6 +180,7 @@ def strip(rows: list[dict], folder: Path, path: Path) -> None:
             [r for r in mine if r["case"] == "reference"]
             + [r for r in mine if r["case"] == "mesh"]
             + sorted((r for r in mine if r["case"] == "dag"), key=lambda r: r["resolution"])
+            + sorted((r for r in mine if r["case"] == "dag-normals"), key=lambda r: r["resolution"])
         )
         tiles = [iio.imread(folder / r["image"]) for r in order if (folder / r["image"]).exists()]
         gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
@@ -168,12 +199,16 @@ def main():
     parser.add_argument("--reference-spp", type=int, default=256)
     parser.add_argument("--bounces", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--cases", nargs="+", default=["dag", "dag-normals"], choices=["dag", "dag-normals"])
+    parser.add_argument("--device", default=None, help="cpu or gpu (JAX_PLATFORMS for every case); default: JAX's")
     parser.add_argument("--smoke", action="store_true")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--worker")
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
+    if args.device:
+        os.environ["JAX_PLATFORMS"] = args.device
     if args.smoke:
         args.size, args.spp, args.reference_spp, args.resolutions, args.repeats = "64x48", 2, 8, [32, 64], 1
     width, height = (int(x) for x in args.size.split("x"))
@@ -192,7 +227,7 @@ def main():
             azimuth=35.0 if mesh != "spot" else 145.0,
         )
         cases = [dict(case="reference", spp=args.reference_spp, seed=12345), dict(case="mesh", spp=args.spp, seed=0)]
-        cases += [dict(case="dag", resolution=R, spp=args.spp, seed=0) for R in args.resolutions]
+        cases += [dict(case=c, resolution=R, spp=args.spp, seed=0) for R in args.resolutions for c in args.cases]
         for case in cases:
             row = _common.run_worker(__file__, dict(base, **case), timeout=7200)
             if "error" in row:
@@ -247,7 +282,7 @@ def main():
     md = _common.markdown_table(table, columns)
     (args.out / f"{stem}.md").write_text(md + "\n")
     print(md)
-    if any(r["case"] == "dag" for r in rows):
+    if any(r["case"].startswith("dag") for r in rows):
         chart(rows, args.out / f"{stem}.png")
         strip(rows, images, args.out / f"{stem}_strip.png")
 

@@ -61,7 +61,7 @@ from jaxvox._pytree import pytree_dataclass
 from jaxvox.camera import check_view, pixel_directions
 from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
-from jaxvox.render.materials import rgb_table
+from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
@@ -107,7 +107,8 @@ class Surface(NamedTuple):
     escaped: jax.Array  # [N] bool the ray left the scene
     stopped: jax.Array  # [N] bool neither: step cap, or the ray started inside a voxel
     point: jax.Array  # [N, 3] float32 hit point moved just off the surface, on the ray's side
-    normal: jax.Array  # [N, 3] float32 unit normal facing the ray's side
+    normal: jax.Array  # [N, 3] float32 unit geometric normal facing the ray's side
+    shading: jax.Array  # [N, 3] float32 unit shading normal on the same side (the geometric one by default)
     index: jax.Array  # type: ignore[assignment]  # [N] int32 primitive index (voxel in Morton order, or triangle), 0 unless hit
 
 
@@ -136,8 +137,10 @@ def _cosine_direction(normal, u):
     return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit) -> Surface:
-    """The surface a voxel `Hit` found; the offset point is inside the face, just outside the voxel."""
+def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit, normals) -> Surface:
+    """The surface a voxel `Hit` found; the offset point is inside the face, just outside
+    the voxel. The shading normal is the voxel's row of `normals` ([1 or V, 3]; a zero row
+    means none), turned to the side of the entered face; the face normal where there is none."""
     grid = tree.grid
     is_hit = hit.status == HIT
     entered = jnp.any(hit.normal != 0, axis=-1)  # False when the ray started inside the voxel
@@ -158,13 +161,19 @@ def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit) -> Surface
     p = jnp.where(blocked[:, None], diagonal, across)
     point = grid.origin + p * grid.voxel_size
     live = valid_rays(origin, direction)
+    index = jnp.maximum(hit.index, 0)
+    given = _lookup(normals, index)
+    length = jnp.sqrt(jnp.sum(given * given, -1, keepdims=True))
+    facing = jnp.where(jnp.sum(given * n, -1, keepdims=True) < 0, -given, given)
+    shading = jnp.where(length > 0.5, facing / jnp.maximum(length, 0.5), n)
     return Surface(
         hit=is_hit & entered,
         escaped=live & (hit.status != HIT) & (hit.status != STEP_CAP),
         stopped=live & ((hit.status == STEP_CAP) | (is_hit & ~entered)),
         point=point,
         normal=n,
-        index=jnp.maximum(hit.index, 0),
+        shading=shading,
+        index=index,
     )
 
 
@@ -184,7 +193,8 @@ def environment_sample(env: Environment, surf: Surface, u, last):
     Returns (directions [N, 3] float32, zero where there is none, and their pdf [N]).
     """
     d, pdf = env.sample(u)
-    use = surf.hit & ~last & (jnp.sum(surf.normal * d, -1) > 0) & (pdf > 0)
+    leaves = (jnp.sum(surf.normal * d, -1) > 0) & (jnp.sum(surf.shading * d, -1) > 0)
+    use = surf.hit & ~last & leaves & (pdf > 0)
     return jnp.where(use[:, None], d, 0.0), jnp.where(use, pdf, 0.0)
 
 
@@ -197,6 +207,11 @@ def shade(
     ``rho`` and ``emitted`` are the [N, 3] albedo and emission at the hits, ``u`` [N, 2]
     uniforms, ``sun_visible`` [N] float32 whether the shadow ray escaped; ``light`` is
     (directions, pdf, visible) of the environment samples when ``env.sampled``.
+
+    Cosines and the bounce's cosine lobe use the shading normal. A bounce direction that
+    would go back through the face the ray entered (possible when the shading normal
+    leans away from the face normal) is mirrored in the face's plane, so that every
+    bounce leaves the surface and none starts inside its own voxel.
     """
     live = valid_rays(path.origin, path.direction)
     sky = (env.camera_radiance if first else env.radiance)(path.direction)
@@ -205,25 +220,30 @@ def shade(
     radiance = path.radiance + jnp.where(surf.escaped[:, None], path.throughput * sky, 0.0)
     gathered = emitted
     if env.sun:
-        cos = jnp.maximum(jnp.sum(surf.normal * env.sun_direction, -1), 0.0)
+        cos = jnp.maximum(jnp.sum(surf.shading * env.sun_direction, -1), 0.0)
         sun = rho / jnp.pi * env.sun_irradiance * (cos * sun_visible)[:, None]
         gathered = gathered + sun
     if env.sampled:
         d, pdf, visible = light
-        cos = jnp.sum(surf.normal * d, -1)  # > 0 where pdf > 0
+        cos = jnp.sum(surf.shading * d, -1)  # > 0 where pdf > 0
         weight = _mis(pdf, cos / jnp.pi) / jnp.where(pdf > 0, pdf, 1.0) * cos * visible
         gathered = gathered + rho / jnp.pi * env.radiance(d) * weight[:, None]
     radiance = radiance + jnp.where(surf.hit[:, None], path.throughput * gathered, 0.0)
     go_on = surf.hit & ~last & live
-    normal = jnp.where(surf.hit[:, None], surf.normal, jnp.array([0.0, 0.0, 1.0]))
-    direction = jnp.where(go_on[:, None], _cosine_direction(normal, u), 0.0)
+    up = jnp.array([0.0, 0.0, 1.0])
+    normal = jnp.where(surf.hit[:, None], surf.shading, up)
+    face = jnp.where(surf.hit[:, None], surf.normal, up)
+    lobe = _cosine_direction(normal, u)
+    pdf = jnp.sum(normal * lobe, -1) / jnp.pi
+    back = jnp.sum(face * lobe, -1, keepdims=True)
+    lobe = jnp.where(back <= 0, lobe - 2 * back * face, lobe)
     return PathState(
         origin=jnp.where(go_on[:, None], surf.point, path.origin),
-        direction=direction,
+        direction=jnp.where(go_on[:, None], lobe, 0.0),
         throughput=path.throughput * jnp.where(go_on[:, None], rho, 1.0),
         radiance=radiance,
         stopped=path.stopped | surf.stopped,
-        pdf=jnp.sum(normal * direction, -1) / jnp.pi,
+        pdf=jnp.where(go_on, pdf, 0.0),
     )
 
 
@@ -257,6 +277,7 @@ def _render_batch(
     tree,
     albedo,
     emission,
+    normals,
     env,
     camera,
     key,
@@ -280,7 +301,7 @@ def _render_batch(
     go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False)
 
     def segment(k, path, first):
-        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction))
+        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction), normals)
         visible = jnp.zeros(batch, jnp.float32)
         if env.sun:
             towards = jnp.where(
@@ -366,6 +387,7 @@ def render(
     env: Environment | None = None,
     albedo=None,
     emission=None,
+    normals=None,
     width: int = 320,
     height: int = 240,
     fov: float = 40.0,
@@ -390,6 +412,11 @@ def render(
         `voxel_albedo` of `voxel_attributes`. Default 0.7 grey.
       emission: emitted radiance, linear: None (nothing emits), an RGB triple, or a
         [V, 3] per-voxel array.
+      normals: None (shade with the normal of the voxel face each ray enters), or a
+        [V, 3] per-voxel array of shading normals in Morton order, e.g. the ``"normal"``
+        of `voxel_attributes` (the face normal of the triangle that set the voxel);
+        rows of zeros fall back to the face normal, and a normal is turned to the side
+        the ray came from. Bounces still leave through the entered face (see `shade`).
       width, height: image size in pixels.
       fov: vertical field of view in degrees; up: approximate up direction [3].
       spp: samples (paths) per pixel.
@@ -417,10 +444,15 @@ def render(
     resolution = tree.grid.resolution
     albedo = rgb_table("render albedo", albedo, rows, "voxel", (0.7, 0.7, 0.7), resolution)
     emission = rgb_table("render emission", emission, rows, "voxel", (0.0, 0.0, 0.0), resolution)
-    if isinstance(tree, CompactDag) and not tree.prefix and max(albedo.shape[0], emission.shape[0]) > 1:
+    normals = normal_table("render normals", normals, rows, resolution)
+    if (
+        isinstance(tree, CompactDag)
+        and not tree.prefix
+        and max(albedo.shape[0], emission.shape[0], normals.shape[0]) > 1
+    ):
         raise refuse(
             "render tree",
-            "per-voxel albedo or emission need prefix sums: compact_dag(tree, prefix=True)",
+            "per-voxel albedo, emission or normals need prefix sums: compact_dag(tree, prefix=True)",
             "prefix=False",
         )
     camera = checked_camera("render", eye, target, up, fov)
@@ -439,6 +471,7 @@ def render(
                 tree,
                 albedo,
                 emission,
+                normals,
                 env,
                 camera,
                 key,

@@ -55,6 +55,23 @@ def rgb_table(what: str, value, rows: int, per: str, default, resolution: int | 
     return jnp.asarray(a)
 
 
+def normal_table(what: str, value, rows: int, resolution: int) -> jax.Array:
+    """A [1 or n >= rows, 3] float32 table of per-voxel shading normals from None (one zero
+    row: no shading normals) or a [V, 3] array of finite values, padded like `rgb_table`."""
+    if value is None:
+        return jnp.zeros((1, 3), jnp.float32)
+    try:
+        a = np.asarray(value, np.float32)
+    except (TypeError, ValueError):
+        raise refuse(what, f"must be a [voxels, 3] array with at least {rows} rows", value) from None
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < rows:
+        raise refuse(what, f"must be a [voxels, 3] array with at least {rows} rows", f"shape {np.shape(value)}")
+    if not np.isfinite(a).all():
+        raise refuse(what, "must be finite", a[~np.isfinite(a)][0])
+    a = np.concatenate([a, np.zeros((voxel_bucket(a.shape[0], resolution) - a.shape[0], 3), np.float32)])
+    return jnp.asarray(a)
+
+
 def box_emission(vox, lo, hi, rgb) -> jax.Array:
     """Per-voxel emission: `rgb` for the voxels whose centres lie in a world-space box.
 

@@ -193,7 +193,9 @@ def render_mesh(
         else:
             rho = rho_table[np.minimum(face, len(rho_table) - 1)]
         emitted = emit_table[np.minimum(face, len(emit_table) - 1)]
-        surf = Surface(hit=hit, escaped=live & ~hit, stopped=np.zeros(n, bool), point=point, normal=ng, index=face)
+        surf = Surface(
+            hit=hit, escaped=live & ~hit, stopped=np.zeros(n, bool), point=point, normal=ng, shading=ng, index=face
+        )
         return surf, t, rho.astype(np.float32), emitted
 
     n_batches = -(-total // batch)
