@@ -22,6 +22,11 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+# One JAX CPU device per core in every experiment (read when JAX starts, so this module is
+# imported first): `jaxvox.trace` shards concrete rays over the devices. A script that
+# measures device counts sets its own (bench_trace ``--devices``, distributed_build).
+os.environ.setdefault("JAX_NUM_CPU_DEVICES", str(os.cpu_count() or 1))
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
 RESULTS_DIR = REPO_ROOT / "experiments" / "results"

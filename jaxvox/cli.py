@@ -281,7 +281,8 @@ def _upright_default_scene():
 
 
 def _render_scene(args):
-    """(tree, albedo, emission, bounds, name) for `render`: a .jvx tree file, a mesh, or the default scene."""
+    """(tree, albedo, emission, normals, bounds, name) for `render`: a .jvx tree file, a mesh,
+    or the default scene; normals are the per-voxel ones where they exist and are wanted."""
     import jaxvox as jv
 
     if args.mesh is not None and args.mesh.endswith(".jvx"):
@@ -310,7 +311,8 @@ def _render_scene(args):
     for lo, hi, rgb in map(_emitter, args.emit or ()):
         box = jv.box_emission(vox, lo, hi, rgb)
         emission = box if emission is None else emission + box
-    return tree, albedo, emission, bounds, name
+    normals = None if args.face_normals else attributes.get("normal")
+    return tree, albedo, emission, normals, bounds, name
 
 
 def _emitter(text: str):
@@ -349,7 +351,7 @@ def cmd_render(args) -> int:
     for text in args.emit or ():
         _emitter(text)
     env = _environment(args.env)
-    tree, albedo, emission, bounds, name = _render_scene(args)
+    tree, albedo, emission, normals, bounds, name = _render_scene(args)
     if len(camera) == 6:
         eye, target = camera[:3], camera[3:]
     else:
@@ -360,6 +362,7 @@ def cmd_render(args) -> int:
         env=env,
         albedo=albedo,
         emission=emission,
+        normals=normals,
         width=width,
         height=height,
         fov=args.fov,
@@ -377,7 +380,8 @@ def cmd_render(args) -> int:
     exr, png = jv.save_render(args.out, result, exposure=args.exposure)
     samples = width * height * args.spp
     print(
-        f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed} "
+        f"  rendered {width}x{height} at {args.spp} spp, {args.bounces} bounces, env {args.env}, seed {args.seed}, "
+        f"{'face' if normals is None else 'per-voxel'} normals "
         f"in {seconds:.1f} s including compilation ({samples / seconds / 1e6:.3f} Msamples/s)"
     )
     if int(result.stopped):
@@ -514,6 +518,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="voxels whose centres lie in this world box emit this linear radiance "
         "(repeatable; write --emit=-1,... when the box starts with a minus sign)",
     )
+    render.add_argument(
+        "--face-normals",
+        action="store_true",
+        help="shade with the normal of the voxel face a ray enters, not the per-voxel normals of the mesh (the default "
+        "where they exist: a mesh, or a .jvx file saved with them)",
+    )
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     render.add_argument("--batch-rays", type=int, default=1 << 18, help="paths traced per batch (memory)")
@@ -521,6 +531,22 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("file", help="a .jvx file written by jaxvox build or run")
     info.set_defaults(func=cmd_info)
     return parser
+
+
+def use_every_core() -> None:
+    """One JAX CPU device per core (`jax_num_cpu_devices`), so that `trace` shards its rays
+    over all of them; a no-op once JAX has started its backend (e.g. the CLI called from a
+    Python session) or when ``JAX_NUM_CPU_DEVICES`` is set. A library user adds the same
+    line right after ``import jax``:
+    ``jax.config.update("jax_num_cpu_devices", os.cpu_count())``."""
+    import jax
+
+    if "JAX_NUM_CPU_DEVICES" in os.environ:
+        return
+    try:
+        jax.config.update("jax_num_cpu_devices", os.cpu_count() or 1)
+    except RuntimeError:  # the backend is already running
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -535,6 +561,7 @@ def main(argv: list[str] | None = None) -> int:
     from jaxvox.grid import check_resolution
 
     try:
+        use_every_core()
         enable_compilation_cache()  # $JAXVOX_CACHE_DIR, ~/.cache/jaxvox/xla by default
         if getattr(args, "resolution", None) is not None:
             check_resolution(args.resolution)

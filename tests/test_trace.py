@@ -335,11 +335,23 @@ def test_beam_start_changes_no_hit(scene, trees):
     assert (np.asarray(away.status) == MISS).all()
 
 
-def test_tiles_round_trip():
-    from jaxvox.trace.beam import BEAM_RAYS, from_tiles, to_tiles
+def test_beam_groups_round_trip():
+    import jax.numpy as jnp
 
-    for batch in [(5,), (3, 8, 8), (2, 9, 17), (1, 1)]:
-        x = np.arange(int(np.prod(batch)) * 2).reshape(batch + (2,))
-        flat = to_tiles(x, batch, np)
-        assert len(batch) < 2 or flat.shape[0] % BEAM_RAYS == 0
-        np.testing.assert_array_equal(from_tiles(flat, batch), x)
+    from jaxvox.trace.beam import BEAM_RAYS, _groups, _ungroup, beam_layout
+
+    for batch in [(5,), (3, 8, 8), (2, 9, 17), (1, 1), (130,)]:
+        n = int(np.prod(batch)) + 7  # padding rays past the batch
+        layout = beam_layout(batch, n - 7)
+        x = jnp.arange(n, dtype=jnp.float32) + 1
+        groups = _groups(x, layout)
+        assert groups.shape[1] == BEAM_RAYS
+        firsts = _ungroup(groups[:, 0], layout, n)  # each ray gets its group's first value
+        assert (np.asarray(firsts)[n - 7 :] == 0).all()
+        if len(batch) >= 2:  # the corner of each ray's tile
+            index = np.indices(batch)
+            corner = (*index[:-2], index[-2] // 8 * 8, index[-1] // 8 * 8)
+            first = np.ravel_multi_index(corner, batch).reshape(-1)
+        else:
+            first = np.arange(n - 7) // BEAM_RAYS * BEAM_RAYS
+        np.testing.assert_array_equal(np.asarray(firsts)[: n - 7], first + 1)

@@ -15,7 +15,7 @@ from jaxvox._shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
 from jaxvox.octree.queries import check_indexed
-from jaxvox.trace.beam import BEAM_RAYS, from_tiles, to_tiles
+from jaxvox.trace.beam import beam_layout
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
 from jaxvox.trace.hit import HIT, Hit, default_max_steps
@@ -23,30 +23,27 @@ from jaxvox.trace.hit import HIT, Hit, default_max_steps
 TRACE_METHODS = ("esvo", "stack")  # `trace` methods
 
 
-def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None, tiles: bool) -> Hit:
-    """``call(origins, directions, t_max, shard=...)`` on the rays flattened (by 8 x 8 tiles of
-    the last two batch axes when `tiles`, see `jaxvox.trace.beam`) and, when they are
-    concrete arrays (host-side use), padded to the shape ladder, so that ray batches of
-    similar counts (image sizes) share one compiled program; inside a caller's `jax.jit`
-    they are padded to whole beam groups only. Padding rays have a zero direction (status
-    `INVALID`, no work) and are sliced off. ``shard=None`` shards concrete rays only.
+def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None, beam: bool) -> Hit:
+    """``call(origins, directions, t_max, shard=..., beam=...)`` on the rays flattened and,
+    when they are concrete arrays (host-side use), padded to the shape ladder, so that ray
+    batches of similar counts (image sizes) share one compiled program; inside a caller's
+    `jax.jit` they pass unpadded. Padding rays have a zero direction (status `INVALID`, no
+    work) and are sliced off. ``beam`` passes the `beam_layout` of the batch (None when
+    off). ``shard=None`` shards concrete rays only.
     """
     traced = any(isinstance(x, jax.core.Tracer) for x in (origins, directions, t_max))
     shard = (not traced) if shard is None else shard
     xp = jnp if traced else np
     o, d, t = (xp.asarray(x, xp.float32) for x in (origins, directions, t_max))
     shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], t.shape)
-    flat = lambda a, tail: (
-        to_tiles(xp.broadcast_to(a, shape + tail), shape, xp)
-        if tiles
-        else xp.broadcast_to(a, shape + tail).reshape((-1,) + tail)
-    )
+    m = int(np.prod(shape, dtype=np.int64))
+    flat = lambda a, tail: xp.broadcast_to(a, shape + tail).reshape((m,) + tail)
     o, d, t = flat(o, (3,)), flat(d, (3,)), flat(t, ())
-    m = o.shape[0]
-    size = bucket(m) if not traced else m + (-m % BEAM_RAYS if tiles else 0)
-    pad = lambda a: xp.concatenate([a, xp.zeros((size - m,) + a.shape[1:], xp.float32)])
-    hit = call(pad(o), pad(d), pad(t), shard=shard)
-    unflat = lambda x: from_tiles(x, shape) if tiles else x[:m].reshape(shape + x.shape[1:])
+    if not traced:
+        pad = lambda a: np.concatenate([a, np.zeros((bucket(m) - m,) + a.shape[1:], np.float32)])
+        o, d, t = pad(o), pad(d), pad(t)
+    hit = call(o, d, t, shard=shard, beam=beam_layout(shape, m) if beam else None)
+    unflat = lambda x: x[:m].reshape(shape + x.shape[1:])
     if traced:
         return jax.tree.map(unflat, hit)
     return jax.tree.map(lambda x: jax.device_put(unflat(np.asarray(x))), hit)
@@ -186,12 +183,12 @@ def trace(
     _check_rays("trace", origins, directions, t_max, lanes)
     steps = check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     return _rays_on_ladder(
-        functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes, beam=bool(beam)),
+        functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes),
         origins,
         directions,
         t_max,
         shard,
-        tiles=bool(beam),
+        beam=bool(beam),
     )
 
 
@@ -201,8 +198,9 @@ def _dense_index(dense, hit: Hit):
     return jnp.where(hit.status == HIT, (v[..., 0] * res + v[..., 1]) * res + v[..., 2], MISSING)
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard"))
-def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard):
+@functools.partial(jax.jit, static_argnames=("max_steps", "lanes", "shard", "beam"))
+def _trace_dense(dense, origins, directions, t_max, *, max_steps, lanes, shard, beam):
+    assert beam is None  # no beam start on a dense grid
     return trace_rays(
         dense,
         origins,
@@ -256,5 +254,5 @@ def trace_dense(
         directions,
         t_max,
         shard,
-        tiles=False,
+        beam=False,
     )

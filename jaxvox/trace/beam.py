@@ -1,8 +1,9 @@
 """The beam start (Laine and Karras, section 4.2): one coarse pass per group of rays gives
 every ray of the group a safe distance at which to start its traversal.
 
-Groups are runs of `BEAM_RAYS` consecutive rays of the flat batch (`trace` orders image
-rays by 8 x 8 tiles first, so that a group is a tile). A group's rays are bounded by a
+Groups are 8 x 8 tiles of the last two batch axes of the rays (an image's [H, W, 3] rays:
+a group is a tile), or runs of `BEAM_RAYS` rays of a one-axis batch (`beam_layout`); the
+rays stay in row order, only the group statistics are taken over tiles. A group's rays are bounded by a
 thick segment around one axis ray: with ``o_0`` the first ray's origin, ``a`` the unit
 mean direction, ``e`` the largest distance of an origin from ``o_0`` and ``delta`` the
 largest distance of a unit direction from ``a``, the point at distance ``s`` along any
@@ -72,14 +73,52 @@ def _box_counts(table, lo, hi):
     return total
 
 
-def beam_starts(tree: Octree | CompactDag, o, d, entering):
+def _groups(x, layout):
+    """[N] values of rays in row order -> [G, a b], the groups of `layout` (padded with zeros)."""
+    count, height, width, a, b = layout
+    img = x[: count * height * width].reshape(count, height, width)
+    img = jnp.pad(img, ((0, 0), (0, -height % a), (0, -width % b)))
+    rows, cols = img.shape[1] // a, img.shape[2] // b
+    return img.reshape(count, rows, a, cols, b).transpose(0, 1, 3, 2, 4).reshape(-1, a * b)
+
+
+def _ungroup(g, layout, n):
+    """The inverse of `_groups` for one value per group ([G]) -> [n] per ray (0 past the layout)."""
+    count, height, width, a, b = layout
+    rows, cols = -(-height // a), -(-width // b)
+    x = jnp.broadcast_to(g.reshape(count, rows, 1, cols, 1), (count, rows, a, cols, b))
+    x = x.reshape(count, rows * a, cols * b)[:, :height, :width].reshape(-1)
+    return jnp.pad(x, (0, n - x.shape[0]))
+
+
+def beam_layout(batch: tuple, n: int) -> tuple:
+    """The groups of a flat batch of `n` rays in row order whose batch shape was `batch`:
+    (images, height, width, a, b) with a x b = `BEAM_RAYS` rays per group: 8 x 8 tiles of
+    the last two axes, or runs of 64 rays of a one-axis batch."""
+    if len(batch) >= 2:
+        return (int(np.prod(batch[:-2], dtype=np.int64)), int(batch[-2]), int(batch[-1]), BEAM_SIDE, BEAM_SIDE)
+    return (1, 1, n, 1, BEAM_RAYS)
+
+
+def slice_layout(layout: tuple, n: int) -> tuple:
+    """The layout for a slice of `n` consecutive rays of a batch with `layout` (one
+    device's share): rows of the same width from wherever the slice starts, the rays
+    after the last whole row left without a beam start."""
+    width = layout[2]
+    if layout[3] == 1 or n < width:
+        return (1, 1, n, 1, BEAM_RAYS)
+    return (1, n // width, width, BEAM_SIDE, BEAM_SIDE)
+
+
+def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     """Safe start distances per ray, in the ray parameter ``t`` of ``o + t d``.
 
     Args:
       tree: the traced tree.
-      o, d: [N, 3] float32 ray origins and directions in grid units (not mirrored); N a
-        multiple of `BEAM_RAYS`.
+      o, d: [N, 3] float32 ray origins and directions in grid units (not mirrored), in
+        row order.
       entering: [N] bool, the rays that enter the grid box (the others are ignored).
+      layout: the groups, from `beam_layout`.
 
     Returns:
       [N] float32 ``t`` before which no ray of the group meets a voxel (0 where nothing
@@ -92,16 +131,15 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering):
     counts = coarse_occupancy(tree, levels).astype(jnp.int32)
     table = jnp.pad(counts.cumsum(0).cumsum(1).cumsum(2), ((1, 0), (1, 0), (1, 0)))
 
-    g = o.shape[0] // BEAM_RAYS
     # per axis: XLA's CPU code is slow on [..., 3] arrays reduced over the last axis
-    o, d = (tuple(x[:, a].reshape(g, BEAM_RAYS) for a in range(3)) for x in (o, d))
-    on = entering.reshape(g, BEAM_RAYS)
     norm = lambda v: jnp.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    length = jnp.where(on, norm(d), 1.0)
-    unit = tuple(c / length for c in d)
+    length = jnp.where(entering, norm(tuple(d[:, a] for a in range(3))), 1.0)
+    o, d = (tuple(_groups(x[:, a], layout) for a in range(3)) for x in (o, d))
+    on = _groups(entering, layout)
+    unit = tuple(c / jnp.where(on, norm(d), 1.0) for c in d)
     inv = tuple(1.0 / jnp.where(c == 0, 2.0**-100, c) for c in d)
     exit_t = functools.reduce(jnp.minimum, (jnp.maximum(-p * i, (res - p) * i) for p, i in zip(o, inv)))
-    far = jnp.max(jnp.where(on, exit_t * length, 0.0), axis=1)
+    far = jnp.max(jnp.where(on, exit_t * norm(d), 0.0), axis=1)
     anyone = jnp.any(on, axis=1)
     first = jnp.argmax(on, axis=1)[:, None]
     origin = tuple(jnp.take_along_axis(p, first, axis=1) for p in o)  # [G, 1] each
@@ -130,37 +168,7 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering):
         free = materialize(empty_box(s, step), opaque(tree))
         return jnp.where(free, s + step, s), jnp.where(free, step * 2, step * 0.5)
 
+    g = anyone.shape[0]
     s, _ = jax.lax.fori_loop(0, _MARCH_STEPS, march, (jnp.zeros(g, jnp.float32), jnp.full(g, float(cell))))
     s = jnp.where(~anyone, 0.0, jnp.where(s >= far, jnp.inf, s))
-    return (s[:, None] / length).reshape(-1)
-
-
-def to_tiles(x, batch: tuple, xp):
-    """Flattens ``x`` ([*batch, *tail]) so that 8 x 8 tiles of the last two batch axes
-    are consecutive (padded with zeros to whole tiles); one batch axis stays in order.
-    `xp` is numpy or jax.numpy. Returns [M, *tail]."""
-    tail = x.shape[len(batch) :]
-    if len(batch) < 2:
-        return x.reshape((-1,) + tail)
-    *lead, h, w = batch
-    ph, pw = -h % BEAM_SIDE, -w % BEAM_SIDE
-    x = xp.pad(x, [(0, 0)] * len(lead) + [(0, ph), (0, pw)] + [(0, 0)] * len(tail))
-    k = len(lead)
-    x = x.reshape(tuple(lead) + ((h + ph) // BEAM_SIDE, BEAM_SIDE, (w + pw) // BEAM_SIDE, BEAM_SIDE) + tail)
-    order = tuple(range(k)) + (k, k + 2, k + 1, k + 3) + tuple(range(k + 4, x.ndim))
-    return x.transpose(order).reshape((-1,) + tail)
-
-
-def from_tiles(x, batch: tuple):
-    """The inverse of `to_tiles` for a result [M, *tail] (numpy or jax arrays)."""
-    tail = x.shape[1:]
-    if len(batch) < 2:
-        return x[: int(np.prod(batch, dtype=np.int64))].reshape(tuple(batch) + tail)
-    *lead, h, w = batch
-    th, tw = -(-h // BEAM_SIDE), -(-w // BEAM_SIDE)
-    k = len(lead)
-    x = x[: int(np.prod(lead, dtype=np.int64)) * th * tw * BEAM_RAYS]
-    x = x.reshape(tuple(lead) + (th, tw, BEAM_SIDE, BEAM_SIDE) + tail)
-    order = tuple(range(k)) + (k, k + 2, k + 1, k + 3) + tuple(range(k + 4, x.ndim))
-    x = x.transpose(order).reshape(tuple(lead) + (th * BEAM_SIDE, tw * BEAM_SIDE) + tail)
-    return x[..., :h, :w, *([slice(None)] * len(tail))]
+    return _ungroup(s, layout, entering.shape[0]) / length

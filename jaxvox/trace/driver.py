@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox.trace.beam import BEAM_RAYS, beam_starts
+from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
 from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
@@ -124,13 +124,12 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
     return c.out_status, c.out_voxel
 
 
-def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes, beam):
-    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With `beam`
-    (N a multiple of `BEAM_RAYS`), the rays start at their group's beam distance."""
+def _trace_flat(structure, o, d, t_max, t_beam, *, method, max_steps, lanes):
+    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With `t_beam`
+    ([N] float32 or None), the rays start at their group's beam distance."""
     res = structure.grid.resolution
     rays, t_start, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
-    if beam:
-        t_beam = beam_starts(structure, o, d, status == RUNNING)
+    if t_beam is not None:
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
         t_start = jnp.maximum(t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam))
     if lanes is None or o.shape[0] == 0:
@@ -153,10 +152,10 @@ def _trace_flat(structure, o, d, t_max, *, method, max_steps, lanes, beam):
     )
 
 
-def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=False, index=None):
+def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=None, index=None):
     """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`.
-    With `beam`, consecutive runs of `BEAM_RAYS` rays start at their beam distance (the
-    caller orders them by tiles). `index(structure, hit)` fills ``Hit.index`` on each
+    With `beam` (a `beam_layout` of the flat rays), the rays start at their group's beam
+    distance, computed by each device on its own rays. `index(structure, hit)` fills ``Hit.index`` on each
     device's own rays (work on a sharded array across devices would be partitioned by
     XLA, with communication in every step of its loops)."""
     grid = structure.grid
@@ -168,21 +167,29 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
     devices = jax.devices()
     n = o.shape[0]
     sharded = shard and len(devices) > 1 and n >= len(devices)
-    beam = beam and n % (BEAM_RAYS * (len(devices) if sharded else 1)) == 0
-    flat = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes, beam=beam)
+    flat = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes)
 
-    def run(structure, o, d, t_max):
-        hit = flat(structure, o, d, t_max)
+    def run(structure, o, d, t_max, layout):
+        t_beam = None
+        if layout is not None and o.shape[0] > 0:
+            res = structure.grid.resolution
+            status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res)[2])(o, d, t_max)
+            t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
+        hit = flat(structure, o, d, t_max, t_beam)
         return hit if index is None else dataclasses.replace(hit, index=index(structure, hit))
 
     if sharded:
         # Each device traces its own slice of the rays with its own lanes and queue.
         pad = -n % len(devices)
-        o, d, t_max = (jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)]) for x in (o, d, t_max))
+        grow = lambda x: jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
+        o, d, t_max = (grow(x) for x in (o, d, t_max))
         mesh = jax.sharding.Mesh(np.array(devices), ("rays",))
         spec = jax.sharding.PartitionSpec("rays")
+        # Each device groups its own slice for the beam (the slices need not start at a
+        # tile: a group of rays from two rows only gets a looser bound).
+        local = None if beam is None else slice_layout(beam, (n + pad) // len(devices))
         hits = jax.shard_map(
-            lambda a, b, c: run(structure, a, b, c),
+            lambda a, b, c: run(structure, a, b, c, local),
             mesh=mesh,
             in_specs=(spec, spec, spec),
             out_specs=spec,
@@ -190,5 +197,5 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
         )(o, d, t_max)
         hits = jax.tree.map(lambda x: x[:n], hits)
     else:
-        hits = run(structure, o, d, t_max)
+        hits = run(structure, o, d, t_max, beam)
     return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), hits)
