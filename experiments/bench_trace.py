@@ -17,8 +17,8 @@ For each mesh and resolution R, in one fresh subprocess per case:
 * at R <= ``--naive-max`` the naive baseline: a plain vmapped dense-grid DDA
   (`jv.trace_dense` with ``lanes=None``) on 256x256 of the primary rays.
 
-Primary rays are passed as the [H, W, 3] image, so that the beam start groups 8 x 8
-tiles; the DAG is also timed without it. ``--devices`` sets the number of JAX CPU
+Primary rays are passed as the [H, W, 3] image with the beam start on (``beam=True``:
+8 x 8 tiles); the DAG is also timed without it (the default). ``--devices`` sets the number of JAX CPU
 devices the workers start with (default: one per core; `jaxvox.trace` shards concrete
 rays over them); ``--device gpu`` runs on JAX's GPU backend with lanes sized for it.
 
@@ -114,11 +114,13 @@ def worker(spec: dict) -> dict:
 
     cases = [("dag-esvo", "dag", "esvo"), ("dag-stack", "dag", "stack"), ("svo-esvo", "svo", "esvo")]
     for name, kind, method in cases[: len(trees) + 1]:
-        trace = lambda: jax.block_until_ready(jv.trace(trees[kind], o_img, d_img, method=method, lanes=lanes))
+        trace = lambda: jax.block_until_ready(
+            jv.trace(trees[kind], o_img, d_img, method=method, lanes=lanes, beam=True)
+        )
         hits[name] = jax.tree.map(
             lambda x: x.reshape((-1,) + x.shape[2:]), timed(f"primary/{name}", trace, width * height)
         )
-    no_beam = lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img, lanes=lanes, beam=False))
+    no_beam = lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img, lanes=lanes))  # the default
     timed("primary/dag-esvo-no-beam", no_beam, width * height)
     hit = hits["dag-esvo"]
     o_np, d_np = np.asarray(o), np.asarray(d)

@@ -326,12 +326,12 @@ def test_beam_start_changes_no_hit(scene, trees):
         plain = jv.trace(trees["dag"], o, d, beam=False)
         for kind, tree in trees.items():
             for method in jv.TRACE_METHODS:
-                assert_same(jv.trace(tree, o, d, method=method), plain)
+                assert_same(jv.trace(tree, o, d, method=method, beam=True), plain)
         flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), plain)
         assert_matches(flat, ijk, o.reshape(-1, 3), d.reshape(-1, 3))
-    jitted = jax.jit(lambda t, a, b: jv.trace(t, a, b))(trees["dag"], o, d)
+    jitted = jax.jit(lambda t, a, b: jv.trace(t, a, b, beam=True))(trees["dag"], o, d)
     assert_same(jitted, plain)
-    away = jv.trace(trees["dag"], *_camera_rays((-20.0, -15.0, 40.0), (-60.0, -45.0, 80.0), 16, 16))
+    away = jv.trace(trees["dag"], *_camera_rays((-20.0, -15.0, 40.0), (-60.0, -45.0, 80.0), 16, 16), beam=True)
     assert (np.asarray(away.status) == MISS).all()
 
 

@@ -298,7 +298,7 @@ def _render_batch(
     valid = ids < total
     path, keys = camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
     path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
-    go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False)
+    go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False, beam=False)
 
     def segment(k, path, first):
         surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction), normals)
