@@ -73,7 +73,7 @@ def _box_counts(table, lo, hi):
     return total
 
 
-def _groups(x, layout):
+def group_values(x, layout):
     """[N] values of rays in row order -> [G, a b], the groups of `layout` (padded with zeros)."""
     count, height, width, a, b = layout
     img = x[: count * height * width].reshape(count, height, width)
@@ -82,8 +82,8 @@ def _groups(x, layout):
     return img.reshape(count, rows, a, cols, b).transpose(0, 1, 3, 2, 4).reshape(-1, a * b)
 
 
-def _ungroup(g, layout, n):
-    """The inverse of `_groups` for one value per group ([G]) -> [n] per ray (0 past the layout)."""
+def ungroup_values(g, layout, n):
+    """The inverse of `group_values` for one value per group ([G]) -> [n] per ray (0 past the layout)."""
     count, height, width, a, b = layout
     rows, cols = -(-height // a), -(-width // b)
     x = jnp.broadcast_to(g.reshape(count, rows, 1, cols, 1), (count, rows, a, cols, b))
@@ -134,8 +134,8 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     # per axis: XLA's CPU code is slow on [..., 3] arrays reduced over the last axis
     norm = lambda v: jnp.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     length = jnp.where(entering, norm(tuple(d[:, a] for a in range(3))), 1.0)
-    o, d = (tuple(_groups(x[:, a], layout) for a in range(3)) for x in (o, d))
-    on = _groups(entering, layout)
+    o, d = (tuple(group_values(x[:, a], layout) for a in range(3)) for x in (o, d))
+    on = group_values(entering, layout)
     unit = tuple(c / jnp.where(on, norm(d), 1.0) for c in d)
     inv = tuple(1.0 / jnp.where(c == 0, 2.0**-100, c) for c in d)
     exit_t = functools.reduce(jnp.minimum, (jnp.maximum(-p * i, (res - p) * i) for p, i in zip(o, inv)))
@@ -171,4 +171,4 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     g = anyone.shape[0]
     s, _ = jax.lax.fori_loop(0, _MARCH_STEPS, march, (jnp.zeros(g, jnp.float32), jnp.full(g, float(cell))))
     s = jnp.where(~anyone, 0.0, jnp.where(s >= far, jnp.inf, s))
-    return _ungroup(s, layout, entering.shape[0]) / length
+    return ungroup_values(s, layout, entering.shape[0]) / length
