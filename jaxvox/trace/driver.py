@@ -124,12 +124,13 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
     return c.out_status, c.out_voxel
 
 
-def _trace_flat(structure, o, d, t_max, t_beam, *, method, max_steps, lanes):
-    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With `t_beam`
-    ([N] float32 or None), the rays start at their group's beam distance."""
+def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
+    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With a beam
+    `layout` (or None), the rays start at their group's beam distance."""
     res = structure.grid.resolution
     rays, t_start, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
-    if t_beam is not None:
+    if layout is not None and o.shape[0] > 0:
+        t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
         t_start = jnp.maximum(t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam))
     if lanes is None or o.shape[0] == 0:
@@ -170,12 +171,7 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
     flat = functools.partial(_trace_flat, method=method, max_steps=max_steps, lanes=lanes)
 
     def run(structure, o, d, t_max, layout):
-        t_beam = None
-        if layout is not None and o.shape[0] > 0:
-            res = structure.grid.resolution
-            status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res)[2])(o, d, t_max)
-            t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
-        hit = flat(structure, o, d, t_max, t_beam)
+        hit = flat(structure, o, d, t_max, layout)
         return hit if index is None else dataclasses.replace(hit, index=index(structure, hit))
 
     if sharded:
