@@ -21,26 +21,13 @@ Method (no propagation, so no propagation error):
   set cells yields its band voxels in global Morton order: no merge is needed, and every
   voxel is final when its brick is. The group's bricks are local scratch (8 MiB), not a
   grid-sized array; all shapes are fixed, so a new mesh compiles nothing new.
-* **Sign.** For a watertight mesh whose triangles neither cross one another
-  (`jaxvox.topology.crossing_faces`) nor have an irregular edge (shared by more than two
-  faces, or by two with the same direction), without zero-area faces: the angle-weighted
-  pseudo-normal (Baerentzen & Aanaes 2005) of the closest feature of the voxel's closest
-  triangle (the face normal when the closest point is interior to the face, the sum of the
-  two face normals for an edge, the angle-weighted normal sum for a vertex; vertices welded
-  by position); negative inside. That is exact for such meshes.
-  Any other mesh (holes, crossings such as the teapot's handle entering its body, irregular
-  edges) is signed by the generalized winding number, inside where it exceeds 1/2, in
-  groups: the band voxels with the same closest triangle on the same side of its
-  pseudo-normal are joined to that triangle by paths that cross no surface, so their
-  winding numbers differ only by the smooth field of the holes. One voxel per group is
-  evaluated (`jaxvox.winding.point_winding_numbers`: a two-level dipole tree, exact solid
-  angles for the nearest leaves); every voxel of a group is evaluated on its own when the
-  group's value lies within `WINDING_MARGIN` of 1/2, or its triangle crosses another, has
-  an irregular edge, or lies near a boundary edge (`_near_holes`: a path's length over its
-  distance to the hole's rim bounds the smooth change). Values within `EXACT_BELOW` of 1/2 are summed
-  again by brute force (the tree's error reaches a few 1e-2). Measured on the shared meshes
-  at 32^3-64^3 (cow, teapot and bunny included): every sign equals the brute-force winding
-  number's.
+* **Sign** (`jaxvox.band_sign`): negative where the generalized winding number exceeds
+  1/2. Pseudo-normals of the closest feature for watertight meshes without crossing or
+  irregular triangles; for every other mesh, the boundary is closed by caps (fans), the
+  band voxels are joined into components by moves that provably cross neither mesh nor
+  caps, and one fast winding number per component (plus the exact cap term near the caps)
+  signs all its voxels. Measured on the shared meshes at 32^3-64^3 and on generated
+  damaged meshes: every sign equals the brute-force winding number's.
 
 Nothing of size R^3 is allocated; the work is O(sum over triangles of their dilated
 boxes), at least ``(2 band + 1)^3`` pairs per triangle. Host memory: about 32 bytes per
@@ -62,19 +49,11 @@ from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
+from jaxvox.band_sign import band_signs, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, build_octree, voxel_index
-from jaxvox.solid import open_edges
-from jaxvox.topology import (
-    boundary_edges,
-    crossing_faces,
-    distance_to_segments,
-    irregular_edge_faces,
-    welded_faces,
-)
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
-from jaxvox.winding import brute_force_winding_numbers, point_winding_numbers
 
 WINDOW = 1 << 17  # (triangle, voxel) pairs evaluated per call of the pair kernel
 TRIANGLE_CHUNK = 1 << 12  # triangle boxes per chunk of the pair kernel
@@ -84,10 +63,6 @@ _CELLS = BRICK**3
 _GROUP_CELLS = BRICKS * _CELLS
 _FAR_BITS = np.uint32(0x7F800000)  # float32 bits of +inf: a brick cell without a pair
 _NO_TRIANGLE = np.int32(np.iinfo(np.int32).max)
-POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
-EXACT_BELOW = 0.1  # winding numbers this close to 1/2 are summed again by brute force
-HOLE_REACH = 1.5  # see `_near_holes`
-WINDING_MARGIN = 0.25  # a group whose sample winding number lies within this of 1/2 is evaluated point by point
 MAX_BAND = 64  # largest accepted `band` (voxels)
 UNUSED_VALUE = np.float32(np.inf)  # `SparseField.values` past `count`
 
@@ -184,102 +159,9 @@ def _fresh_brick():
     return jnp.full(_GROUP_CELLS, _FAR_BITS, jnp.uint32), jnp.full(_GROUP_CELLS, _NO_TRIANGLE, jnp.int32)
 
 
-def closest_feature(p, a, b, c):
-    """Closest point region of triangles (a, b, c) to points p (Ericson), all [..., 3] float32.
-
-    Returns:
-      [...] int32: 0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a,
-      5 vertex b, 6 vertex c; and the closest points [..., 3].
-    """
-    dot = lambda x, y: jnp.sum(x * y, -1)
-    ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp = p - b
-    d3, d4 = dot(ab, bp), dot(ac, bp)
-    cp = p - c
-    d5, d6 = dot(ab, cp), dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    safe = lambda x: jnp.where(x != 0, x, 1.0)
-    den = va + vb + vc
-    v_face, w_face = vb / safe(den), vc / safe(den)
-    face = a + v_face[..., None] * ab + w_face[..., None] * ac
-    t_ab = d1 / safe(d1 - d3)
-    t_ac = d2 / safe(d2 - d6)
-    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
-    cases = [  # (condition, region, point), first match wins (Ericson's order)
-        ((d1 <= 0) & (d2 <= 0), 4, a),
-        ((d3 >= 0) & (d4 <= d3), 5, b),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1, a + t_ab[..., None] * ab),
-        ((d6 >= 0) & (d5 <= d6), 6, c),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 3, a + t_ac[..., None] * ac),
-        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 2, b + t_bc[..., None] * (c - b)),
-    ]
-    region = jnp.zeros(p.shape[:-1], jnp.int32)
-    point = face
-    for cond, r, q in reversed(cases):
-        region = jnp.where(cond, r, region)
-        point = jnp.where(cond[..., None], q, point)
-    return region, point
-
-
-@jax.jit
-def _pseudo_normal_sign(points, tri_ids, tris, normals):
-    """-1 inside, +1 outside, by the pseudo-normal of the closest feature.
-
-    points [P, 3] float32 grid units, tri_ids [P] int32, tris [F, 3, 3] float32 grid
-    units, normals [F, 7, 3] float32 (face, edges ab bc ca, vertices a b c).
-    """
-    t = tris[jnp.maximum(tri_ids, 0)]
-    region, q = closest_feature(points, t[:, 0], t[:, 1], t[:, 2])
-    n = jnp.take_along_axis(normals[jnp.maximum(tri_ids, 0)], region[:, None, None], axis=1)[:, 0]
-    return jnp.where(jnp.sum((points - q) * n, -1) < 0, -1.0, 1.0).astype(jnp.float32)
-
-
 # --------------------------------------------------------------------------------------
 # Host side
 # --------------------------------------------------------------------------------------
-
-
-def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Angle-weighted pseudo-normals per face corner feature (host, float64 in, float32 out).
-
-    Args:
-      vertices: [V, 3] float; faces: [F, 3] int (consistently oriented, watertight).
-
-    Returns:
-      [F, 7, 3] float32: the unit face normal, the edge normals of ab, bc, ca (sum of the
-      adjacent faces' unit normals) and the vertex normals of a, b, c (sum of the incident
-      faces' unit normals weighted by their corner angles). Vertices are welded by position.
-    """
-    v = np.asarray(vertices, np.float64)
-    f = welded_faces(v, faces)
-    tri = v[np.asarray(faces, np.int64)]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    vertex_n = np.zeros((int(f.max()) + 1 if f.size else 0, 3))
-    for corner in range(3):
-        e1 = tri[:, (corner + 1) % 3] - tri[:, corner]
-        e2 = tri[:, (corner + 2) % 3] - tri[:, corner]
-        cos = np.einsum("ij,ij->i", e1, e2) / np.maximum(
-            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300
-        )
-        np.add.at(vertex_n, f[:, corner], np.arccos(np.clip(cos, -1, 1))[:, None] * n)
-    edges = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1)  # [F, 3, 2]
-    key = np.sort(edges, axis=2)
-    key = key[..., 0] * (len(vertex_n) + 1) + key[..., 1]
-    uniq, inverse = np.unique(key.reshape(-1), return_inverse=True)
-    edge_n = np.zeros((len(uniq), 3))
-    np.add.at(edge_n, inverse, np.repeat(n, 3, axis=0))
-    out = np.concatenate([n[:, None], edge_n[inverse].reshape(-1, 3, 3), vertex_n[f]], axis=1)
-    return out.astype(np.float32)
-
-
-def _pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
-    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
-    out[: len(a)] = a
-    return out
 
 
 def _items(tris: np.ndarray, shape, band: int):
@@ -333,7 +215,7 @@ def band_pairs(tris: np.ndarray, shape, band: int):
             origin = origins[slot[rows - s]]
             ext = hi[rows] - lo[rows] + 1
             counts = ext.prod(1)
-            pad = lambda a, fill=0: jnp.asarray(_pad_rows(a, TRIANGLE_CHUNK, fill))
+            pad = lambda a, fill=0: jnp.asarray(pad_rows(a, TRIANGLE_CHUNK, fill))
             args = (
                 pad((tris[ids[rows]] - origin[:, None]).astype(np.float32)),
                 pad(ids[rows].astype(np.int32)),
@@ -355,75 +237,6 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         return np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32)
     ijk, d2, t = (np.concatenate(x) for x in zip(*parts))
     return ijk, d2, t
-
-
-def _chunked(fn, points: np.ndarray, *rest) -> np.ndarray:
-    """``fn(points chunk [POINT_CHUNK, ...], *rest)`` over all rows of `points`, host loop."""
-    out = []
-    for s in range(0, len(points), POINT_CHUNK):
-        part = points[s : s + POINT_CHUNK]
-        out.append(np.asarray(fn(jnp.asarray(_pad_rows(part, POINT_CHUNK)), *rest))[: len(part)])
-    return np.concatenate(out) if out else np.zeros(0, np.float32)
-
-
-def band_signs(mesh: Mesh, tris_grid: np.ndarray, centres: np.ndarray, tri: np.ndarray, band: int) -> np.ndarray:
-    """+-1 (float32 [n], -1 inside) at band voxel centres [n, 3] (grid units, float64) whose
-    closest triangles of `tris_grid` ([F, 3, 3] float64 grid units of `mesh`'s faces) are
-    `tri` [n]; see the module docstring for the methods."""
-    f = np.asarray(mesh.faces)
-    cross = np.cross(tris_grid[:, 1] - tris_grid[:, 0], tris_grid[:, 2] - tris_grid[:, 0])
-    degenerate = bool((np.linalg.norm(cross, axis=1) == 0).any())
-    rows = bucket(len(f))
-    normals = jnp.asarray(_pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows))
-    t = jnp.asarray(_pad_rows(tris_grid.astype(np.float32), rows))
-    both = np.concatenate([centres, tri[:, None].astype(np.float32)], 1)
-    fn = lambda pt, t, normals: _pseudo_normal_sign(pt[:, :3], pt[:, 3].astype(jnp.int32), t, normals)
-    side = _chunked(fn, both, t, normals)
-    welded = welded_faces(np.asarray(mesh.vertices), f)
-    suspect = crossing_faces(tris_grid, welded) | irregular_edge_faces(welded)
-    if open_edges(mesh) == 0 and not degenerate and not suspect.any():
-        return side
-    # One winding number per (closest triangle, side) group, then point by point where a
-    # group's sample lies near 1/2, or its triangle crosses another, has an irregular
-    # edge or lies near a hole (module docstring).
-    _, first, group = np.unique(tri.astype(np.int64) * 2 + (side < 0), return_index=True, return_inverse=True)
-    w = _winding_numbers(tris_grid, centres[first])[group]
-    suspect |= _near_holes(tris_grid, welded, band)
-    doubt = np.flatnonzero((np.abs(w - 0.5) < WINDING_MARGIN) | suspect[tri])
-    w[doubt] = _winding_numbers(tris_grid, centres[doubt])
-    return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)
-
-
-def _near_holes(tris: np.ndarray, welded: np.ndarray, band: int) -> np.ndarray:
-    """[F] bool: triangles too close to a boundary edge for one winding number to stand for
-    their group (grid units).
-
-    Two voxels of a group are joined by a path of length at most ``L = 2 (band + 1) + 2 r``
-    (to the triangle, across it, back out; r the triangle's radius about its centroid) that
-    stays at least ``g = dist(centroid, boundary) - r - band - 1`` from every boundary
-    edge. Off the surface the winding number changes by at most ``1 / (2 pi g)`` per unit
-    length near a hole's rim (the bound of a straight rim), so by at most
-    ``L / (2 pi g)`` along the path: below ``WINDING_MARGIN / 2`` when
-    ``g >= HOLE_REACH * L`` (``HOLE_REACH = 1.5 > 1 / (pi WINDING_MARGIN)``). Closer
-    triangles are flagged.
-    """
-    edges = boundary_edges(welded)
-    vertex = np.zeros((int(welded.max()) + 1, 3))
-    vertex[welded.reshape(-1)] = tris.reshape(-1, 3)
-    centre = tris.mean(1)
-    radius = np.linalg.norm(tris - centre[:, None], axis=-1).max(1)
-    gap = distance_to_segments(centre, vertex[edges[:, 0]], vertex[edges[:, 1]]) - radius - band - 1
-    return gap < HOLE_REACH * (2 * (band + 1) + 2 * radius)
-
-
-def _winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Winding numbers [P] at points [P, 3] (grid units): the fast tree, then brute force
-    where it lands within `EXACT_BELOW` of 1/2 (the tree's error is about 1e-3)."""
-    w = point_winding_numbers(tris, points)
-    close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
-    if len(close):
-        w[close] = brute_force_winding_numbers(tris, points[close])
-    return w
 
 
 def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool = True) -> SparseField:
@@ -462,13 +275,13 @@ def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool
     capacity = bucket(n)
     dist = np.sqrt(d2.astype(np.float64))
     if signed and n:
-        dist = dist * band_signs(mesh, tris, ijk.astype(np.float64) + 0.5, tri, band)
-    values = _pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
+        dist = dist * band_signs(mesh, tris, ijk, dist, tri, band)
+    values = pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
     voxels = Voxels(
-        jnp.asarray(_pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
+        jnp.asarray(pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
         jnp.int32(n),
         jnp.int32(0),
-        jnp.asarray(_pad_rows(tri.astype(np.int32), capacity, UNUSED)),
+        jnp.asarray(pad_rows(tri.astype(np.int32), capacity, UNUSED)),
         grid,
         CONSERVATIVE,
     )

@@ -1,4 +1,5 @@
-"""Host-side mesh topology: welded vertex ids, faces at irregular edges, crossing faces.
+"""Host-side mesh topology: welded vertex ids, faces at irregular edges, pinched vertices
+and crossings, the boundary as a chain of directed edges, connected components of a graph.
 
 Vertices at equal positions are welded (seams of duplicated vertices for texture or normal
 coordinates are not holes), and the checks run on the welded faces.
@@ -102,26 +103,76 @@ def _segment_crosses(p0: np.ndarray, p1: np.ndarray, tri: np.ndarray) -> np.ndar
     return ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
-def boundary_edges(faces: np.ndarray) -> np.ndarray:
-    """[E, 2] int64 vertex pairs of the edges used by exactly one face (welded faces [F, 3])."""
+def connected_components(count: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """[count] int64 label per node, the smallest node id of its component, of the graph
+    with `count` nodes and edges ``u[i] - v[i]`` (int arrays): hook higher roots onto lower
+    ones, then jump pointers to the roots, until no edge joins two roots."""
+    label = np.arange(count)
+    u, v = np.asarray(u, np.int64), np.asarray(v, np.int64)
+    while True:
+        lu, lv = label[u], label[v]
+        apart = lu != lv
+        if not apart.any():
+            return label
+        u, v, lu, lv = u[apart], v[apart], lu[apart], lv[apart]
+        np.minimum.at(label, np.maximum(lu, lv), np.minimum(lu, lv))
+        while True:
+            up = label[label]
+            if np.array_equal(up, label):
+                break
+            label = up
+
+
+def boundary_chain(faces: np.ndarray) -> np.ndarray:
+    """[E, 2] int64 directed edges (a, b) of the mesh's boundary as a chain: each face
+    (a, b, c) contributes a -> b, b -> c, c -> a, opposite directions cancel, and an edge
+    left over k times is listed k times (welded faces [F, 3]; empty when every edge is met
+    equally often in both directions)."""
     f = np.asarray(faces, np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
-    e = e[e[:, 0] != e[:, 1]]
-    uniq, counts = np.unique(e, axis=0, return_counts=True)
-    return uniq[counts == 1]
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    directed = directed[directed[:, 0] != directed[:, 1]]
+    lo, hi = directed.min(1), directed.max(1)
+    base = int(f.max()) + 1 if len(f) else 1
+    key, inverse = np.unique(lo * base + hi, return_inverse=True)
+    net = np.bincount(inverse, np.where(directed[:, 0] == lo, 1, -1), len(key)).astype(np.int64)
+    keep = np.flatnonzero(net)
+    a, b = key[keep] // base, key[keep] % base
+    forward = net[keep] > 0
+    edges = np.stack([np.where(forward, a, b), np.where(forward, b, a)], 1)
+    return np.repeat(edges, np.abs(net[keep]), axis=0)
 
 
-def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, *, chunk: int = 1 << 22) -> np.ndarray:
-    """Distance [P] from points [P, 3] to the nearest of the segments a -> b ([E, 3] each;
-    inf when E = 0), float64 brute force in chunks of `chunk` (point, segment) pairs."""
-    out = np.full(len(points), np.inf)
-    if not len(a):
-        return out
-    d = b - a
-    dd = np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
-    step = max(1, chunk // len(a))
-    for s in range(0, len(points), step):
-        p = points[s : s + step, None]
-        t = np.clip(np.einsum("pej,ej->pe", p - a, d) / dd, 0.0, 1.0)
-        out[s : s + step] = np.linalg.norm(p - (a + t[..., None] * d), axis=-1).min(1)
-    return out
+def regular_edge_pairs(faces: np.ndarray) -> np.ndarray:
+    """[P, 2] int64 pairs of faces sharing an edge that no third face uses (welded faces)."""
+    f = np.asarray(faces, np.int64)
+    undirected = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
+    owner = np.tile(np.arange(len(f)), 3)
+    base = int(f.max()) + 1 if len(f) else 1
+    key = undirected[:, 0] * base + undirected[:, 1]
+    order = np.argsort(key, kind="stable")
+    key, owner = key[order], owner[order]
+    _, first, counts = np.unique(key, return_index=True, return_counts=True)
+    pair = first[counts == 2]
+    return np.stack([owner[pair], owner[pair + 1]], 1)
+
+
+def pinched_vertex_faces(faces: np.ndarray) -> np.ndarray:
+    """[F] bool: faces at a vertex whose faces form more than one fan (two cones or sheets
+    touching at a point), where one pseudo-normal cannot tell the sides (welded faces)."""
+    f = np.asarray(faces, np.int64)
+    corner_vertex = f.reshape(-1)  # corner 3 i + k of face i
+    corners = np.arange(3 * len(f))
+    # A corner at v touches the edges (v, next) and (v, previous) of its face: corners of
+    # the same vertex sharing such an edge belong to one fan.
+    base = int(f.max()) + 1 if len(f) else 1
+    nxt = f[:, [1, 2, 0]].reshape(-1)
+    prev = f[:, [2, 0, 1]].reshape(-1)
+    key = np.concatenate([corner_vertex * base + nxt, corner_vertex * base + prev])
+    who = np.concatenate([corners, corners])
+    order = np.argsort(key, kind="stable")
+    key, who = key[order], who[order]
+    same = np.flatnonzero(key[1:] == key[:-1])
+    fan = connected_components(len(corners), who[same], who[same + 1])
+    pairs = np.unique(np.stack([corner_vertex, fan], 1), axis=0)
+    fans_per_vertex = np.bincount(pairs[:, 0], minlength=base)
+    return (fans_per_vertex[f] > 1).any(1)

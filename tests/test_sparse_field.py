@@ -11,10 +11,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import jaxvox as jv
-from jaxvox.sparse_field import BRICK, UNUSED_VALUE, pseudo_normals
+from jaxvox.band_sign import pseudo_normals
+from jaxvox.sparse_field import BRICK, UNUSED_VALUE
 from tests.reference import mesh_distance, winding_number
 
 TOL = 1e-4  # voxels
@@ -230,3 +233,48 @@ def test_crossing_triangles_are_signed_by_winding_numbers(meshes_dir, name):
     n = int(field.count)
     w = winding_number(mesh.vertices, mesh.faces, centres(grid, np.asarray(field.voxels.coords[:n])))
     assert np.array_equal(np.asarray(field.values[:n]) < 0, w > 0.5)
+
+
+def damaged_mesh(seed: int, resolution: int) -> jv.Mesh:
+    """One or two (crossing) spheres, maybe a tetrahedron pinched onto one at a vertex,
+    vertices maybe snapped to voxel planes and centres, maybe cut (on a voxel plane half
+    the time), some faces maybe flipped or removed at random."""
+    import trimesh
+
+    rng = np.random.default_rng(seed)
+    verts, faces = [], []
+
+    def add(v, f):
+        faces.append(np.asarray(f) + sum(len(x) for x in verts))
+        verts.append(np.asarray(v, np.float64))
+
+    for _ in range(rng.integers(1, 3)):
+        s = trimesh.creation.icosphere(subdivisions=int(rng.integers(1, 3)), radius=rng.uniform(0.12, 0.3))
+        add(s.vertices + rng.uniform(0.35, 0.65, 3), s.faces)
+    if rng.random() < 0.3:
+        apex = verts[0][0]
+        add(np.concatenate([[apex], apex + rng.normal(0, 0.1, (3, 3))]), [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    v, f = np.concatenate(verts), np.concatenate(faces)
+    if rng.random() < 0.4:
+        v = np.round(v * 2 * resolution) / (2 * resolution)
+    if rng.random() < 0.7:
+        axis, cut = rng.integers(3), rng.uniform(0.4, 0.6)
+        if rng.random() < 0.5:
+            cut = np.round(cut * resolution) / resolution
+        f = f[v[f].mean(1)[:, axis] < cut]
+    if rng.random() < 0.3:
+        flip = rng.random(len(f)) < 0.05
+        f[flip] = f[flip][:, ::-1]
+    if rng.random() < 0.2:
+        f = f[rng.random(len(f)) > 0.1]
+    return jv.Mesh(v.astype(np.float32), f.astype(np.int32))
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_signs_of_damaged_meshes(seed):
+    """Holes (cut on voxel planes or not), crossing spheres, pinched vertices, flipped
+    faces: values and signs against the float64 winding number (`check_field`)."""
+    mesh = damaged_mesh(seed, 16)
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2))

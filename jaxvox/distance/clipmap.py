@@ -21,11 +21,11 @@ from jaxvox._checks import check_choice, check_int, check_number, check_type, ch
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, expand_counts
+from jaxvox.band_sign import EXACT_BELOW
 from jaxvox.distance.field import METHODS, box_distance, box_grid
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.solid import grid_triangles, open_edges, padded_mesh, solid_inside
-from jaxvox.sparse_field import EXACT_BELOW
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
 from jaxvox.trace.hit import RUNNING
 from jaxvox.winding import box_winding_numbers, brute_force_winding_numbers
