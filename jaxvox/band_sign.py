@@ -40,6 +40,8 @@ Two methods, both exact (the float64 brute-force winding number is the reference
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,80 +64,88 @@ from jaxvox.winding import BRUTE_FORCE_BLOCK, brute_force_winding_numbers, point
 POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
-CAP_BOUND = 0.25  # the cap term is summed exactly unless its bound stays below this
+CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
 ON_SURFACE = 1e-3  # voxels this close (grid units) to mesh or caps are evaluated alone
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
 
 def closest_feature(p, a, b, c):
-    """Closest point region of triangles (a, b, c) to points p (Ericson), all [..., 3] float32.
+    """Closest point region of triangles (a, b, c) to points p (Ericson), each a tuple of
+    its (x, y, z) float32 arrays (broadcast; no [..., 3] axis, which XLA's CPU code handles
+    slowly).
 
     Returns:
       [...] int32: 0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a,
-      5 vertex b, 6 vertex c; and the closest points [..., 3].
+      5 vertex b, 6 vertex c; and the closest point, a tuple of (x, y, z) arrays.
     """
-    dot = lambda x, y: jnp.sum(x * y, -1)
-    ab, ac, ap = b - a, c - a, p - a
+    sub = lambda x, y: tuple(xi - yi for xi, yi in zip(x, y))
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    along = lambda o, t, e: tuple(oi + t * ei for oi, ei in zip(o, e))
+    ab, ac, ap = sub(b, a), sub(c, a), sub(p, a)
     d1, d2 = dot(ab, ap), dot(ac, ap)
-    bp = p - b
+    bp = sub(p, b)
     d3, d4 = dot(ab, bp), dot(ac, bp)
-    cp = p - c
+    cp = sub(p, c)
     d5, d6 = dot(ab, cp), dot(ac, cp)
     vc = d1 * d4 - d3 * d2
     vb = d5 * d2 - d1 * d6
     va = d3 * d6 - d5 * d4
     safe = lambda x: jnp.where(x != 0, x, 1.0)
-    den = va + vb + vc
-    v_face, w_face = vb / safe(den), vc / safe(den)
-    face = a + v_face[..., None] * ab + w_face[..., None] * ac
-    t_ab = d1 / safe(d1 - d3)
-    t_ac = d2 / safe(d2 - d6)
-    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+    den = safe(va + vb + vc)
+    face = tuple(ai + (vb / den) * bi + (vc / den) * ci for ai, bi, ci in zip(a, ab, ac))
     cases = [  # (condition, region, point), first match wins (Ericson's order)
         ((d1 <= 0) & (d2 <= 0), 4, a),
         ((d3 >= 0) & (d4 <= d3), 5, b),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1, a + t_ab[..., None] * ab),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1, along(a, d1 / safe(d1 - d3), ab)),
         ((d6 >= 0) & (d5 <= d6), 6, c),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 3, a + t_ac[..., None] * ac),
-        ((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), 2, b + t_bc[..., None] * (c - b)),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 3, along(a, d2 / safe(d2 - d6), ac)),
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 2, along(b, (d4 - d3) / safe(d4 - d3 + d5 - d6), sub(c, b))),
     ]
-    region = jnp.zeros(p.shape[:-1], jnp.int32)
+    region = jnp.zeros(jnp.shape(d1), jnp.int32)
     point = face
     for cond, r, q in reversed(cases):
         region = jnp.where(cond, r, region)
-        point = jnp.where(cond[..., None], q, point)
+        point = tuple(jnp.where(cond, qi, pi) for qi, pi in zip(q, point))
     return region, point
 
 
 @jax.jit
-def _pseudo_normal_sign(points, tri_ids, tris, normals):
+def _pseudo_normal_sign(ijk, tri, corners, normals):
     """-1 inside, +1 outside, by the pseudo-normal of the closest feature.
 
-    points [P, 3] float32 grid units, tri_ids [P] int32, tris [F, 3, 3] float32 grid
-    units, normals [F, 7, 3] float32 (face, edges ab bc ca, vertices a b c).
+    ijk [P, 3] int32 voxels (centres at ijk + 1/2, grid units), tri [P] int32 their
+    closest triangles, corners [9, F] float32 rows a_xyz, b_xyz, c_xyz of the triangles
+    (grid units), normals [3, 7 F] float32 xyz rows of the feature normals (7 per face:
+    face, edges ab bc ca, vertices a b c).
     """
-    t = tris[jnp.maximum(tri_ids, 0)]
-    region, q = closest_feature(points, t[:, 0], t[:, 1], t[:, 2])
-    n = jnp.take_along_axis(normals[jnp.maximum(tri_ids, 0)], region[:, None, None], axis=1)[:, 0]
-    return jnp.where(jnp.sum((points - q) * n, -1) < 0, -1.0, 1.0).astype(jnp.float32)
+    t = jnp.maximum(tri, 0)
+    p = tuple(ijk[:, k].astype(jnp.float32) + 0.5 for k in range(3))
+    a, b, c = (tuple(corners[3 * i + k][t] for k in range(3)) for i in range(3))
+    region, q = closest_feature(p, a, b, c)
+    n = tuple(normals[k][7 * t + region] for k in range(3))
+    return jnp.where(sum((pk - qk) * nk for pk, qk, nk in zip(p, q, n)) < 0, -1.0, 1.0).astype(jnp.float32)
 
 
-@jax.jit
-def _cap_terms(points, blocks):
-    """(winding number [P] float32, squared distance [P] float32) at points [P, 3] of the
-    cap triangles blocks [n, 9, BRUTE_FORCE_BLOCK] (corners' xyz rows)."""
+@functools.partial(jax.jit, static_argnames="distance")
+def _cap_terms(points, blocks, *, distance: bool):
+    """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
+    [n, 9, BRUTE_FORCE_BLOCK] (corners' xyz rows), and with `distance` also the squared
+    distance [P] float32 to the nearest of them."""
     p = [points[:, k, None] for k in range(3)]
 
     def step(carry, block):
         w, d2 = carry
         rel = [tuple(block[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
-        corner = [jnp.stack([block[3 * i + k] for k in range(3)], -1) for i in range(3)]
-        near = point_triangle_dist2(points[:, None, :], *corner)
-        return (w + jnp.sum(solid_angle_parts(*rel), -1), jnp.minimum(d2, jnp.min(near, -1))), None
+        w = w + jnp.sum(solid_angle_parts(*rel), -1)
+        if distance:
+            corner = [jnp.stack([block[3 * i + k] for k in range(3)], -1) for i in range(3)]
+            d2 = jnp.minimum(d2, jnp.min(point_triangle_dist2(points[:, None, :], *corner), -1))
+        return (w, d2), None
 
     start = (jnp.zeros(points.shape[0], jnp.float32), jnp.full(points.shape[0], jnp.inf, jnp.float32))
-    return jax.lax.scan(step, start, blocks)[0]
+    w, d2 = jax.lax.scan(step, start, blocks)[0]
+    return (w, d2) if distance else w
 
 
 def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -179,14 +189,16 @@ def pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
     return out
 
 
-def _chunked(fn, points: np.ndarray, *rest):
-    """``fn(points chunk [POINT_CHUNK, ...], *rest)`` over all rows of `points` (host loop);
-    each result (one array or a tuple) concatenated over the chunks."""
+def _chunked(fn, rows, *rest):
+    """``fn(*row chunks [POINT_CHUNK, ...], *rest)`` over all rows of `rows` (an array, or
+    a tuple of arrays with the same first axis; host loop); each result (one array or a
+    tuple) concatenated over the chunks."""
+    rows = rows if isinstance(rows, tuple) else (rows,)
     out = []
-    for s in range(0, len(points), POINT_CHUNK):
-        part = points[s : s + POINT_CHUNK]
-        res = fn(jnp.asarray(pad_rows(part, POINT_CHUNK)), *rest)
-        out.append(tuple(np.asarray(r)[: len(part)] for r in (res if isinstance(res, tuple) else (res,))))
+    for s in range(0, len(rows[0]), POINT_CHUNK):
+        parts = [r[s : s + POINT_CHUNK] for r in rows]
+        res = fn(*(jnp.asarray(pad_rows(x, POINT_CHUNK)) for x in parts), *rest)
+        out.append(tuple(np.asarray(r)[: len(parts[0])] for r in (res if isinstance(res, tuple) else (res,))))
     if not out:
         return np.zeros(0, np.float32)
     joined = tuple(np.concatenate(x) for x in zip(*out))
@@ -204,23 +216,21 @@ def _winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def band_signs(
-    mesh: Mesh, tris: np.ndarray, ijk: np.ndarray, dist: np.ndarray, tri: np.ndarray, band: int
+    mesh: Mesh, tris: np.ndarray, ijk: np.ndarray, keys: np.ndarray, dist: np.ndarray, tri: np.ndarray, band: int
 ) -> np.ndarray:
     """+-1 (float32 [n], -1 inside) at band voxels (module docstring for the methods).
 
     Args:
       mesh: the `Mesh` (its faces); tris: [F, 3, 3] float64 its triangles in grid units.
-      ijk: [n, 3] int voxels in Morton order; dist: [n] float unsigned distance (grid
-        units, at most `band`); tri: [n] int closest triangle; band: the half width.
+      ijk: [n, 3] int voxels in Morton order; keys: [n] uint64 their Morton codes;
+        dist: [n] float unsigned distance (grid units, at most `band`); tri: [n] int
+        closest triangle; band: the half width.
     """
     f = np.asarray(mesh.faces)
-    centres = ijk.astype(np.float64) + 0.5
     rows = bucket(len(f))
-    normals = jnp.asarray(pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows))
-    t = jnp.asarray(pad_rows(tris.astype(np.float32), rows))
-    both = np.concatenate([centres, tri[:, None]], 1).astype(np.float32)
-    fn = lambda pt, t, normals: _pseudo_normal_sign(pt[:, :3], pt[:, 3].astype(jnp.int32), t, normals)
-    side = _chunked(fn, both, t, normals)
+    normals = jnp.asarray(pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows).reshape(-1, 3).T)
+    corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
+    side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     suspect = (
@@ -232,7 +242,7 @@ def band_signs(
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
         return side
-    return _component_signs(tris, welded, suspect, chain, ijk, centres, dist, tri, side, band)
+    return _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, band)
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
@@ -267,8 +277,9 @@ def _cap_gaps(points: np.ndarray, reach: np.ndarray, centre: np.ndarray, radius:
     return gap, bound
 
 
-def _component_signs(tris, welded, suspect, chain, ijk, centres, dist, tri, side, band):
+def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, band):
     """Signs by components of mesh plus caps (module docstring)."""
+    centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
     n, faces = len(ijk), len(tris)
     caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
     centroid = tris.mean(1)
@@ -281,18 +292,21 @@ def _component_signs(tris, welded, suspect, chain, ijk, centres, dist, tri, side
     # Cap terms: exact where the bound is not small, or where a voxel of a triangle that
     # is not free lies within a move of a cap.
     loose = ~free[tri] | (dist < ON_SURFACE)
-    voxel_gap, _ = _cap_gaps(centres[loose], np.zeros(int(loose.sum())), cap_centre, cap_radius, cap_area)
+    voxel_gap, _ = _cap_gaps(centre(loose), np.zeros(int(loose.sum())), cap_centre, cap_radius, cap_area)
     cap_gap = np.full(n, np.inf)
     cap_gap[loose] = voxel_gap
-    exact = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) | (cap_gap <= MOVE))
+    near = np.flatnonzero(cap_gap <= MOVE)
+    bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
     cap_w = np.zeros(n)
-    if len(exact):
-        pad = -len(caps) % BRUTE_FORCE_BLOCK
-        corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
-        blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
-        w, d2 = _chunked(_cap_terms, centres[exact].astype(np.float32), blocks)
-        cap_w[exact] = w
-        cap_gap[exact] = np.sqrt(d2)
+    pad = -len(caps) % BRUTE_FORCE_BLOCK
+    corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
+    blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
+    if len(near):
+        w, d2 = _chunked(functools.partial(_cap_terms, distance=True), centre(near).astype(np.float32), blocks)
+        cap_w[near], cap_gap[near] = w, np.sqrt(d2)
+    if len(bounded):
+        fn = functools.partial(_cap_terms, distance=False)
+        cap_w[bounded] = _chunked(fn, centre(bounded).astype(np.float32), blocks)
     alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
 
     # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
@@ -303,7 +317,6 @@ def _component_signs(tris, welded, suspect, chain, ijk, centres, dist, tri, side
     pairs = pairs[free[pairs].all(1)]
     u = [2 * pairs[:, 0], 2 * pairs[:, 0] + 1]
     v = [2 * pairs[:, 1], 2 * pairs[:, 1] + 1]
-    keys = morton.encode_host(ijk)
     mover = loose_ids[~alone[loose_ids]]
     for axis in range(3):
         for step in (-1, 1):
@@ -328,19 +341,19 @@ def _component_signs(tris, welded, suspect, chain, ijk, centres, dist, tri, side
     rep[comp[hit]] = hit
     roots = np.flatnonzero(rep >= 0)
     reps = rep[roots]
-    whole = _winding_numbers(tris, centres[reps]) + cap_w[reps]
+    whole = _winding_numbers(tris, centre(reps)) + cap_w[reps]
     total = np.rint(whole)
     wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
     if len(wrong):  # the fast value missed by more than its error: sum it exactly
-        whole[wrong] = brute_force_winding_numbers(tris, centres[reps[wrong]]) + cap_w[reps[wrong]]
+        whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + cap_w[reps[wrong]]
         total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
     component_w = np.full(len(label), np.nan)
     component_w[roots] = total
     w = component_w[comp] - cap_w
     close = np.flatnonzero(np.abs(w - 0.5) < CLOSE)
     if len(close):
-        w[close] = brute_force_winding_numbers(tris, centres[close])
+        w[close] = brute_force_winding_numbers(tris, centre(close))
     single = np.flatnonzero(np.isnan(w))
     if len(single):
-        w[single] = _winding_numbers(tris, centres[single])
+        w[single] = _winding_numbers(tris, centre(single))
     return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)

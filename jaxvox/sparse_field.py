@@ -60,6 +60,7 @@ TRIANGLE_CHUNK = 1 << 12  # triangle boxes per chunk of the pair kernel
 BRICK = 32  # edge of a chunk's scratch brick of voxels (BRICK^3 cells, 8 bytes each)
 BRICKS = 32  # bricks (chunks) handled together by one group of kernel calls
 _CELLS = BRICK**3
+_CELL_BITS = 3 * (BRICK.bit_length() - 1)  # Morton bits of a cell within its brick
 _GROUP_CELLS = BRICKS * _CELLS
 _FAR_BITS = np.uint32(0x7F800000)  # float32 bits of +inf: a brick cell without a pair
 _NO_TRIANGLE = np.int32(np.iinfo(np.int32).max)
@@ -198,7 +199,8 @@ def band_pairs(tris: np.ndarray, shape, band: int):
 
     Returns:
       (ijk int64 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
-      closest triangle, lower id on ties) for every voxel within `band`, in Morton order
+      closest triangle, lower id on ties, keys uint64 [n] Morton codes) for every voxel
+      within `band`, in Morton order
       (see the module docstring).
     """
     ids, brick, lo, hi = _items(tris, shape, band)
@@ -232,11 +234,12 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         if n:  # sliced to the ladder on the device, exactly on the host: no program per n
             cell, d2, t = (np.asarray(x)[:n] for x in _head((cell, d2, t), size=bucket(n)))
             k, local = np.divmod(cell, _CELLS)
-            parts.append((origins[k] + morton.decode_word_host(local), d2, t))
+            code = morton.encode_host(origins // BRICK)[k] << np.uint64(_CELL_BITS) | local.astype(np.uint64)
+            parts.append((origins[k] + morton.decode_word_host(local), d2, t, code))
     if not parts:
-        return np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32)
-    ijk, d2, t = (np.concatenate(x) for x in zip(*parts))
-    return ijk, d2, t
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.uint64)
+    ijk, d2, t, code = (np.concatenate(x) for x in zip(*parts))
+    return ijk, d2, t, code
 
 
 def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool = True) -> SparseField:
@@ -270,12 +273,12 @@ def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
-    ijk, d2, tri = band_pairs(tris, grid.resolution, band)
+    ijk, d2, tri, keys = band_pairs(tris, grid.resolution, band)
     n = len(ijk)
     capacity = bucket(n)
     dist = np.sqrt(d2.astype(np.float64))
     if signed and n:
-        dist = dist * band_signs(mesh, tris, ijk, dist, tri, band)
+        dist = dist * band_signs(mesh, tris, ijk, keys, dist, tri, band)
     values = pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
     voxels = Voxels(
         jnp.asarray(pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
