@@ -33,6 +33,10 @@ $(VENV)/.bench-installed: $(STAMP)
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
 	  else echo "Open3D needs the system library libusb-1.0: run 'sudo apt-get install libusb-1.0-0'" >&2; exit 1; fi; \
 	fi
+	@if ! /usr/bin/python3 -c "import pyopenvdb" 2>/dev/null; then \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq python3-openvdb; \
+	  else echo "experiments/sparse_distance.py compares with OpenVDB: run 'sudo apt-get install python3-openvdb'" >&2; fi; \
+	fi
 	$(PY) -m pip install --quiet -e ".[test,bench]"
 	touch $@
 
