@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox.band_sign import pseudo_normals
-from jaxvox.sparse_field import BRICK, UNUSED_VALUE
+from jaxvox.sparse_field import SLOTS, TILE, UNUSED_VALUE
 from tests.reference import mesh_distance, winding_number
 
 TOL = 1e-4  # voxels
@@ -117,15 +117,32 @@ def test_open_meshes_signed_by_winding_numbers():
     assert (np.asarray(field.values[: int(field.count)]) < 0).any()
 
 
-def test_large_triangles_are_tiled_into_bricks():
-    """Two triangles whose dilated boxes exceed a brick (`BRICK` voxels): their boxes are
-    tiled, the tiles land in different chunks, and the host merges their minima."""
+def test_large_triangles_are_tiled():
+    """Two triangles whose dilated boxes span many tiles (`TILE` voxels): every tile takes
+    the minimum of both."""
     v = np.array([[0.02, 0.03, 0.1], [0.97, 0.05, 0.4], [0.95, 0.96, 0.9], [0.04, 0.94, 0.6]], np.float32)
     quad = jv.Mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
     grid = jv.Grid(np.zeros(3), 1 / 128, 128)
-    assert 128 > BRICK
+    assert 128 > 8 * TILE
     field = jv.sparse_distance_field(quad, grid, band=1, signed=False)
     check_field(quad, grid, field, signed=False)
+
+
+def test_crowded_tiles_and_closest_triangles():
+    """Many more triangles over one tile than a work unit holds (`SLOTS`): the units'
+    minima are merged, and each voxel's triangle is at its distance."""
+    rng = np.random.default_rng(3)
+    count = 20 * SLOTS
+    v = (0.45 + 0.1 * rng.random((count * 3, 3))).astype(np.float32)
+    soup = jv.Mesh(v, np.arange(count * 3, dtype=np.int32).reshape(-1, 3))
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    field = jv.sparse_distance_field(soup, grid, band=2)
+    check_field(soup, grid, field)
+    n = int(field.count)
+    tri = np.asarray(field.voxels.triangle[:n])
+    p = centres(grid, np.asarray(field.voxels.coords[:n]))
+    own = np.array([mesh_distance(v, np.asarray(soup.faces)[t : t + 1], q[None])[0] for t, q in zip(tri, p)])
+    np.testing.assert_allclose(own, np.abs(np.asarray(field.values[:n])), atol=1e-4 / 16)
 
 
 def test_sample_at_centres_and_gradient():
