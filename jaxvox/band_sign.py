@@ -266,15 +266,24 @@ def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
 
 def _cap_gaps(points: np.ndarray, reach: np.ndarray, centre: np.ndarray, radius: np.ndarray, area: np.ndarray):
     """For points [P, 3] standing for anything within `reach` [P] of them: (a lower bound
-    [P] on the distance to every cap, an upper bound [P] on |w_caps|), in chunks of caps."""
+    [P] on the distance to every cap, an upper bound [P] on |w_caps| and one on the
+    length of its gradient), in chunks of caps.
+
+    A cap of area A at distance at least g adds at most ``A / (4 pi g^2)`` to |w_caps|
+    (each element subtends at most its area over the squared distance) and
+    ``2 A / (4 pi g^3)`` to its gradient (the gradient of the solid angle kernel
+    ``n . (x - p) / |x - p|^3`` is at most ``2 / |x - p|^3`` long)."""
     gap = np.full(len(points), np.inf)
     bound = np.zeros(len(points))
+    slope = np.zeros(len(points))
     for s in range(0, len(centre), 64):
         g = np.linalg.norm(points[:, None] - centre[None, s : s + 64], axis=-1) - radius[s : s + 64] - reach[:, None]
         gap = np.minimum(gap, g.min(1, initial=np.inf))
         safe = np.where(g > 0, g, 1.0)
-        bound += np.where(g > 0, area[s : s + 64] / (4 * np.pi * safe * safe), np.inf).sum(1)
-    return gap, bound
+        term = np.where(g > 0, area[s : s + 64] / (4 * np.pi * safe * safe), np.inf)
+        bound += term.sum(1)
+        slope += (2 * term / safe).sum(1)
+    return gap, bound, slope
 
 
 def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, band):
@@ -284,29 +293,39 @@ def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, b
     caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
     centroid = tris.mean(1)
     tri_radius = np.linalg.norm(tris - centroid[:, None], axis=-1).max(1)
-    tri_gap, tri_bound = _cap_gaps(centroid, tri_radius + band, cap_centre, cap_radius, cap_area)
-    ring = np.zeros(int(welded.max()) + 1, bool)
-    ring[welded[suspect].reshape(-1)] = True
-    free = ~ring[welded].any(1) & (tri_gap > band + 1)
-
-    # Cap terms: exact where the bound is not small, or where a voxel of a triangle that
-    # is not free lies within a move of a cap.
-    loose = ~free[tri] | (dist < ON_SURFACE)
-    voxel_gap, _ = _cap_gaps(centre(loose), np.zeros(int(loose.sum())), cap_centre, cap_radius, cap_area)
-    cap_gap = np.full(n, np.inf)
-    cap_gap[loose] = voxel_gap
-    near = np.flatnonzero(cap_gap <= MOVE)
-    bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
-    cap_w = np.zeros(n)
+    reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
+    tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
     pad = -len(caps) % BRUTE_FORCE_BLOCK
     corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
     blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
+    with_distance = functools.partial(_cap_terms, distance=True)
+    winding_only = functools.partial(_cap_terms, distance=False)
+    # Where the balls about the caps do not settle it: the exact cap term and distance at
+    # the centroid, with the term's largest change within the reach.
+    doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))
+    if len(doubt):
+        w, d2 = _chunked(with_distance, centroid[doubt].astype(np.float32), blocks)
+        gap = np.sqrt(d2) - reach[doubt]
+        safe = np.where(gap > 0, gap, 1.0)
+        slope = np.minimum(tri_slope[doubt], np.where(gap > 0, 2 * cap_area.sum() / (4 * np.pi * safe**3), np.inf))
+        tri_gap[doubt] = np.maximum(tri_gap[doubt], gap)
+        tri_bound[doubt] = np.minimum(tri_bound[doubt], np.abs(w) + reach[doubt] * slope)
+    ring = np.zeros(int(welded.max()) + 1, bool)
+    ring[welded[suspect].reshape(-1)] = True
+    free = ~ring[welded].any(1) & (tri_gap > MOVE)
+
+    # Cap terms: exact where the bound is not small, and with the distance for voxels of a
+    # triangle that is not free within a move of a cap.
+    loose = ~free[tri] | (dist < ON_SURFACE)
+    cap_gap = np.where(loose, tri_gap[tri], np.inf)  # lower bounds
+    near = np.flatnonzero(cap_gap <= MOVE)
+    bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
+    cap_w = np.zeros(n)
     if len(near):
-        w, d2 = _chunked(functools.partial(_cap_terms, distance=True), centre(near).astype(np.float32), blocks)
+        w, d2 = _chunked(with_distance, centre(near).astype(np.float32), blocks)
         cap_w[near], cap_gap[near] = w, np.sqrt(d2)
     if len(bounded):
-        fn = functools.partial(_cap_terms, distance=False)
-        cap_w[bounded] = _chunked(fn, centre(bounded).astype(np.float32), blocks)
+        cap_w[bounded] = _chunked(winding_only, centre(bounded).astype(np.float32), blocks)
     alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
 
     # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
@@ -341,11 +360,12 @@ def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, b
     rep[comp[hit]] = hit
     roots = np.flatnonzero(rep >= 0)
     reps = rep[roots]
-    whole = _winding_numbers(tris, centre(reps)) + cap_w[reps]
+    rep_caps = _chunked(winding_only, centre(reps).astype(np.float32), blocks) if len(caps) else np.zeros(len(reps))
+    whole = _winding_numbers(tris, centre(reps)) + rep_caps
     total = np.rint(whole)
     wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
     if len(wrong):  # the fast value missed by more than its error: sum it exactly
-        whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + cap_w[reps[wrong]]
+        whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + rep_caps[wrong]
         total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
     component_w = np.full(len(label), np.nan)
     component_w[roots] = total
