@@ -287,7 +287,7 @@ def damaged_mesh(seed: int, resolution: int) -> jv.Mesh:
     return jv.Mesh(v.astype(np.float32), f.astype(np.int32))
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=5, deadline=None)
 @given(st.integers(0, 2**32 - 1))
 def test_signs_of_damaged_meshes(seed):
     """Holes (cut on voxel planes or not), crossing spheres, pinched vertices, flipped
