@@ -69,9 +69,9 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
     later = end - 1 - np.arange(len(key))  # entries after it in its run
     a = np.repeat(np.arange(len(key)), later)
     b = a + 1 + (np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later))
-    pairs = np.unique(np.sort(np.stack([owner[a], owner[b]], 1), 1), axis=0)
-    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
-    i, j = pairs[:, 0], pairs[:, 1]
+    i, j = np.minimum(owner[a], owner[b]), np.maximum(owner[a], owner[b])
+    pair = np.unique(i[i != j] * f_count + j[i != j])  # one integer key: no row sort
+    i, j = pair // f_count, pair % f_count
     keep = (lo[i] <= hi[j]).all(1) & (lo[j] <= hi[i]).all(1)
     keep &= ~(faces[i][:, :, None] == faces[j][:, None, :]).any((1, 2))
     i, j = i[keep], j[keep]
