@@ -17,7 +17,7 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
   set of points), scene construction included; the largest difference from jaxvox's
   values (voxels) is reported as a cross-check.
 
-Each case runs in a fresh process. Writes experiments/results/sparse_distance[_smoke].json,
+Each case runs in a fresh process. Writes experiments/results/sparse_distance[_unsigned][_smoke].json,
 .md and .png (time against resolution, log-log).
 
 Examples:
@@ -159,7 +159,7 @@ def main() -> None:
             case["openvdb"] = _openvdb(peer, args.timeout)
         cases.append(case)
         print(json.dumps(case))
-    name = "sparse_distance_smoke" if args.smoke else "sparse_distance"
+    name = "sparse_distance" + ("_unsigned" if args.unsigned else "") + ("_smoke" if args.smoke else "")
     result = dict(band=args.band, signed=not args.unsigned, cases=cases, machine=_common.machine_info(PACKAGES))
     _common.write_json(_common.RESULTS_DIR / f"{name}.json", result)
     write_report(result, _common.RESULTS_DIR / name)
