@@ -178,9 +178,9 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     rows = bucket(len(tris) + 1)
     corners = np.full((rows, 9), _FAR)
     corners[: len(tris)] = tris.reshape(-1, 9)
-    hi = corners.astype(np.float32)
-    lo = jnp.asarray((corners - hi).T.astype(np.float32))
-    hi = jnp.asarray(hi.T)
+    rounded = corners.astype(np.float32)
+    lo = jnp.asarray((corners - rounded).T.astype(np.float32))
+    hi = jnp.asarray(rounded.T)
     pad_id = rows - 1
     limit = np.float32(band * band)  # compared in float32, as d2 is
     parts = []
@@ -196,7 +196,7 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         mine = item < (starts[owner] + counts[owner])[:, None]
         slot_ids = np.where(mine, ids[np.minimum(item, len(ids) - 1)], pad_id)
         origin = (tile[starts[owner]] * TILE).astype(np.int32)
-        d2, tri = [], []
+        d2_parts, tri_parts = [], []
         for u in range(0, len(owner), UNITS):
             args = (
                 jnp.asarray(pad_rows(slot_ids[u : u + UNITS].astype(np.int32), UNITS, pad_id).T),
@@ -204,9 +204,9 @@ def band_pairs(tris: np.ndarray, shape, band: int):
             )
             m = min(UNITS, len(owner) - u)
             dc, tc = _tile_units(hi, lo, *args)
-            d2.append(np.asarray(dc)[:m])
-            tri.append(np.asarray(tc)[:m])
-        d2, tri = np.concatenate(d2), np.concatenate(tri)  # [units, TILE^3]
+            d2_parts.append(np.asarray(dc)[:m])
+            tri_parts.append(np.asarray(tc)[:m])
+        d2, tri = np.concatenate(d2_parts), np.concatenate(tri_parts)  # [units, TILE^3]
         first = np.cumsum(n_units) - n_units  # each tile's first unit
         best_d2, best_tri = d2[first], tri[first]
         for j in range(1, int(n_units.max())):  # later units hold higher triangle ids
@@ -227,8 +227,8 @@ def band_pairs(tris: np.ndarray, shape, band: int):
             )
         )
         t0 = t1
-    ijk, d2, t, keys = (np.concatenate(x) for x in zip(*parts))
-    return ijk, d2, t, keys
+    ijk, band_d2, t, keys = (np.concatenate(x) for x in zip(*parts))
+    return ijk, band_d2, t, keys
 
 
 def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool = True) -> SparseField:

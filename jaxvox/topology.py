@@ -175,4 +175,4 @@ def pinched_vertex_faces(faces: np.ndarray) -> np.ndarray:
     fan = connected_components(len(corners), who[same], who[same + 1])
     pairs = np.unique(np.stack([corner_vertex, fan], 1), axis=0)
     fans_per_vertex = np.bincount(pairs[:, 0], minlength=base)
-    return (fans_per_vertex[f] > 1).any(1)
+    return np.asarray((fans_per_vertex[f] > 1).any(1))
