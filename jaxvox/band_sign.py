@@ -38,7 +38,7 @@ Two methods, both exact (the float64 brute-force winding number is the reference
   component whose voxels all lie within 1/2 voxel of mesh or caps (voxels on the surface
   are alone) is evaluated voxel by voxel, and values within `CLOSE` of 1/2 are summed
   again by brute force. The bunny at 256^3 (897 K band voxels) takes 2 components and
-  about 2,000 voxels on their own this way, where one winding number per (triangle, side)
+  about 900 voxels on their own this way, where one winding number per (triangle, side)
   and per voxel near a hole took 264 K.
 """
 
