@@ -374,7 +374,8 @@ def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, b
     component_w = np.full(len(label), np.nan)
     component_w[roots] = total
     w = component_w[comp] - cap_w
-    close = np.flatnonzero(np.abs(w - 0.5) < CLOSE)
+    exact = np.concatenate([near, bounded])  # elsewhere w is an integer (or NaN)
+    close = exact[np.abs(w[exact] - 0.5) < CLOSE]
     if len(close):
         w[close] = brute_force_winding_numbers(tris, centre(close))
     single = np.flatnonzero(np.isnan(w))
