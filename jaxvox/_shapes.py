@@ -88,3 +88,11 @@ def expand_counts(counts: jax.Array, capacity: int, start=0):
     owner = jax.lax.cummax(jnp.zeros(capacity, jnp.int32).at[first].max(ids, mode="drop"))
     slot = start + jnp.arange(capacity, dtype=jnp.int32)
     return owner, slot - starts[owner], slot < ends[-1], ends[-1]
+
+
+def pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
+    """Host array `a` with rows of `fill` appended up to `rows` rows (a shape on the
+    ladder, or a fixed chunk size), same dtype."""
+    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
+    out[: len(a)] = a
+    return out

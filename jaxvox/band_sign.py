@@ -52,7 +52,7 @@ import numpy as np
 
 from jaxvox import morton
 from jaxvox._geometry import point_triangle_dist2, solid_angle_parts
-from jaxvox._shapes import bucket
+from jaxvox._shapes import bucket, pad_rows
 from jaxvox.mesh import Mesh
 from jaxvox.topology import (
     boundary_chain,
@@ -184,13 +184,6 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     np.add.at(edge_n, inverse, np.repeat(n, 3, axis=0))
     out = np.concatenate([n[:, None], edge_n[inverse].reshape(-1, 3, 3), vertex_n[f]], axis=1)
     return out.astype(np.float32)
-
-
-def pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
-    """`a` with its first axis padded to `rows` by `fill` (host)."""
-    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
-    out[: len(a)] = a
-    return out
 
 
 def _chunked(fn, rows, *rest):
@@ -364,8 +357,10 @@ def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, b
     rep[comp[hit]] = hit
     roots = np.flatnonzero(rep >= 0)
     reps = rep[roots]
+    lone = np.flatnonzero(rep[comp] < 0)  # components without a representative
+    values = _winding_numbers(tris, np.concatenate([centre(reps), centre(lone)]))  # one tree for both
     rep_caps = _chunked(winding_only, centre(reps).astype(np.float32), blocks) if len(caps) else np.zeros(len(reps))
-    whole = _winding_numbers(tris, centre(reps)) + rep_caps
+    whole = values[: len(reps)] + rep_caps
     total = np.rint(whole)
     wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
     if len(wrong):  # the fast value missed by more than its error: sum it exactly
@@ -378,7 +373,8 @@ def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, b
     close = exact[np.abs(w[exact] - 0.5) < CLOSE]
     if len(close):
         w[close] = brute_force_winding_numbers(tris, centre(close))
-    single = np.flatnonzero(np.isnan(w))
+    w[lone] = values[len(reps) :]
+    single = np.flatnonzero(np.isnan(w))  # components whose rounding failed
     if len(single):
         w[single] = _winding_numbers(tris, centre(single))
     return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)

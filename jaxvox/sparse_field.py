@@ -47,8 +47,8 @@ from jaxvox import morton
 from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
-from jaxvox.band_sign import band_signs, pad_rows
+from jaxvox._shapes import bucket, pad_rows
+from jaxvox.band_sign import band_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, build_octree, voxel_index

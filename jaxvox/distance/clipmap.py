@@ -20,7 +20,7 @@ import numpy as np
 from jaxvox._checks import check_choice, check_int, check_number, check_type, check_vector, is_concrete, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._shapes import bucket, expand_counts, pad_rows
 from jaxvox.band_sign import EXACT_BELOW
 from jaxvox.distance.field import METHODS, box_distance, box_grid
 from jaxvox.grid import Grid, check_resolution
@@ -358,15 +358,16 @@ def _exact_update(fields, mesh: Mesh, jobs, clip: Clipmap, sign: str):
         while start < len(pairs):  # chunks of at most ITEM_CHUNK items and PAIR_CHUNK pairs
             done = pairs[start - 1] if start else 0
             stop = min(start + ITEM_CHUNK, max(int(np.searchsorted(pairs, done + PAIR_CHUNK, "right")), start + 1))
-            d2 = _pair_minima(d2, *(jnp.asarray(_padded(x[start:stop], ITEM_CHUNK)) for x in columns))
+            # padding items have ext 0: no pairs
+            d2 = _pair_minima(d2, *(jnp.asarray(pad_rows(x[start:stop], ITEM_CHUNK)) for x in columns))
             start = stop
     slots = np.full((rows, 4), clip.num_cascades, np.int32)  # padding rows: cascade N, dropped
     for (c, lo, hi), (b, _, _, order) in zip(jobs, layouts):
         g = np.stack(np.meshgrid(*(np.arange(lo[a], hi[a]) for a in order), indexing="ij"), -1).reshape(-1, 3)
         slots[b : b + len(g), 0] = c
         slots[b : b + len(g), 1 + np.asarray(order)] = np.mod(g, r)
-    scale = _padded(np.repeat(np.asarray(h, np.float32), counts), rows, 1)  # padding: 1, no inf * 0
-    limit = _padded(np.repeat(np.asarray(h) * clip.truncation, counts).astype(np.float32), rows)
+    scale = pad_rows(np.repeat(np.asarray(h, np.float32), counts), rows, 1)  # padding: 1, no inf * 0
+    limit = pad_rows(np.repeat(np.asarray(h) * clip.truncation, counts).astype(np.float32), rows)
     negative = np.zeros(rows, bool)
     if mesh.num_faces:
         padded = padded_mesh(mesh)
@@ -377,13 +378,6 @@ def _exact_update(fields, mesh: Mesh, jobs, clip: Clipmap, sign: str):
             inside = np.broadcast_to(inside, tuple(hi - lo)).transpose(order)  # in the box's flat order
             negative[b : b + inside.size] = inside.reshape(-1)
     return _write(fields, d2, *(jnp.asarray(x) for x in (scale, limit, negative, slots)))
-
-
-def _padded(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
-    """`a` with rows of `fill` appended up to `rows` rows (padding items have ext 0)."""
-    out = np.full((rows,) + a.shape[1:], fill, a.dtype)
-    out[: len(a)] = a
-    return out
 
 
 def build_clipmap(
