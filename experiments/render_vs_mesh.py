@@ -1,6 +1,6 @@
 """Speed against accuracy of voxel renders: DAGs at 256^3..8192^3 against the triangle mesh.
 
-For each mesh (default: the Stanford bunny and spot):
+For each mesh (default: the Stanford bunny, spot and the cow):
 
 * a reference: the triangle mesh path-traced with Embree (`jaxvox.render_mesh`) at many
   samples per pixel (``--reference-spp``);
@@ -8,7 +8,9 @@ For each mesh (default: the Stanford bunny and spot):
 * the mesh's DAG at each resolution, rendered by `jaxvox.render` with the same settings,
   shaded with the normal of the voxel face each ray enters (``dag``) and with per-voxel
   shading normals, the face normal of the triangle that set each voxel (``dag-normals``:
-  `jaxvox.mesh_to_dag` with ``attributes=``, so that 8192^3 fits).
+  `jaxvox.mesh_to_dag` with ``attributes=``, so that 8192^3 fits), and the same with the
+  thin 6-separating voxelization instead of the conservative one (``dag-thin``: a
+  conservative silhouette stands out by most of a voxel).
 
 The lighting is the procedural sky with its sun, 8 bounces, grey albedo 0.7. Every case
 runs in a fresh subprocess (peak memory is its own). Time per sample is the median of
@@ -33,7 +35,7 @@ from pathlib import Path
 import _common
 import numpy as np
 
-DEFAULT_MESHES = ("stanford-bunny", "spot")
+DEFAULT_MESHES = ("stanford-bunny", "spot", "cow")
 
 
 def _metrics(image: np.ndarray, reference: np.ndarray) -> dict:
@@ -71,11 +73,12 @@ def worker(spec: dict) -> dict:
         R = spec["resolution"]
         start = time.perf_counter()
         grid = jv.Grid.fit(mesh, resolution=R)
-        if spec["case"] == "dag-normals":
+        if spec["case"] in ("dag-normals", "dag-thin"):
             import tempfile
 
             folder = tempfile.mkdtemp(dir=out)
-            tree, attributes = jv.mesh_to_dag(mesh, grid, attributes=folder)
+            mode = "6-separating" if spec["case"] == "dag-thin" else "conservative"
+            tree, attributes = jv.mesh_to_dag(mesh, grid, attributes=folder, mode=mode)
             settings["normals"] = attributes["normal"]
         else:
             tree = jv.build_dag(jv.voxelize(mesh, grid))
@@ -107,7 +110,7 @@ def worker(spec: dict) -> dict:
         row.update(_metrics(image, iio.imread(out / f"{spec['mesh']}_reference.png")))
     row["image"] = f"{name}.png"
     row["backend"] = jax.default_backend()
-    if spec["case"] == "dag-normals":
+    if "normals" in settings:
         import shutil
 
         del settings["normals"], attributes
@@ -119,7 +122,11 @@ def chart(rows: list[dict], path: Path) -> None:
     fig, (left, right) = _common.new_figure(2)
     for mesh in sorted({r["mesh"] for r in rows}):
         line = None
-        for case, style, label in (("dag", "o-", "DAG, face normals"), ("dag-normals", "s--", "DAG, voxel normals")):
+        for case, style, label in (
+            ("dag", "o-", "DAG, face normals"),
+            ("dag-normals", "s--", "DAG, voxel normals"),
+            ("dag-thin", "^:", "6-separating DAG, voxel normals"),
+        ):
             dags = sorted((r for r in rows if r["mesh"] == mesh and r["case"] == case), key=lambda r: r["resolution"])
             if not dags:
                 continue
@@ -181,6 +188,7 @@ def strip(rows: list[dict], folder: Path, path: Path) -> None:
             + [r for r in mine if r["case"] == "mesh"]
             + sorted((r for r in mine if r["case"] == "dag"), key=lambda r: r["resolution"])
             + sorted((r for r in mine if r["case"] == "dag-normals"), key=lambda r: r["resolution"])
+            + sorted((r for r in mine if r["case"] == "dag-thin"), key=lambda r: r["resolution"])
         )
         tiles = [iio.imread(folder / r["image"]) for r in order if (folder / r["image"]).exists()]
         gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
@@ -199,7 +207,9 @@ def main():
     parser.add_argument("--reference-spp", type=int, default=256)
     parser.add_argument("--bounces", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=["dag", "dag-normals"], choices=["dag", "dag-normals"])
+    parser.add_argument(
+        "--cases", nargs="+", default=["dag", "dag-normals", "dag-thin"], choices=["dag", "dag-normals", "dag-thin"]
+    )
     parser.add_argument("--device", default=None, help="cpu or gpu (JAX_PLATFORMS for every case); default: JAX's")
     parser.add_argument("--smoke", action="store_true")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)

@@ -557,3 +557,27 @@ def test_shading_normals_keep_the_furnace_and_leave_every_face(scene):
         jv.render(tree, eye, target, normals=normals[:5], **SETTINGS)
     with pytest.raises(jv.JaxvoxError, match="render normals"):
         jv.render(tree, eye, target, normals=np.full((count, 3), np.nan), **SETTINGS)
+
+
+def test_smooth_normals_on_a_staircase_see_the_sun():
+    """A slab tilted 25 degrees, voxelized into a staircase, with the slab's own normals
+    per voxel and a low sun 20 degrees above its top: the whole top is lit. Shadow rays
+    from the voxel faces met the next step of the staircase (acne: 31% of the top
+    went dark); they now start `SHADOW_LIFT` edges above the hit along the normal."""
+    slab = trimesh.creation.box(extents=[2.0, 0.3, 2.0])
+    tilt = np.radians(25.0)
+    slab.apply_transform(trimesh.transformations.rotation_matrix(tilt, [0, 0, 1]))
+    mesh = jv.Mesh(np.asarray(slab.vertices, np.float32), np.asarray(slab.faces, np.int32))
+    vox = jv.voxelize(mesh, jv.Grid.fit(mesh, resolution=32), triangle_ids=True)
+    tree = jv.build_dag(vox)
+    normals = np.asarray(jv.voxel_attributes(mesh, vox)["normal"])[: int(vox.count)]
+    top = np.array([-np.sin(tilt), np.cos(tilt), 0.0])
+    # The sun 20 degrees above the top face, across the staircase's steps.
+    sun = np.cos(np.radians(20.0)) * np.array([np.cos(tilt), np.sin(tilt), 0.0]) + np.sin(np.radians(20.0)) * top
+    env = jv.sky_environment(sun_direction=sun, sun_irradiance=(1.0, 1.0, 1.0), zenith=0, horizon=0, ground=0)
+    eye = 1.5 * top
+    result = jv.render(tree, eye, (0.0, 0.0, 0.0), env=env, normals=normals, bounces=0, fov=30.0, key=1, **SETTINGS)
+    seen = _interior(np.isfinite(np.asarray(result.depth)))
+    lit = (np.asarray(result.radiance) > 0).all(-1)
+    assert seen.sum() > 0.5 * W * H
+    assert lit[seen].mean() > 0.995, lit[seen].mean()

@@ -65,6 +65,12 @@ from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
+# Shadow rays start this many voxel edges above the hit, along the shading normal: from
+# the face itself, a ray toward a light low over a smooth surface meets the surface's
+# own staircase of voxels (shadow acne). Bunny, 1024^3, voxel normals: 36.5 dB PSNR
+# from the face, 38.0 dB lifted 1.5 edges (2.5 edges: 38.0 dB; along the light instead,
+# 3 edges: 37.7 dB). `experiments/render_vs_mesh.py`.
+SHADOW_LIFT = 1.5
 LIGHT_STREAM = 1 << 16  # random stream of the environment sample at vertex k: LIGHT_STREAM + k
 
 
@@ -175,6 +181,18 @@ def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit, normals) -
         shading=shading,
         index=index,
     )
+
+
+def shadow_origins(tree: Octree | CompactDag, surf: Surface) -> jax.Array:
+    """[N, 3] float32 origins of shadow rays from voxel hits: `SHADOW_LIFT` voxel edges
+    above each hit point along its shading normal, or the hit point itself where that
+    lands in an occupied voxel (in a crease)."""
+    grid = tree.grid
+    lifted = surf.point + surf.shading * (SHADOW_LIFT * grid.voxel_size)
+    ijk = jnp.floor(grid.to_grid_units(lifted)).astype(jnp.int32)
+    inside = jnp.all((ijk >= 0) & (ijk < grid.resolution), axis=-1)
+    blocked = inside & occupied(tree, jnp.clip(ijk, 0, grid.resolution - 1))
+    return jnp.where(blocked[:, None], surf.point, lifted)
 
 
 def _lookup(table, index):
@@ -303,15 +321,16 @@ def _render_batch(
     def segment(k, path, first):
         surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction), normals)
         visible = jnp.zeros(batch, jnp.float32)
+        shadow = shadow_origins(tree, surf) if env.sun or env.sampled else surf.point
         if env.sun:
             towards = jnp.where(
-                (surf.hit & (jnp.sum(surf.normal * env.sun_direction, -1) > 0))[:, None], env.sun_direction, 0.0
+                (surf.hit & (jnp.sum(surf.shading * env.sun_direction, -1) > 0))[:, None], env.sun_direction, 0.0
             )
-            visible = (go(surf.point, towards).status != HIT).astype(jnp.float32)
+            visible = (go(shadow, towards).status != HIT).astype(jnp.float32)
         light = None
         if env.sampled:
             d, pdf = environment_sample(env, surf, uniforms(keys, LIGHT_STREAM + k, 3), k >= bounces)
-            light = (d, pdf, (go(surf.point, d).status != HIT).astype(jnp.float32))
+            light = (d, pdf, (go(shadow, d).status != HIT).astype(jnp.float32))
         return shade(
             path,
             surf,
