@@ -65,11 +65,13 @@ from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
-# Shadow rays start this many voxel edges above the hit, along the shading normal: from
-# the face itself, a ray toward a light low over a smooth surface meets the surface's
-# own staircase of voxels (shadow acne). Bunny, 1024^3, voxel normals: 36.5 dB PSNR
-# from the face, 38.0 dB lifted 1.5 edges (2.5 edges: 38.0 dB; along the light instead,
-# 3 edges: 37.7 dB). `experiments/render_vs_mesh.py`.
+# Shadow rays from a voxel with a smooth shading normal start this many voxel edges
+# above the hit along it: from the face itself, a ray toward a light low over a smooth
+# surface meets the surface's own staircase of voxels (shadow acne). Bunny, 1024^3,
+# voxel normals: 36.5 dB PSNR from the face, 38.0 dB lifted 1.5 edges (2.5 edges:
+# 38.0 dB; along the light instead, 3 edges: 37.7 dB). `experiments/render_vs_mesh.py`.
+# With face normals the lift cost 1.2 dB (32.9 -> 31.6 dB): there the steps are the
+# surface and their shadows belong to it.
 SHADOW_LIFT = 1.5
 LIGHT_STREAM = 1 << 16  # random stream of the environment sample at vertex k: LIGHT_STREAM + k
 
@@ -184,11 +186,17 @@ def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit, normals) -
 
 
 def shadow_origins(tree: Octree | CompactDag, surf: Surface) -> jax.Array:
-    """[N, 3] float32 origins of shadow rays from voxel hits: `SHADOW_LIFT` voxel edges
-    above each hit point along its shading normal, or the hit point itself where that
-    lands in an occupied voxel (in a crease)."""
+    """[N, 3] float32 origins of shadow rays from voxel hits.
+
+    Where the shading normal differs from the entered face's, the voxels stand for a
+    smooth surface and their steps must not shadow it: the origin is `SHADOW_LIFT` voxel
+    edges above the hit along the shading normal (the hit point itself where that lands
+    in an occupied voxel, in a crease). Shaded by its faces, the staircase is the surface
+    and casts its own shadows: the origin is the hit point.
+    """
     grid = tree.grid
-    lifted = surf.point + surf.shading * (SHADOW_LIFT * grid.voxel_size)
+    smooth = jnp.any(surf.shading != surf.normal, axis=-1, keepdims=True)
+    lifted = surf.point + jnp.where(smooth, surf.shading * (SHADOW_LIFT * grid.voxel_size), 0.0)
     ijk = jnp.floor(grid.to_grid_units(lifted)).astype(jnp.int32)
     inside = jnp.all((ijk >= 0) & (ijk < grid.resolution), axis=-1)
     blocked = inside & occupied(tree, jnp.clip(ijk, 0, grid.resolution - 1))
