@@ -47,18 +47,23 @@ MAX_STEPS = 512
 BOUNDS = ((-1.2, -1.2, -1.2), (1.2, 1.2, 1.2))  # every scene fits; the octree grid covers it
 
 
-def scenes() -> dict:
+def csg_scene(count: int):
+    """A rounded box and `count` random small spheres and boxes around it, less a
+    cylinder: ``count + 2`` primitives (the same first ones for every count)."""
     rng = np.random.default_rng(0)
     parts = []
-    for n in range(24):  # many small primitives around a big box
+    for n in range(count):
         c = rng.uniform(-0.8, 0.8, 3)
         parts.append(
             sdf.sphere(rng.uniform(0.08, 0.2), center=c) if n % 2 else sdf.box(rng.uniform(0.05, 0.15, 3), center=c)
         )
-    csg = sdf.difference(sdf.union(sdf.rounded_box((0.35, 0.25, 0.3), 0.05), *parts), sdf.cylinder(0.12, 1.0))
+    return sdf.difference(sdf.union(sdf.rounded_box((0.35, 0.25, 0.3), 0.05), *parts), sdf.cylinder(0.12, 1.0))
+
+
+def scenes() -> dict:
     return {
         "sphere": sdf.sphere(0.7),
-        "csg (26 primitives)": csg,
+        "csg (26 primitives)": csg_scene(24),
         "thin torus": sdf.rotate(sdf.torus(0.75, 0.02), sdf.rotation((1.0, 0.0, 0.3), 0.9)),
         "mix k=3 (L=5)": sdf.mix(sdf.sphere(0.6), sdf.box((0.4, 0.4, 0.4)), 3.0),
         "scale (1,0.3,1) uncorrected": sdf.scale(sdf.torus(0.6, 0.2), (1.0, 0.3, 1.0), correct=False),
@@ -145,10 +150,14 @@ def main(argv=None) -> None:
     parser.add_argument("--octree-res", type=int, default=128)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--march", type=float, default=2e-3, help="reference march step (world units)")
+    parser.add_argument(
+        "--sweep", type=int, nargs="*", default=[0, 6, 24, 62, 126], help="breakeven: CSG scenes with N + 2 primitives"
+    )
     parser.add_argument("--smoke", action="store_true", help="96 x 64 pixels, octree at 64^3, one repeat")
     args = parser.parse_args(argv)
     if args.smoke:
         args.width, args.height, args.octree_res, args.repeats, args.march = 96, 64, 64, 1, 1e-2
+        args.sweep = [0, 24]
     lo, hi = (np.asarray(b, np.float32) for b in BOUNDS)
     grid = jv.Grid(origin=lo, voxel_size=float(hi[0] - lo[0]) / args.octree_res, resolution=args.octree_res)
     voxel = float(grid.voxel_size)
@@ -188,15 +197,66 @@ def main(argv=None) -> None:
                 flush=True,
             )
 
+    sweep = breakeven(args.sweep, grid, o, u, args.repeats)
     stem = _common.RESULTS_DIR / ("sdf_stability_smoke" if args.smoke else "sdf_stability")
     _common.write_json(
         stem.with_suffix(".json"),
-        dict(machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=vars(args), rows=rows),
+        dict(machine=_common.machine_info(["jax", "jaxlib", "numpy"]), settings=vars(args), rows=rows, sweep=sweep),
     )
-    report = table(rows, args)
+    report = table(rows, args) + "\n\n" + sweep_table(sweep, args)
     stem.with_suffix(".md").write_text(report)
-    plot(rows, maps, stem)
+    plot(rows, maps, sweep, stem)
     print(report)
+
+
+def breakeven(counts, grid, o, u, repeats) -> list[dict]:
+    """Plain against octree sphere tracing on CSG scenes of growing cost: where the octree pays."""
+    rows = []
+    for count in _common.progress(counts, desc="breakeven"):
+        scene = csg_scene(count)
+        build, tree = _common.time_calls(lambda: jv.build_octree_from_sdf(scene, grid, dag=True), 1)
+        for method in ("plain", "octree"):
+            timing, _, steps = run_method(method, scene, tree, o, u, repeats)
+            rows.append(
+                dict(
+                    primitives=count + 2,
+                    method=method,
+                    median_s=timing["median_s"],
+                    first_s=timing["first_s"],
+                    compile_s=timing["compile_s"],
+                    steps_mean=float(steps.mean()),
+                    steps_max=int(steps.max()),
+                    build_s=build["median_s"] if method == "octree" else 0.0,
+                )
+            )
+            print(f"breakeven {count + 2} primitives {method}: {timing['median_s']:.3f} s", flush=True)
+    return rows
+
+
+def sweep_table(sweep, args) -> str:
+    plain = {r["primitives"]: r["median_s"] for r in sweep if r["method"] == "plain"}
+    out = [
+        dict(
+            primitives=r["primitives"],
+            method=r["method"],
+            time=f"{r['median_s'] * 1e3:.1f}",
+            first=f"{r['first_s']:.2f}",
+            speedup=f"{plain[r['primitives']] / r['median_s']:.2f}x",
+            steps=f"{r['steps_mean']:.1f} / {r['steps_max']}",
+            build=f"{r['build_s']:.2f}" if r["method"] == "octree" else "",
+        )
+        for r in sweep
+    ]
+    columns = [
+        ("primitives", "CSG primitives"),
+        ("method", "method"),
+        ("time", f"ms per {args.width}x{args.height} image"),
+        ("first", "first call s (compile included)"),
+        ("speedup", "vs plain"),
+        ("steps", "evaluations per ray: mean / max"),
+        ("build", "octree build s"),
+    ]
+    return _common.markdown_table(out, columns)
 
 
 def table(rows, args) -> str:
@@ -232,10 +292,10 @@ def table(rows, args) -> str:
     return _common.markdown_table(out, columns)
 
 
-def plot(rows, maps, stem) -> None:
+def plot(rows, maps, sweep, stem) -> None:
     import matplotlib.colors as mcolors
 
-    fig, (ax_err, ax_time) = _common.new_figure(2)
+    fig, (ax_err, ax_time, ax_sweep) = _common.new_figure(3)
     markers = dict(zip(METHODS, "osD^"))
     scene_names = list(dict.fromkeys(r["scene"] for r in rows))
     for r in rows:
@@ -267,6 +327,13 @@ def plot(rows, maps, stem) -> None:
     )
     ax_time.set(ylabel="seconds per image", title="Time per image")
     ax_time.legend(fontsize="small")
+    for m, mk in (("plain", "o-"), ("octree", "D-")):
+        mine = [r for r in sweep if r["method"] == m]
+        ax_sweep.plot([r["primitives"] for r in mine], [r["median_s"] for r in mine], mk, label=m)
+    ax_sweep.set(
+        xscale="log", yscale="log", xlabel="CSG primitives", ylabel="seconds per image", title="Where the octree pays"
+    )
+    ax_sweep.legend(fontsize="small")
     _common.save_figure(fig, stem.with_suffix(".png"))
 
     fig, axes = _common.new_figure(2 * len(METHODS), rows=len(maps), width=1.9, height=1.4)
