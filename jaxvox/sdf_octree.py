@@ -151,7 +151,7 @@ def _exit_distance(grid: Grid, voxel, o, u):
 # then gathered into a batch SHRINK times smaller, and so on down to MIN_BATCH rays. A
 # round costs a traversal and a march over the whole batch, and the rays that graze the
 # surface enter tens of leaves while most stop in one or two: without the gathering the
-# few slow rays kept every ray's round running (csg scene, 480x270: 91 rounds).
+# few slow rays kept every ray's round running (csg scene, 480x270: 5.8 s against 0.96 s).
 SHRINK = 8
 MIN_BATCH = 1024
 
