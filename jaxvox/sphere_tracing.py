@@ -10,9 +10,11 @@ would end past ``t_max`` (the ray's, or an octree leaf's exit) is never checked,
 is taken as a plain step (and ``omega = 1``) instead: a ray that leaves
 ``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
 
-Each ray is a `jax.lax.while_loop` over a `NamedTuple` state with a step cap, vmapped
-over the flattened batch; rays that reach the cap report `STEP_CAP`, never a hit or a
-miss.
+Each ray steps a `NamedTuple` state with a step cap, the flattened batch at once; rays
+still running are gathered into smaller batches as the others end (`jaxvox._stages`:
+under `vmap` a `while_loop` stepped every ray until the slowest ended, 72-127 steps
+against a mean of 5-10 on the CSG scenes of `experiments/sdf_stability.py`). Rays that
+reach the cap report `STEP_CAP`, never a hit or a miss.
 
 **Hit refinement.** The loop stops where ``|f| < epsilon * max(t, 1)``, which at an
 incidence ``a`` (from the tangent plane) lies up to ``epsilon * max(t, 1) / sin(a)`` short
@@ -46,6 +48,7 @@ from jaxtyping import ArrayLike, Real
 from jaxvox._checks import is_concrete
 from jaxvox._errors import JaxvoxError
 from jaxvox._geometry import safe_norm
+from jaxvox._stages import MIN_BATCH, run_in_stages
 from jaxvox.sdf import SDF
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
 from jaxvox.trace.hit import RUNNING
@@ -62,8 +65,8 @@ class _State(NamedTuple):
     status: jax.Array  # [] int32 RUNNING, HIT, MISS, STEP_CAP or INVALID
 
 
-def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
-    """Sphere traces one ray (origin o, unit direction u); returns the final `_State`."""
+def _ray_step(scene, o, u, t_min, t_max, epsilon, max_steps):
+    """One sphere-tracing step of one ray (origin o, unit direction u): `_State` -> `_State`."""
 
     def body(s: _State) -> _State:
         d = scene._distance(o + s.t * u)
@@ -90,12 +93,37 @@ def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
             status=jnp.where((new.status == RUNNING) & (steps >= max_steps), STEP_CAP, new.status).astype(jnp.int32)
         )
 
+    return body
+
+
+def _ray_start(o, u, t_min, t_max, relaxation) -> _State:
+    """The state of one ray before its first step."""
     bad = jnp.any(jnp.isnan(o)) | jnp.any(jnp.isnan(u)) | jnp.all(u == 0)
     start = jnp.where(t_min > t_max, MISS, RUNNING)
-    init = _State(
+    return _State(
         t_min, t_min, jnp.zeros_like(t_min), relaxation, jnp.int32(0), jnp.where(bad, INVALID, start).astype(jnp.int32)
     )
-    return jax.lax.while_loop(lambda s: s.status == RUNNING, body, init)
+
+
+def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
+    """Sphere traces one ray (origin o, unit direction u); returns the final `_State`."""
+    step = _ray_step(scene, o, u, t_min, t_max, epsilon, max_steps)
+    return jax.lax.while_loop(lambda s: s.status == RUNNING, step, _ray_start(o, u, t_min, t_max, relaxation))
+
+
+def trace_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min_batch: int = MIN_BATCH):
+    """Sphere traces rays [n, 3] (unit directions) with scalar bounds; returns the final
+    `_State` [n]. Rays still running are gathered into smaller batches as the others end
+    (`jaxvox._stages`): a vmapped `trace_ray` stepped every ray until the slowest ended.
+    """
+
+    def body(rays, s: _State) -> _State:
+        stepped = jax.vmap(lambda a, b, c: _ray_step(scene, a, b, t_min, t_max, epsilon, max_steps)(c))(*rays, s)
+        keep = s.status != RUNNING
+        return jax.tree.map(lambda old, new: jnp.where(keep, old, new), s, stepped)
+
+    start = jax.vmap(_ray_start, in_axes=(0, 0, None, None, None))(o, u, t_min, t_max, relaxation)
+    return run_in_stages(body, (o, u), start, idle=MISS, min_batch=min_batch)
 
 
 # Hit refinement, in units of |f| at the hit (see the module docstring).
@@ -257,8 +285,7 @@ def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation,
     batch = origins.shape[:-1]
     o, u = origins.reshape(-1, 3), unit_directions(directions.reshape(-1, 3))
     frozen = jax.lax.stop_gradient((scene, o, u))
-    trace = lambda s, oo, uu: trace_ray(s, oo, uu, t_min, t_max, epsilon, relaxation, max_steps)
-    final = jax.vmap(trace, in_axes=(None, 0, 0))(*frozen)
+    final = trace_rays(*frozen, t_min, t_max, epsilon, relaxation, max_steps)
     on_surface = jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)
     t, extra = refine_hits(*frozen, final.t, final.d_prev, (final.status == HIT) & on_surface, t_min, t_max)
     hit = surface_hit(scene, o, u, t, final.status, on_surface)

@@ -144,16 +144,19 @@ def test_octree_tracing_matches_plain(trees, name):
 
 def test_gathering_the_slow_rays_changes_no_ray(trees):
     """Rays run in stages: those still running are gathered into a batch `SHRINK` times
-    smaller, down to `MIN_BATCH`. Staged (4096 -> 512 -> 64 rays) or not, every ray ends
-    with the same status, leaf and index, and the same distance and normal up to float32
-    rounding (the stages are programs for other batch sizes, which XLA may fuse
-    differently; so may the refinement's evaluation count, by at most 2). Grazing rays on
-    the csg scene enter the most leaves."""
+    smaller, down to `MIN_BATCH` (`jaxvox._stages`). Staged (4096 -> 512 -> 64 rays) or
+    not, every ray ends with the same status, leaf and index, and the same distance and
+    normal up to float32 rounding (the stages are programs for other batch sizes, which
+    XLA may fuse differently; so may the refinement's evaluation count, by at most 2),
+    for the octree and for plain sphere tracing. Grazing rays on the csg scene take the
+    most steps."""
     import importlib
 
+    stages = importlib.import_module("jaxvox._stages")
     octree_module = importlib.import_module("jaxvox.sdf_octree")
+    plain_module = importlib.import_module("jaxvox.sphere_tracing")
     n = 4096
-    assert octree_module._batch_sizes(n, 64) == [4096, 512, 64]
+    assert stages.batch_sizes(n, 64) == [4096, 512, 64]
     scene, tree = SCENES["csg"], trees["csg"]
     o, d = _camera_rays(n, np.random.default_rng(7))
     o, d = jnp.asarray(o), jnp.asarray(d)
@@ -169,8 +172,18 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
         )
     moved = np.abs(np.asarray(staged_steps) - np.asarray(whole_steps))
     assert moved.max() <= 2 and (moved > 0).mean() < 0.01, (moved.max(), moved.mean())
-    # The last stage did run: some rays enter many more leaves than 64 rays' worth of rounds.
+    # The last stage did run: more than 64 rays take over 3x the median's rounds.
     assert (np.asarray(whole_steps) > 3 * np.median(np.asarray(whole_steps))).sum() > 64
+    # Plain sphere tracing: the loop's state ray for ray.
+    u = o * 0 + d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+    plain = (scene, o, u, jnp.float32(0.0), jnp.float32(6.0), jnp.float32(1e-4), jnp.float32(1.0), 512)
+    staged = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=64))()
+    whole = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=n + 1))()
+    for field in ("status", "steps"):
+        np.testing.assert_array_equal(np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)))
+    hits = np.asarray(whole.status) == jv.HIT  # a miss's last t (past t_max) is not reported
+    np.testing.assert_allclose(np.asarray(staged.t)[hits], np.asarray(whole.t)[hits], rtol=1e-6, atol=1e-6)
+    assert (np.asarray(whole.steps) > 3 * np.median(np.asarray(whole.steps))).sum() > 64
 
 
 @pytest.mark.parametrize("relaxation", [1.2, 1.6])
