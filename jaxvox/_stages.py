@@ -12,7 +12,8 @@ float32 rounding where XLA fuses the smaller programs differently.
 
 from __future__ import annotations
 
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
