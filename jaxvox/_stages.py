@@ -13,7 +13,7 @@ float32 rounding where XLA fuses the smaller programs differently.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -22,8 +22,6 @@ from jaxvox.trace.hit import RUNNING
 
 SHRINK = 8  # each stage's batch is this many times smaller than the last
 MIN_BATCH = 1024  # no stage below this many rows (a smaller one saved nothing measurable)
-
-State = TypeVar("State")
 
 
 def batch_sizes(n: int, min_batch: int = MIN_BATCH) -> list[int]:
@@ -34,9 +32,7 @@ def batch_sizes(n: int, min_batch: int = MIN_BATCH) -> list[int]:
     return sizes
 
 
-def run_in_stages(
-    body: Callable[[object, State], State], inputs, state: State, *, idle: int, min_batch: int = MIN_BATCH
-) -> State:
+def run_in_stages(body: Callable[[Any, Any], Any], inputs, state: Any, *, idle: int, min_batch: int = MIN_BATCH) -> Any:
     """Iterates ``state = body(inputs, state)`` until no row's ``state.status`` is `RUNNING`.
 
     Args:

@@ -117,8 +117,12 @@ def trace_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min
     (`jaxvox._stages`): a vmapped `trace_ray` stepped every ray until the slowest ended.
     """
 
+    def step(oo, uu, s: _State) -> _State:
+        return _ray_step(scene, oo, uu, t_min, t_max, epsilon, max_steps)(s)
+
     def body(rays, s: _State) -> _State:
-        stepped = jax.vmap(lambda a, b, c: _ray_step(scene, a, b, t_min, t_max, epsilon, max_steps)(c))(*rays, s)
+        rows_o, rows_u = rays
+        stepped = jax.vmap(step)(rows_o, rows_u, s)
         keep = s.status != RUNNING
         return jax.tree.map(lambda old, new: jnp.where(keep, old, new), s, stepped)
 
