@@ -15,8 +15,9 @@ the kept cells between levels.
 Laine & Karras): `jaxvox.trace` finds the first occupied leaf along the ray, the ray is
 sphere-traced only inside that leaf's box, and if it leaves the box without a hit the
 traversal resumes where sphere tracing stopped. Empty space costs octree steps instead
-of scene evaluations. The loop runs in rounds over the whole batch (one traversal and one
-leaf march per round; finished rays drop out of the traversal's queue at once).
+of scene evaluations. The loop runs in rounds (one traversal and a leaf march of at most
+`MARCH` evaluations per round), first over the whole batch, then over the rays still
+running gathered into smaller batches (`jaxvox._stages.run_in_stages`).
 """
 
 from __future__ import annotations
@@ -202,7 +203,8 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         d=jnp.zeros(n, jnp.float32),
     )
     # Grazing rays enter tens of leaves where most stop in one or two: the running rays
-    # are gathered into smaller batches (csg scene, 480x270: 0.96 s against 5.8 s).
+    # are gathered into smaller batches (csg scene, 480x270: 0.96 s against 5.8 s;
+    # 0.63 s with MARCH).
     return run_in_stages(body, (o, u), state, idle=MISS, min_batch=min_batch)
 
 
