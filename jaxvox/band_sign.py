@@ -45,6 +45,7 @@ Two methods, both exact (the float64 brute-force winding number is the reference
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -63,7 +64,7 @@ from jaxvox.topology import (
     regular_edge_pairs,
     welded_faces,
 )
-from jaxvox.winding import BRUTE_FORCE_BLOCK, brute_force_winding_numbers, point_winding_numbers
+from jaxvox.winding import BRUTE_FORCE_BLOCK, brute_force_winding_numbers, point_tree, point_winding_numbers
 
 POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
@@ -202,32 +203,29 @@ def _chunked(fn, rows, *rest):
     return joined if len(joined) > 1 else joined[0]
 
 
-def _winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Winding numbers [P] at points [P, 3] (grid units): the fast tree, then brute force
-    where it lands within `EXACT_BELOW` of 1/2 (the tree's error reaches a few 1e-2)."""
-    w = point_winding_numbers(tris, points)
-    close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
-    if len(close):
-        w[close] = brute_force_winding_numbers(tris, points[close])
-    return w
-
-
-def band_signs(
-    mesh: Mesh, tris: np.ndarray, ijk: np.ndarray, keys: np.ndarray, dist: np.ndarray, tri: np.ndarray, band: int
-) -> np.ndarray:
-    """+-1 (float32 [n], -1 inside) at band voxels (module docstring for the methods).
+def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.ndarray]:
+    """The sign function of a mesh's band voxels (module docstring for the methods): what
+    depends on the mesh alone (normals, crossings, caps, free triangles, the winding tree)
+    is computed here, once, so that the voxels can come in parts (regions).
 
     Args:
-      mesh: the `Mesh` (its faces); tris: [F, 3, 3] float64 its triangles in grid units.
-      ijk: [n, 3] int voxels in Morton order; keys: [n] uint64 their Morton codes;
-        dist: [n] float unsigned distance (grid units, at most `band`); tri: [n] int
-        closest triangle; band: the half width.
+      mesh: the `Mesh` (its faces); tris: [F, 3, 3] float64 its triangles in grid units;
+        band: the half width.
+
+    Returns:
+      ``signs(ijk, keys, dist, tri)``: +-1 (float32 [n], -1 inside) at band voxels ijk
+      [n, 3] int (Morton order; any subset of the band, e.g. one region's), keys [n] uint64
+      their Morton codes, dist [n] float unsigned distance (grid units, at most `band`),
+      tri [n] int closest triangle.
     """
     f = np.asarray(mesh.faces)
     rows = bucket(len(f))
     normals = jnp.asarray(pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows).reshape(-1, 3).T)
     corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
-    side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+
+    def sides(ijk, tri):
+        return _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     suspect = (
@@ -238,8 +236,9 @@ def band_signs(
     )
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
-        return side
-    return _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, band)
+        return lambda ijk, keys, dist, tri: sides(ijk, tri)
+    components = _Components(tris, welded, suspect, chain, band)
+    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, sides(ijk, tri))
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
@@ -283,98 +282,124 @@ def _cap_gaps(points: np.ndarray, reach: np.ndarray, centre: np.ndarray, radius:
     return gap, bound, slope
 
 
-def _component_signs(tris, welded, suspect, chain, ijk, keys, dist, tri, side, band):
-    """Signs by components of mesh plus caps (module docstring)."""
-    centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
-    n, faces = len(ijk), len(tris)
-    caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
-    centroid = tris.mean(1)
-    tri_radius = np.linalg.norm(tris - centroid[:, None], axis=-1).max(1)
-    reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
-    tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
-    pad = -len(caps) % BRUTE_FORCE_BLOCK
-    corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
-    blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
-    with_distance = functools.partial(_cap_terms, distance=True)
-    winding_only = functools.partial(_cap_terms, distance=False)
-    # Where the balls about the caps do not settle it: the exact cap term and distance at
-    # the centroid, with the term's largest change within the reach.
-    doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))
-    if len(doubt):
-        w, d2 = _chunked(with_distance, centroid[doubt].astype(np.float32), blocks)
-        gap = np.sqrt(d2) - reach[doubt]
-        safe = np.where(gap > 0, gap, 1.0)
-        slope = np.minimum(tri_slope[doubt], np.where(gap > 0, 2 * cap_area.sum() / (4 * np.pi * safe**3), np.inf))
-        tri_gap[doubt] = np.maximum(tri_gap[doubt], gap)
-        tri_bound[doubt] = np.minimum(tri_bound[doubt], np.abs(w) + reach[doubt] * slope)
-    ring = np.zeros(int(welded.max()) + 1, bool)
-    ring[welded[suspect].reshape(-1)] = True
-    free = ~ring[welded].any(1) & (tri_gap > MOVE)
+class _Components:
+    """Signs by components of mesh plus caps (module docstring): the mesh's caps, bounds
+    and free triangles at construction, the voxels' components per call of `signs`."""
 
-    # Cap terms: exact where the bound is not small, and with the distance for voxels of a
-    # triangle that is not free within a move of a cap.
-    loose = ~free[tri] | (dist < ON_SURFACE)
-    cap_gap = np.where(loose, tri_gap[tri], np.inf)  # lower bounds
-    near = np.flatnonzero(cap_gap <= MOVE)
-    bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
-    cap_w = np.zeros(n)
-    if len(near):
-        w, d2 = _chunked(with_distance, centre(near).astype(np.float32), blocks)
-        cap_w[near], cap_gap[near] = w, np.sqrt(d2)
-    if len(bounded):
-        cap_w[bounded] = _chunked(winding_only, centre(bounded).astype(np.float32), blocks)
-    alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
+    def __init__(self, tris, welded, suspect, chain, band):
+        self.tris, self.band = tris, band
+        caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
+        centroid = tris.mean(1)
+        tri_radius = np.linalg.norm(tris - centroid[:, None], axis=-1).max(1)
+        reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
+        tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
+        pad = -len(caps) % BRUTE_FORCE_BLOCK
+        corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
+        self.has_caps = len(caps) > 0
+        self.blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
+        # Where the balls about the caps do not settle it: the exact cap term and distance
+        # at the centroid, with the term's largest change within the reach.
+        doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))
+        if len(doubt):
+            w, d2 = self.cap_terms(centroid[doubt], distance=True)
+            gap = np.sqrt(d2) - reach[doubt]
+            safe = np.where(gap > 0, gap, 1.0)
+            slope = np.minimum(tri_slope[doubt], np.where(gap > 0, 2 * cap_area.sum() / (4 * np.pi * safe**3), np.inf))
+            tri_gap[doubt] = np.maximum(tri_gap[doubt], gap)
+            tri_bound[doubt] = np.minimum(tri_bound[doubt], np.abs(w) + reach[doubt] * slope)
+        ring = np.zeros(int(welded.max()) + 1, bool)
+        ring[welded[suspect].reshape(-1)] = True
+        self.free = ~ring[welded].any(1) & (tri_gap > MOVE)
+        self.tri_gap, self.tri_bound = tri_gap, tri_bound
+        pairs = regular_edge_pairs(welded)
+        self.pairs = pairs[self.free[pairs].all(1)]
+        self.tree = point_tree(tris)
 
-    # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
-    node = 2 * tri.astype(np.int64) + (side < 0)
-    loose_ids = np.flatnonzero(loose)
-    node[loose_ids] = 2 * faces + np.arange(len(loose_ids))
-    pairs = regular_edge_pairs(welded)
-    pairs = pairs[free[pairs].all(1)]
-    u = [2 * pairs[:, 0], 2 * pairs[:, 0] + 1]
-    v = [2 * pairs[:, 1], 2 * pairs[:, 1] + 1]
-    mover = loose_ids[~alone[loose_ids]]
-    for axis in range(3):
-        for step in (-1, 1):
-            other = ijk[mover].copy()
-            other[:, axis] += step
-            inside = (other[:, axis] >= 0) & (other[:, axis] < (1 << 20))
-            key = morton.encode_host(np.clip(other, 0, None))
-            at = np.minimum(np.searchsorted(keys, key), n - 1)
-            found = inside & (keys[at] == key) & ~alone[at]
-            ok = found & (dist[mover] + dist[at] > MOVE) & (cap_gap[mover] + cap_gap[at] > MOVE)
-            u.append(node[mover[ok]])
-            v.append(node[at[ok]])
-    label = connected_components(2 * faces + len(loose_ids), np.concatenate(u), np.concatenate(v))
-    comp = label[node]
+    def cap_terms(self, points: np.ndarray, *, distance: bool):
+        """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
+        also the squared distance [P] to the nearest cap."""
+        return _chunked(functools.partial(_cap_terms, distance=distance), points.astype(np.float32), self.blocks)
 
-    # One winding number per component, at its voxel farthest from mesh and caps.
-    score = np.where(alone, -1.0, np.minimum(dist, cap_gap))
-    best = np.full(len(label), -1.0)
-    np.maximum.at(best, comp, score)
-    hit = np.flatnonzero((score == best[comp]) & (score >= 0.5))
-    rep = np.full(len(label), -1)
-    rep[comp[hit]] = hit
-    roots = np.flatnonzero(rep >= 0)
-    reps = rep[roots]
-    lone = np.flatnonzero(rep[comp] < 0)  # components without a representative
-    values = _winding_numbers(tris, np.concatenate([centre(reps), centre(lone)]))  # one tree for both
-    rep_caps = _chunked(winding_only, centre(reps).astype(np.float32), blocks) if len(caps) else np.zeros(len(reps))
-    whole = values[: len(reps)] + rep_caps
-    total = np.rint(whole)
-    wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
-    if len(wrong):  # the fast value missed by more than its error: sum it exactly
-        whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + rep_caps[wrong]
-        total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
-    component_w = np.full(len(label), np.nan)
-    component_w[roots] = total
-    w = component_w[comp] - cap_w
-    exact = np.concatenate([near, bounded])  # elsewhere w is an integer (or NaN)
-    close = exact[np.abs(w[exact] - 0.5) < CLOSE]
-    if len(close):
-        w[close] = brute_force_winding_numbers(tris, centre(close))
-    w[lone] = values[len(reps) :]
-    single = np.flatnonzero(np.isnan(w))  # components whose rounding failed
-    if len(single):
-        w[single] = _winding_numbers(tris, centre(single))
-    return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)
+    def winding_numbers(self, points: np.ndarray) -> np.ndarray:
+        """The mesh's winding numbers [P] at points [P, 3] (grid units): the fast tree, then
+        brute force where it lands within `EXACT_BELOW` of 1/2 (the tree's error reaches a
+        few 1e-2)."""
+        w = point_winding_numbers(self.tris, points, tree=self.tree)
+        close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
+        if len(close):
+            w[close] = brute_force_winding_numbers(self.tris, points[close])
+        return w
+
+    def signs(self, ijk, keys, dist, tri, side):
+        """+-1 [n] float32 at voxels ijk [n, 3] (Morton order, codes keys [n] uint64) of
+        unsigned distance dist [n] and closest triangle tri [n], whose pseudo-normal sides
+        are side [n] (+-1)."""
+        centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
+        n, faces, tris = len(ijk), len(self.tris), self.tris
+        free, tri_gap, tri_bound = self.free, self.tri_gap, self.tri_bound
+
+        # Cap terms: exact where the bound is not small, and with the distance for voxels
+        # of a triangle that is not free within a move of a cap.
+        loose = ~free[tri] | (dist < ON_SURFACE)
+        cap_gap = np.where(loose, tri_gap[tri], np.inf)  # lower bounds
+        near = np.flatnonzero(cap_gap <= MOVE)
+        bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
+        cap_w = np.zeros(n)
+        if len(near):
+            w, d2 = self.cap_terms(centre(near), distance=True)
+            cap_w[near], cap_gap[near] = w, np.sqrt(d2)
+        if len(bounded):
+            cap_w[bounded] = self.cap_terms(centre(bounded), distance=False)
+        alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
+
+        # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
+        node = 2 * tri.astype(np.int64) + (side < 0)
+        loose_ids = np.flatnonzero(loose)
+        node[loose_ids] = 2 * faces + np.arange(len(loose_ids))
+        u = [2 * self.pairs[:, 0], 2 * self.pairs[:, 0] + 1]
+        v = [2 * self.pairs[:, 1], 2 * self.pairs[:, 1] + 1]
+        mover = loose_ids[~alone[loose_ids]]
+        for axis in range(3):
+            for step in (-1, 1):
+                other = ijk[mover].copy()
+                other[:, axis] += step
+                inside = (other[:, axis] >= 0) & (other[:, axis] < (1 << 20))
+                key = morton.encode_host(np.clip(other, 0, None))
+                at = np.minimum(np.searchsorted(keys, key), n - 1)
+                found = inside & (keys[at] == key) & ~alone[at]
+                ok = found & (dist[mover] + dist[at] > MOVE) & (cap_gap[mover] + cap_gap[at] > MOVE)
+                u.append(node[mover[ok]])
+                v.append(node[at[ok]])
+        label = connected_components(2 * faces + len(loose_ids), np.concatenate(u), np.concatenate(v))
+        comp = label[node]
+
+        # One winding number per component, at its voxel farthest from mesh and caps.
+        score = np.where(alone, -1.0, np.minimum(dist, cap_gap))
+        best = np.full(len(label), -1.0)
+        np.maximum.at(best, comp, score)
+        hit = np.flatnonzero((score == best[comp]) & (score >= 0.5))
+        rep = np.full(len(label), -1)
+        rep[comp[hit]] = hit
+        roots = np.flatnonzero(rep >= 0)
+        reps = rep[roots]
+        lone = np.flatnonzero(rep[comp] < 0)  # components without a representative
+        values = self.winding_numbers(np.concatenate([centre(reps), centre(lone)]))  # one call for both
+        rep_caps = self.cap_terms(centre(reps), distance=False) if self.has_caps else np.zeros(len(reps))
+        whole = values[: len(reps)] + rep_caps
+        total = np.rint(whole)
+        wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
+        if len(wrong):  # the fast value missed by more than its error: sum it exactly
+            whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + rep_caps[wrong]
+            total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
+        component_w = np.full(len(label), np.nan)
+        component_w[roots] = total
+        w = component_w[comp] - cap_w
+        exact = np.concatenate([near, bounded])  # elsewhere w is an integer (or NaN)
+        close = exact[np.abs(w[exact] - 0.5) < CLOSE]
+        if len(close):
+            w[close] = brute_force_winding_numbers(tris, centre(close))
+        w[lone] = values[len(reps) :]
+        single = np.flatnonzero(np.isnan(w))  # components whose rounding failed
+        if len(single):
+            w[single] = self.winding_numbers(centre(single))
+        return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)

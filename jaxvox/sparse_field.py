@@ -37,6 +37,7 @@ results are gathered, then the `SparseField` itself.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -48,11 +49,13 @@ from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, pad_rows
-from jaxvox.band_sign import band_signs
+from jaxvox.band_sign import prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
-from jaxvox.octree import Octree, build_octree, voxel_index
+from jaxvox.octree import Octree, voxel_index
+from jaxvox.octree.stream import check_count, check_region, finish_dag, merge_all, push_region
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
+from jaxvox.voxelize.host import join_rows
 
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 8  # triangles per work unit (a tile overlapped by more takes several units)
@@ -77,7 +80,8 @@ class SparseField:
         each voxel's closest triangle (ties to the lower id).
       values: [capacity] float32 distances in world units aligned with ``voxels.coords``
         (negative inside when signed); slots past `count` hold `UNUSED_VALUE` (+inf).
-      tree: `Octree` of the band voxels (`build_octree`), for `voxel_index` lookups.
+      tree: `Octree`, the DAG of the band voxels (`build_dag`'s layout), for `voxel_index`
+        lookups.
       grid: the `Grid`.
       band: static int, the half width in voxels (changing it recompiles consumers).
     """
@@ -137,14 +141,15 @@ def _tile_units(hi, lo, ids, origin):
 # --------------------------------------------------------------------------------------
 
 
-def _tile_items(tris: np.ndarray, shape, band: int):
+def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     """Every triangle's dilated voxel box, clipped to the box of `shape` (an int R for R^3,
-    or [3] ints), as the tiles it overlaps: (triangle id [n] int64, tile [n, 3] int64,
-    tile Morton code [n] uint64), ordered by code, then by triangle id."""
+    or [3] ints), as the aligned cells of edge `cell` (tiles, or regions) it overlaps:
+    (triangle id [n] int64, cell [n, 3] int64, cell Morton code [n] uint64), ordered by
+    code, then by triangle id."""
     lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
     hi = np.minimum(np.floor(tris.max(1) + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
-    first, last = lo[ids] // TILE, hi[ids] // TILE
+    first, last = lo[ids] // cell, hi[ids] // cell
     per_axis = last - first + 1
     counts = per_axis.prod(1)
     owner = np.repeat(np.arange(len(ids)), counts)
@@ -237,12 +242,23 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     return ijk, band_d2, t, keys
 
 
-def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool = True) -> SparseField:
+def sparse_distance_field(
+    mesh: Mesh,
+    grid: Grid,
+    *,
+    band: int = 3,
+    signed: bool = True,
+    region: int | None = None,
+    progress: bool | None = None,
+) -> SparseField:
     """The narrow-band distance field of `mesh`: exact distances at the band voxels.
 
     Host-side (counting passes size the work; see the module docstring for the method and
     its cost). Band voxels are those whose centre lies within ``band * h`` of the surface
-    (``h = grid.voxel_size``; in float32 grid units, ``d <= band``).
+    (``h = grid.voxel_size``; in float32 grid units, ``d <= band``). The grid is built in
+    aligned cubic regions of edge `region`, in Morton order, each region's voxels
+    distanced, signed and built into the field's DAG alone, so that the work's memory
+    follows one region, not the whole band (`jaxvox.mesh_to_dag` does the same).
 
     Args:
       mesh: `Mesh` (validated); for the sign, outward (counter-clockwise) orientation.
@@ -252,38 +268,72 @@ def sparse_distance_field(mesh: Mesh, grid: Grid, *, band: int = 3, signed: bool
         voxels whose centre lies on the surface (usually none).
       signed: negative inside (pseudo-normals for watertight meshes, winding numbers
         otherwise); False gives unsigned distances.
+      region: edge of the regions (a power of two up to `REGION_SIZE`, 1024, the
+        default; capped at R). The field does not depend on it.
+      progress: a progress bar over the regions (None: when there are several).
 
     Returns:
-      A `SparseField` (empty, ``count == 0``, for a mesh without faces).
+      A `SparseField` (empty, ``count == 0``, for a mesh without faces) whose tree is the
+      DAG of the band voxels (`build_dag`'s layout; `voxel_index` finds each voxel's row).
 
     Raises:
-      JaxvoxError: a malformed mesh, not a `Grid`, a bad `band` or `signed`, or a
-        triangle whose dilated box holds more than about 2^31 voxels.
+      JaxvoxError: a malformed mesh, not a `Grid`, a bad `band`, `signed` or `region`, or
+        a triangle whose dilated box holds more than about 2^31 voxels.
     """
     validate_mesh(mesh)
     check_type("sparse_distance_field grid", grid, Grid)
     band = check_int("sparse_distance_field band", band, minimum=0, maximum=MAX_BAND)
     if not isinstance(signed, (bool, np.bool_)):
         raise refuse("sparse_distance_field signed", "must be True or False", signed)
+    size = min(check_region("sparse_distance_field region", region), grid.resolution)
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
-    ijk, d2, tri, keys = band_pairs(tris, grid.resolution, band)
-    n = len(ijk)
+    signs = prepare_signs(mesh, tris, band) if signed and len(tris) else None
+    coords, values, closest = [], [], []
+    stack: list = []
+    ids, cells, codes = _tile_items(tris, grid.resolution, band, cell=size)
+    starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
+    ends = np.append(starts[1:], len(ids))
+    from tqdm.auto import tqdm
+
+    shift = np.uint64(3 * (size.bit_length() - 1))
+    for a, b in tqdm(zip(starts, ends), total=len(starts), desc="regions", disable=_quiet(progress, len(starts))):
+        region_lo = (cells[a] * size).astype(np.int32)
+        mine = ids[a:b]  # ascending, so ties still go to the lower id
+        ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
+        if not len(ijk):
+            continue
+        ijk += region_lo
+        tri = mine[tri].astype(np.int32)
+        dist = np.sqrt(d2.astype(np.float64))
+        if signs is not None:
+            dist = dist * signs(ijk, codes[a] << shift | keys, dist, tri)
+        push_region(stack, keys, region_lo, size)
+        coords.append(ijk)
+        values.append((dist * h).astype(np.float32))
+        closest.append(tri)
+        del ijk, d2, tri, keys, dist
+    n = sum(len(c) for c in coords)
+    check_count(n, grid, "sparse_distance_field")
     capacity = bucket(n)
-    dist = np.sqrt(d2.astype(np.float64))
-    if signed and n:
-        dist = dist * band_signs(mesh, tris, ijk, keys, dist, tri, band)
-    values = pad_rows((dist * h).astype(np.float32), capacity, UNUSED_VALUE)
+    put = functools.partial(jax.device_put, may_alias=True)
     voxels = Voxels(
-        jnp.asarray(pad_rows(ijk.astype(np.int32), capacity, UNUSED)),
+        put(join_rows(coords, (capacity, 3), UNUSED, np.int32)),
         jnp.int32(n),
         jnp.int32(0),
-        jnp.asarray(pad_rows(tri.astype(np.int32), capacity, UNUSED)),
+        put(join_rows(closest, (capacity,), UNUSED, np.int32)),
         grid,
         CONSERVATIVE,
     )
-    return SparseField(voxels, jnp.asarray(values), build_octree(voxels), grid, band)
+    field_values = put(join_rows(values, (capacity,), UNUSED_VALUE, np.float32))
+    tree = finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n)
+    return SparseField(voxels, field_values, tree, grid, band)
+
+
+def _quiet(progress: bool | None, regions: int) -> bool:
+    """Whether the progress bar over `regions` regions is off (`progress` None: on for several)."""
+    return regions < 2 if progress is None else not progress
 
 
 _CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.int32)  # [8, 3] xyz bits

@@ -259,8 +259,9 @@ def _dipole_nodes(tris: np.ndarray, size: int) -> np.ndarray:
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
-def _point_tree(tris: np.ndarray) -> _PointTree:
-    """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder."""
+def point_tree(tris: np.ndarray) -> _PointTree:
+    """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder:
+    built once for several calls of `point_winding_numbers` on one mesh."""
     tris = tris[_morton_order(tris.mean(1))]
     padded = bucket(max(len(tris), TOP * LEAF))
     pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
@@ -307,7 +308,9 @@ def _point_tree_sum(tree: _PointTree, points, *, beta: float):
     return w + jnp.sum(jnp.where(near_leaf, exact, 0.0), -1), crowded | crowded_leaves
 
 
-def point_winding_numbers(tris: np.ndarray, points: np.ndarray, *, beta: float = 2.0) -> np.ndarray:
+def point_winding_numbers(
+    tris: np.ndarray, points: np.ndarray, *, beta: float = 2.0, tree: _PointTree | None = None
+) -> np.ndarray:
     """Fast winding numbers [P] float32 at arbitrary points [P, 3] of triangles [F, 3, 3]
     (same units, float64 in; host-side).
 
@@ -316,11 +319,12 @@ def point_winding_numbers(tris: np.ndarray, points: np.ndarray, *, beta: float =
     adds its dipole term, the nearest `NEAR_TOPS` near ones open into their leaves, a far
     leaf adds its dipole, and the nearest `NEAR_LEAVES` near leaves add their triangles'
     exact solid angles. A point with more near nodes than that is summed by brute force.
+    `tree`: the `point_tree` of `tris` when the caller has built it already.
     """
     points = np.asarray(points, np.float64)
     if not len(points) or not len(tris):
         return np.zeros(len(points), np.float32)
-    tree = _point_tree(np.asarray(tris, np.float64))
+    tree = point_tree(np.asarray(tris, np.float64)) if tree is None else tree
     values, flags = [], []
     for s in range(0, len(points), POINT_CHUNK):
         part = points[s : s + POINT_CHUNK]

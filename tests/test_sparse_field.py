@@ -294,4 +294,34 @@ def test_signs_of_damaged_meshes(seed):
     faces: values and signs against the float64 winding number (`check_field`)."""
     mesh = damaged_mesh(seed, 16)
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)
-    check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2))
+    region = (None, 4)[seed % 2]  # half the examples in regions of 4^3, each signed alone
+    check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2, region=region))
+
+
+@pytest.mark.parametrize("name", ["stanford-bunny", "teapot"])
+def test_regions_change_nothing(meshes_dir, name):
+    """Built in regions of 16^3 (each region's voxels distanced, signed by its own
+    components and merged into the DAG alone), the field equals the one built whole, and
+    its tree is `build_dag` of its voxels (the canonical DAG)."""
+    mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+    grid = jv.Grid.fit(mesh, 64)
+    whole = jv.sparse_distance_field(mesh, grid, band=3)
+    parts = jv.sparse_distance_field(mesh, grid, band=3, region=16)
+    n = int(whole.count)
+    assert int(parts.count) == n > 0
+    assert np.array_equal(np.asarray(parts.voxels.coords), np.asarray(whole.voxels.coords))
+    a, b = np.asarray(parts.values[:n]), np.asarray(whole.values[:n])
+    assert np.array_equal(a < 0, b < 0)
+    assert np.max(np.abs(a - b)) / float(grid.voxel_size) < 1e-6
+    dag = jv.build_dag(whole.voxels)
+    for name in ("mask", "child", "prefix", "level_count", "voxel_count"):
+        assert np.array_equal(np.asarray(getattr(parts.tree, name)), np.asarray(getattr(dag, name))), name
+    for field in (whole, parts):
+        assert np.array_equal(np.asarray(jv.voxel_index(field.tree, np.asarray(field.voxels.coords[:n]))), np.arange(n))
+
+
+def test_bad_region():
+    mesh = icosphere(1, 0.3)
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    with pytest.raises(jv.JaxvoxError, match="sparse_distance_field region: must be a power of two"):
+        jv.sparse_distance_field(mesh, grid, region=12)

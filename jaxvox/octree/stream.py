@@ -195,26 +195,37 @@ def stream_dag(
                     continue
                 with lock:
                     total[0] += len(keys)
-                    _check_count(total[0], grid, caller)
+                    check_count(total[0], grid, caller)
                 if on_region is not None:  # from this thread
                     on_region(position, _global_voxels(region_coords(keys, region_lo), triangle, grid, mode))
-                stack.append(_region_dag(keys, region_lo, region))
+                push_region(stack, keys, region_lo, region)
                 del keys, triangle
-                while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
-                    b, a = stack.pop(), stack.pop()
-                    stack.append(_merge(a, b))
-        return _merge_all(stack)
+        return merge_all(stack)
 
     if threads > 1:  # one thread per local device: XLA runs and numpy sorts release the GIL
         with concurrent.futures.ThreadPoolExecutor(threads) as pool:
-            mine = _merge_all([p for p in pool.map(build, range(threads)) if p is not None])
+            mine = merge_all([p for p in pool.map(build, range(threads)) if p is not None])
     else:
         mine = build(0)
     # every process merges every process's sub-DAG, in process order
     parts = [p for p in (all_processes(mine) if processes > 1 else [mine]) if p is not None]
     voxels = sum(int(p.counts.sum()) for p in parts)
-    _check_count(voxels, grid, caller)
-    dag = _merge_all(parts)
+    check_count(voxels, grid, caller)
+    return finish_dag(merge_all(parts), grid, region, mode, voxels)
+
+
+def push_region(stack: list[_Partial], keys: np.ndarray, region_lo: np.ndarray, region: int) -> None:
+    """Appends the sub-DAG of one region's voxels (Morton codes [n] uint32 or uint64, in
+    Morton order, n > 0) to `stack`, merging as in a binary counter (module docstring)."""
+    stack.append(_region_dag(keys, region_lo, region))
+    while len(stack) > 1 and 2 * stack[-1].rows >= stack[-2].rows:
+        b, a = stack.pop(), stack.pop()
+        stack.append(_merge(a, b))
+
+
+def finish_dag(dag: _Partial | None, grid: Grid, region: int, mode: str, voxels: int) -> Octree:
+    """The `Octree` (laid out as `build_dag` returns it) of the merged sub-DAGs of regions
+    of edge `region` (None: no voxels), with the levels above the regions."""
     if dag is None:
         return build_dag(_empty(grid, mode))
     depth_above = grid.resolution.bit_length() - region.bit_length()  # L = D - s
@@ -229,7 +240,7 @@ def stream_dag(
     return tree_from_levels(levels, grid, mode, voxels, dag=True)
 
 
-def _merge_all(parts: list[_Partial]) -> _Partial | None:
+def merge_all(parts: list[_Partial]) -> _Partial | None:
     """The canonical DAG of all `parts` (None for none): merged pairwise from the back."""
     while len(parts) > 1:
         b, a = parts.pop(), parts.pop()
@@ -237,7 +248,7 @@ def _merge_all(parts: list[_Partial]) -> _Partial | None:
     return parts[0] if parts else None
 
 
-def _check_count(voxels: int, grid: Grid, caller: str) -> None:
+def check_count(voxels: int, grid: Grid, caller: str) -> None:
     if voxels > MAX_VOXELS:
         raise JaxvoxError(
             f"{caller}: more than {MAX_VOXELS:,} voxels at {grid.resolution}^3, beyond the uint32 voxel "
