@@ -6,7 +6,9 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
 * jaxvox: `jv.sparse_distance_field` (signed; ``--unsigned`` for the unsigned field): the
   first call in a fresh process (compilation included, with its number of XLA
   compilations), then the median of ``--repeats`` warmed-up calls; band voxels, bytes of
-  the values, peak resident memory. The bunny is open, so its sign takes the grouped fast
+  the values and of the whole `SparseField` (voxels, values, triangles, tree), peak
+  resident memory. Resolutions listed in ``--stream`` take `jv.sparse_field_regions`
+  instead (each region's field counted and dropped: fields larger than memory). The bunny is open, so its sign takes the grouped fast
   winding numbers (`jaxvox.sparse_field`);
 * OpenVDB: ``FloatGrid.createLevelSetFromPolygons`` (meshToLevelSet, multi-threaded) with
   the same voxel size and half width, run by the system ``/usr/bin/python3`` (Debian
@@ -23,7 +25,8 @@ Each case runs in a fresh process. Writes experiments/results/sparse_distance[_u
 Examples:
   python experiments/sparse_distance.py --smoke      # R = 64
   python experiments/sparse_distance.py              # R = 256, 1024
-  python experiments/sparse_distance.py --resolutions 4096 --repeats 1
+  python experiments/sparse_distance.py --resolutions 4096 --repeats 0 --skip-open3d --update
+  python experiments/sparse_distance.py --resolutions 8192 --stream 8192 --repeats 0 --update
 """
 
 from __future__ import annotations
@@ -63,7 +66,8 @@ _OPENVDB = textwrap.dedent(
         t = time.perf_counter()
         grid = vdb.FloatGrid.createLevelSetFromPolygons(v, triangles=f, transform=xform, halfWidth=spec["band"])
         times.append(time.perf_counter() - t)
-    print(json.dumps(dict(first_s=times[0], median_s=float(np.median(times[1:])), voxels=int(grid.activeVoxelCount()))))
+    median = float(np.median(times[1:])) if len(times) > 1 else times[0]
+    print(json.dumps(dict(first_s=times[0], median_s=median, voxels=int(grid.activeVoxelCount()))))
     """
 )
 
@@ -92,19 +96,36 @@ def worker(spec: dict) -> dict:
     )
     mesh = jv.load_mesh(spec["mesh"])
     grid = jv.Grid.fit(mesh, resolution=spec["resolution"])
-    run = lambda: jax.block_until_ready(jv.sparse_distance_field(mesh, grid, band=spec["band"], signed=spec["signed"]))
-    timing, field = _common.time_calls(run, spec["repeats"])
-    n = int(field.count)
+    kw = dict(band=spec["band"], signed=spec["signed"])
+    field_bytes = lambda f: sum(x.nbytes for x in jax.tree.leaves(f))
+    if spec["stream"]:  # region by region, each region's field dropped once counted
+
+        def run():
+            voxels = total = 0
+            for part in jv.sparse_field_regions(mesh, grid, **kw):
+                voxels, total = voxels + int(part.count), total + field_bytes(part)
+            return voxels, total
+
+        timing, (n, total) = _common.time_calls(run, spec["repeats"])
+        field = None
+    else:
+        run = lambda: jax.block_until_ready(jv.sparse_distance_field(mesh, grid, **kw))
+        timing, field = _common.time_calls(run, spec["repeats"])
+        n, total = int(field.count), field_bytes(field)
     out = dict(
         jaxvox=dict(
             timing,
             compiles=len(compiles),
             voxels=n,
             value_bytes=4 * n,
+            field_mib=total / 2**20,
             peak_rss_mib=_common.peak_rss_mib(),
+            streamed=spec["stream"],
         ),
         voxel_size=float(grid.voxel_size),
     )
+    if field is None or spec["skip_open3d"]:
+        return out
     try:
         import open3d as o3d
     except ImportError as e:
@@ -145,6 +166,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--unsigned", action="store_true")
     parser.add_argument("--timeout", type=float, default=1800)
+    parser.add_argument(
+        "--stream",
+        type=int,
+        nargs="*",
+        default=[],
+        help="resolutions handed out region by region (sparse_field_regions), each region dropped once counted",
+    )
+    parser.add_argument("--skip-open3d", action="store_true", help="no Open3D queries (slow and large at 4096^3)")
+    parser.add_argument("--update", action="store_true", help="replace only these resolutions' rows in the JSON")
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
@@ -152,7 +182,15 @@ def main() -> None:
     mesh = str(_common.MESH_DIR / "stanford-bunny.obj")
     cases = []
     for r in _common.progress(resolutions, desc="resolutions"):
-        spec = dict(mesh=mesh, resolution=r, band=args.band, repeats=args.repeats, signed=not args.unsigned)
+        spec = dict(
+            mesh=mesh,
+            resolution=r,
+            band=args.band,
+            repeats=args.repeats,
+            signed=not args.unsigned,
+            stream=r in args.stream,
+            skip_open3d=args.skip_open3d,
+        )
         case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, mesh="stanford-bunny")
         if "voxel_size" in case:
             peer = dict(mesh=mesh, voxel_size=case["voxel_size"], band=args.band, repeats=args.repeats)
@@ -160,8 +198,12 @@ def main() -> None:
         cases.append(case)
         print(json.dumps(case))
     name = "sparse_distance" + ("_unsigned" if args.unsigned else "") + ("_smoke" if args.smoke else "")
+    path = _common.RESULTS_DIR / f"{name}.json"
+    if args.update and path.exists():  # keep the other resolutions' rows of the last full run
+        kept = [c for c in json.loads(path.read_text())["cases"] if c["resolution"] not in resolutions]
+        cases = sorted(kept + cases, key=lambda c: c["resolution"])
     result = dict(band=args.band, signed=not args.unsigned, cases=cases, machine=_common.machine_info(PACKAGES))
-    _common.write_json(_common.RESULTS_DIR / f"{name}.json", result)
+    _common.write_json(path, result)
     write_report(result, _common.RESULTS_DIR / name)
 
 
@@ -179,6 +221,7 @@ def _rows(case: dict) -> list[dict]:
             compiles=str(j.get("compiles", "-")),
             warm=fmt(j.get("median_s")),
             peak=fmt(j.get("peak_rss_mib")),
+            field=fmt(j.get("field_mib")) + (" (by regions)" if j.get("streamed") else ""),
             vdb=fmt(vdb.get("median_s")) + (f" ({vdb['voxels']:,} voxels)" if "voxels" in vdb else ""),
             o3d=fmt(o3d.get("signed", {}).get("median_s")) + " / " + fmt(o3d.get("unsigned", {}).get("median_s")),
             diff=fmt(o3d.get("unsigned", {}).get("max_diff_voxels")),
@@ -196,6 +239,7 @@ def write_report(result: dict, stem) -> None:
         ("compiles", "compiles"),
         ("warm", "jaxvox warm (s)"),
         ("peak", "peak RSS (MiB)"),
+        ("field", "field (MiB)"),
         ("vdb", "OpenVDB warm (s)"),
         ("o3d", "Open3D signed / unsigned (s)"),
         ("diff", "max abs diff vs Open3D (voxels)"),

@@ -318,6 +318,18 @@ def test_regions_change_nothing(meshes_dir, name):
         assert np.array_equal(np.asarray(getattr(parts.tree, name)), np.asarray(getattr(dag, name))), name
     for field in (whole, parts):
         assert np.array_equal(np.asarray(jv.voxel_index(field.tree, np.asarray(field.voxels.coords[:n]))), np.arange(n))
+    # Handed out region by region: the same voxels and values, each region's tree its own.
+    regions = list(jv.sparse_field_regions(mesh, grid, band=3, region=16))
+    assert len(regions) > 8
+    counts = [int(r.count) for r in regions]
+    join = lambda get: np.concatenate([np.asarray(get(r))[:c] for r, c in zip(regions, counts)])
+    assert np.array_equal(join(lambda r: r.voxels.coords), np.asarray(whole.voxels.coords[:n]))
+    assert np.array_equal(join(lambda r: r.values), a)
+    assert np.array_equal(join(lambda r: r.voxels.triangle), np.asarray(parts.voxels.triangle[:n]))
+    last = regions[-1]
+    ijk = np.asarray(last.voxels.coords[: counts[-1]])
+    assert np.array_equal(np.asarray(jv.voxel_index(last.tree, ijk)), np.arange(counts[-1]))
+    assert int(jv.voxel_index(last.tree, np.asarray(whole.voxels.coords[0]))) == -1
 
 
 def test_bad_region():
