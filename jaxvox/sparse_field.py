@@ -207,8 +207,8 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     for s in range(0, len(ids), CULL_CHUNK):
         part = slice(s, s + CULL_CHUNK)
         m = len(ids[part])
-        args = pad_rows(ids[part].astype(np.int32), CULL_CHUNK, pad_id), pad_rows(tile[part] * TILE, CULL_CHUNK).T
-        gap2[part] = np.asarray(_tile_gaps(hi, lo, *(jnp.asarray(np.ascontiguousarray(a)) for a in args)))[:m]
+        chunk = pad_rows(ids[part].astype(np.int32), CULL_CHUNK, pad_id), pad_rows(tile[part] * TILE, CULL_CHUNK).T
+        gap2[part] = np.asarray(_tile_gaps(hi, lo, *(jnp.asarray(np.ascontiguousarray(a)) for a in chunk)))[:m]
     keep = np.flatnonzero(gap2 <= np.float32((band + _REACH + CULL_SLACK) ** 2))
     ids, tile, code = ids[keep], tile[keep], code[keep]
     if not len(ids):
