@@ -64,7 +64,14 @@ from jaxvox.topology import (
     regular_edge_pairs,
     welded_faces,
 )
-from jaxvox.winding import BRUTE_FORCE_BLOCK, brute_force_winding_numbers, point_tree, point_winding_numbers
+from jaxvox.winding import (
+    BRUTE_FORCE_BLOCK,
+    brute_force_winding_numbers,
+    point_tree,
+    point_winding_numbers,
+    relative_corners,
+    split_rows,
+)
 
 POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
@@ -72,13 +79,14 @@ CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 l
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
 ON_SURFACE = 1e-3  # voxels this close (grid units) to mesh or caps are evaluated alone
+REFINE_EDGE = 12.0  # voxels whose closest triangle is longer (grid units) are refined in float64
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
 
-def closest_feature(p, a, b, c):
+def closest_feature(p, a, b, c, xp=jnp):
     """Closest point region of triangles (a, b, c) to points p (Ericson), each a tuple of
     its (x, y, z) float32 arrays (broadcast; no [..., 3] axis, which XLA's CPU code handles
-    slowly).
+    slowly); with ``xp=numpy``, host arrays (float64 in `exact_closest`).
 
     Returns:
       [...] int32: 0 face interior, 1 edge ab, 2 edge bc, 3 edge ca, 4 vertex a,
@@ -96,7 +104,7 @@ def closest_feature(p, a, b, c):
     vc = d1 * d4 - d3 * d2
     vb = d5 * d2 - d1 * d6
     va = d3 * d6 - d5 * d4
-    safe = lambda x: jnp.where(x != 0, x, 1.0)
+    safe = lambda x: xp.where(x != 0, x, 1.0)
     den = safe(va + vb + vc)
     face = tuple(ai + (vb / den) * bi + (vc / den) * ci for ai, bi, ci in zip(a, ab, ac))
     cases = [  # (condition, region, point), first match wins (Ericson's order)
@@ -107,12 +115,27 @@ def closest_feature(p, a, b, c):
         ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 3, along(a, d2 / safe(d2 - d6), ac)),
         ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 2, along(b, (d4 - d3) / safe(d4 - d3 + d5 - d6), sub(c, b))),
     ]
-    region = jnp.zeros(jnp.shape(d1), jnp.int32)
+    region = xp.zeros(xp.shape(d1), xp.int32)
     point = face
     for cond, r, q in reversed(cases):
-        region = jnp.where(cond, r, region)
-        point = tuple(jnp.where(cond, qi, pi) for qi, pi in zip(q, point))
+        region = xp.where(cond, r, region)
+        point = tuple(xp.where(cond, qi, pi) for qi, pi in zip(q, point))
     return region, point
+
+
+def exact_closest(tris: np.ndarray, ijk: np.ndarray, tri: np.ndarray):
+    """Float64 closest points of voxel centres ijk [n, 3] (grid units, centres at
+    ijk + 1/2) on their triangles tri [n] of tris [F, 3, 3] float64 (host): (region [n]
+    int32 as in `closest_feature`, offset [n, 3] float64 centre minus closest point).
+
+    The float32 kernels lose about 7e-7 voxel per voxel of a triangle's size (their
+    coordinates are that large); this is the reference they are refined with where that
+    matters (`REFINE_EDGE`)."""
+    p = ijk.astype(np.float64) + 0.5
+    t = tris[tri]
+    a, b, c = (tuple(t[:, i].T) for i in range(3))
+    region, q = closest_feature(tuple(p.T), a, b, c, xp=np)
+    return region, p - np.stack(q, -1)
 
 
 @jax.jit
@@ -135,22 +158,27 @@ def _pseudo_normal_sign(ijk, tri, corners, normals):
 @functools.partial(jax.jit, static_argnames="distance")
 def _cap_terms(points, blocks, *, distance: bool):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
-    [n, 9, BRUTE_FORCE_BLOCK] (corners' xyz rows), and with `distance` also the squared
-    distance [P] float32 to the nearest of them."""
+    [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`), and with `distance` also
+    the squared distance [P] float32 to the nearest of them; both relative to the points."""
     p = [points[:, k, None] for k in range(3)]
 
     def step(carry, block):
         w, d2 = carry
-        rel = [tuple(block[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
+        rel = relative_corners(block, p)
         w = w + jnp.sum(solid_angle_parts(*rel), -1)
         if distance:
-            corner = [jnp.stack([block[3 * i + k] for k in range(3)], -1) for i in range(3)]
-            d2 = jnp.minimum(d2, jnp.min(point_triangle_dist2(points[:, None, :], *corner), -1))
+            corner = [jnp.stack(rel[i], -1) for i in range(3)]
+            d2 = jnp.minimum(d2, jnp.min(point_triangle_dist2(jnp.zeros(3, jnp.float32), *corner), -1))
         return (w, d2), None
 
     start = (jnp.zeros(points.shape[0], jnp.float32), jnp.full(points.shape[0], jnp.inf, jnp.float32))
     w, d2 = jax.lax.scan(step, start, blocks)[0]
     return (w, d2) if distance else w
+
+
+def longest_edges(tris: np.ndarray) -> np.ndarray:
+    """[F] float64 longest edge of each triangle of tris [F, 3, 3]."""
+    return np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=-1).max(1, initial=0.0)
 
 
 def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -221,10 +249,19 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     f = np.asarray(mesh.faces)
     rows = bucket(len(f))
     normals = jnp.asarray(pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows).reshape(-1, 3).T)
+    edge = longest_edges(tris)
     corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
 
+    feature_normals = pseudo_normals(np.asarray(mesh.vertices), f).astype(np.float64)  # [F, 7, 3]
+
     def sides(ijk, tri):
-        return _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+        side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+        refine = np.flatnonzero(edge[tri] > REFINE_EDGE)  # float32 error beyond 1e-5 voxel: float64
+        if len(refine):
+            region, offset = exact_closest(tris, ijk[refine], tri[refine])
+            n = feature_normals[tri[refine], region]
+            side[refine] = np.where(np.einsum("ij,ij->i", offset, n) < 0, -1.0, 1.0)
+        return side
 
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -294,9 +331,9 @@ class _Components:
         reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         pad = -len(caps) % BRUTE_FORCE_BLOCK
-        corners = np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).astype(np.float32)
+        rows = split_rows(np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).reshape(-1, 9).T)  # [18, C']
         self.has_caps = len(caps) > 0
-        self.blocks = jnp.asarray(corners.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1))
+        self.blocks = jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))

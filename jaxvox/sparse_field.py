@@ -50,7 +50,7 @@ from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, pad_rows
-from jaxvox.band_sign import prepare_signs
+from jaxvox.band_sign import REFINE_EDGE, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, voxel_index
@@ -374,6 +374,7 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
     signs = prepare_signs(mesh, tris, band) if signed and len(tris) else None
+    edge = longest_edges(tris)
     ids, cells, codes = _tile_items(tris, grid.resolution, band, cell=size)
     starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
     ends = np.append(starts[1:], len(ids))
@@ -389,6 +390,9 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
         ijk += region_lo
         tri = mine[tri].astype(np.int32)
         dist = np.sqrt(d2.astype(np.float64))
+        refine = np.flatnonzero(edge[tri] > REFINE_EDGE)  # large triangles: float64 distances
+        if len(refine):
+            dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
         if signs is not None:
             dist = dist * signs(ijk, codes[a] << shift | keys, dist, tri)
         yield region_lo, ijk, (dist * h).astype(np.float32), tri, keys

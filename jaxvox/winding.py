@@ -234,7 +234,8 @@ class _PointTree(NamedTuple):
     per component: XLA's CPU code for a minor axis of 3 is slow).
 
     top: [7, T] rows centre xyz, radius, area xyz; leaf: [7, T * TOP] the same per leaf;
-    triangles: [9, T * TOP * LEAF] corner a xyz, b xyz, c xyz (padding: zero-area ones).
+    triangles: [18, T * TOP * LEAF] corner a xyz, b xyz, c xyz (padding: zero-area ones)
+    as float32 ``hi`` rows, then the ``lo`` rows of ``hi + lo`` (`split_rows`).
     """
 
     top: jax.Array
@@ -267,7 +268,23 @@ def point_tree(tris: np.ndarray) -> _PointTree:
     pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
     tris = np.concatenate([tris, pad])
     f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return _PointTree(f32(_dipole_nodes(tris, TOP * LEAF)), f32(_dipole_nodes(tris, LEAF)), f32(tris.reshape(-1, 9).T))
+    rows = jnp.asarray(split_rows(tris.reshape(-1, 9).T))
+    return _PointTree(f32(_dipole_nodes(tris, TOP * LEAF)), f32(_dipole_nodes(tris, LEAF)), rows)
+
+
+def split_rows(rows: np.ndarray) -> np.ndarray:
+    """Float64 rows [9, n] of triangle corners as float32 [18, n]: ``hi`` (the rounded
+    values), then ``lo`` (what rounding lost). `relative_corners` subtracts a float32 point
+    from ``hi`` exactly (for voxel centres, ijk + 1/2) before adding ``lo``, so corners
+    near the point keep their float64 precision however far from the origin."""
+    hi = rows.astype(np.float32)
+    return np.concatenate([hi, (rows - hi).astype(np.float32)])
+
+
+def relative_corners(rows, p):
+    """Corners a, b, c relative to points p (3 arrays) from `split_rows` rows [18, ...],
+    each a tuple of (x, y, z) arrays."""
+    return [tuple((rows[3 * i + k] - p[k]) + rows[9 + 3 * i + k] for k in range(3)) for i in range(3)]
 
 
 def _node_terms(p, nodes, beta: float):
@@ -303,8 +320,7 @@ def _point_tree_sum(tree: _PointTree, points, *, beta: float):
     pick, near_leaf, crowded_leaves = _nearest(ratio, NEAR_LEAVES)
     leaf = jnp.take_along_axis(leaves, pick, 1)  # [P, NEAR_LEAVES]
     corners = tree.triangles[:, (leaf[..., None] * LEAF + jnp.arange(LEAF)).reshape(len(points), -1)]
-    rel = [tuple(corners[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
-    exact = solid_angle_parts(*rel).reshape(len(points), -1, LEAF).sum(-1)
+    exact = solid_angle_parts(*relative_corners(corners, p)).reshape(len(points), -1, LEAF).sum(-1)
     return w + jnp.sum(jnp.where(near_leaf, exact, 0.0), -1), crowded | crowded_leaves
 
 
@@ -345,7 +361,8 @@ def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndar
     [F, 3, 3] (host arrays), at most `POINT_CHUNK` points per call."""
     pad = -len(tris) % BRUTE_FORCE_BLOCK
     tris = np.concatenate([np.asarray(tris, np.float64), np.zeros((pad, 3, 3))])  # zero-area padding
-    parts = jnp.asarray(tris.reshape(-1, BRUTE_FORCE_BLOCK, 9).transpose(0, 2, 1), jnp.float32)
+    rows = split_rows(tris.reshape(-1, 9).T)  # [18, F']
+    parts = jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
     out = []
     size = min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):
@@ -358,12 +375,12 @@ def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndar
 
 @jax.jit
 def _brute_force(blocks, points):
-    """Sum over blocks [n, 9, BRUTE_FORCE_BLOCK] of triangle corners at points [P, 3]."""
+    """Sum over blocks [n, 18, BRUTE_FORCE_BLOCK] of triangle corners (`split_rows`) at
+    points [P, 3]."""
     p = [points[:, k, None] for k in range(3)]
 
     def step(w, block):
-        rel = [tuple(block[3 * i + k] - p[k] for k in range(3)) for i in range(3)]
-        return w + jnp.sum(solid_angle_parts(*rel), -1), None
+        return w + jnp.sum(solid_angle_parts(*relative_corners(block, p)), -1), None
 
     return jax.lax.scan(step, jnp.zeros(points.shape[0], jnp.float32), blocks)[0]
 

@@ -337,3 +337,29 @@ def test_bad_region():
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)
     with pytest.raises(jv.JaxvoxError, match="sparse_distance_field region: must be a power of two"):
         jv.sparse_distance_field(mesh, grid, region=12)
+
+
+@pytest.mark.parametrize("closed", [True, False], ids=["closed", "open"])
+def test_large_tilted_triangles_far_from_the_origin(closed):
+    """A tilted slab of 200-voxel triangles near voxel (3000, 3000, 3000) of a 4096^3 grid,
+    closed (pseudo-normal signs) and with two faces removed (winding-number signs). In
+    float32 at that size and place, distances were off by up to 2e-4 voxel and voxels
+    within 1e-4 voxel of a face took the wrong sign; now values and signs match the
+    float64 references."""
+    import trimesh
+
+    slab = trimesh.creation.box(extents=(200, 200, 16))
+    slab.apply_transform(trimesh.transformations.rotation_matrix(0.37, [1, 0.6, 0.2]))
+    h = 1 / 4096
+    faces = np.asarray(slab.faces, np.int32)
+    mesh = jv.Mesh(((slab.vertices + 3000.3) * h).astype(np.float32), faces if closed else faces[2:])
+    grid = jv.Grid(np.zeros(3), h, 4096)
+    field = jv.sparse_distance_field(mesh, grid, band=2)
+    n = int(field.count)
+    p = centres(grid, np.asarray(field.voxels.coords[:n]))
+    d = mesh_distance(mesh.vertices, mesh.faces, p)
+    inside = winding_number(mesh.vertices, mesh.faces, p) > 0.5
+    values = np.asarray(field.values[:n], np.float64)
+    assert np.sort(d)[0] / h < 1e-5  # voxels this close to a face are what the test is about
+    assert np.array_equal(values < 0, inside)
+    assert np.max(np.abs(np.abs(values) - d)) / h < TOL
