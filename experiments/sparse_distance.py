@@ -80,7 +80,7 @@ def _openvdb(spec: dict, timeout: float) -> dict:
     except (OSError, subprocess.TimeoutExpired) as e:
         return {"error": str(e)}
     if proc.returncode != 0:
-        return {"error": (proc.stderr.strip().splitlines() or ["failed"])[-1]}
+        return {"error": (proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"])[-1]}
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 

@@ -79,7 +79,9 @@ CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 l
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
 ON_SURFACE = 1e-3  # voxels this close (grid units) to mesh or caps are evaluated alone
-REFINE_EDGE = 12.0  # voxels whose closest triangle is longer (grid units) are refined in float64
+REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get float64 distances
+F32_ERROR = 5e-7  # error of the float32 distance kernel per grid unit of the closest triangle's longest edge
+SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
 
@@ -128,9 +130,9 @@ def exact_closest(tris: np.ndarray, ijk: np.ndarray, tri: np.ndarray):
     ijk + 1/2) on their triangles tri [n] of tris [F, 3, 3] float64 (host): (region [n]
     int32 as in `closest_feature`, offset [n, 3] float64 centre minus closest point).
 
-    The float32 kernels lose about 7e-7 voxel per voxel of a triangle's size (their
-    coordinates are that large); this is the reference they are refined with where that
-    matters (`REFINE_EDGE`)."""
+    The float32 kernels lose up to about `F32_ERROR` voxel per voxel of a triangle's
+    longest edge (their coordinates are that large); this is the reference they are
+    refined with where that matters (`REFINE_EDGE`, `SIDE_REFINE`)."""
     p = ijk.astype(np.float64) + 0.5
     t = tris[tri]
     a, b, c = (tuple(t[:, i].T) for i in range(3))
@@ -254,9 +256,10 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
 
     feature_normals = pseudo_normals(np.asarray(mesh.vertices), f).astype(np.float64)  # [F, 7, 3]
 
-    def sides(ijk, tri):
+    def sides(ijk, tri, dist):
         side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
-        refine = np.flatnonzero(edge[tri] > REFINE_EDGE)  # float32 error beyond 1e-5 voxel: float64
+        # float64 where the float32 closest point may be on the wrong side
+        refine = np.flatnonzero((dist < SIDE_REFINE * edge[tri]) | (edge[tri] > REFINE_EDGE))
         if len(refine):
             region, offset = exact_closest(tris, ijk[refine], tri[refine])
             n = feature_normals[tri[refine], region]
@@ -273,9 +276,9 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     )
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
-        return lambda ijk, keys, dist, tri: sides(ijk, tri)
+        return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)
     components = _Components(tris, welded, suspect, chain, band)
-    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, sides(ijk, tri))
+    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, sides(ijk, tri, dist))
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
