@@ -30,8 +30,15 @@ Method (no propagation, so no propagation error):
   damaged meshes: every sign equals the brute-force winding number's.
 
 Nothing of size R^3 is allocated; the work is O(sum over triangles of the tiles their
-dilated boxes overlap). Host memory: about 40 bytes per band voxel while the groups'
-results are gathered, then the `SparseField` itself.
+dilated boxes overlap). The grid is built in aligned regions (`sparse_distance_field`'s
+``region``), so the working memory follows one region, and the result is the
+`SparseField` itself (the bunny at 4096^3: a 7.6 GiB peak for a 5.1 GiB field), or one
+region's field at a time (`sparse_field_regions`).
+
+Precision: the tile kernel's float32 error grows with the closest triangle's size (up to
+about `jaxvox.band_sign.F32_ERROR` per grid unit of its longest edge); voxels of
+triangles longer than `jaxvox.band_sign.REFINE_EDGE` get float64 distances
+(`jaxvox.band_sign.exact_closest`), so every value stays within 1e-4 voxel.
 """
 
 from __future__ import annotations
@@ -332,7 +339,8 @@ def sparse_field_regions(
     progress: bool | None = None,
 ) -> Iterator[SparseField]:
     """`sparse_distance_field` handed out region by region, for fields larger than memory
-    (the bunny at 8192^3, band 3: about 950 M band voxels, 19 GB as one field).
+    (the bunny at 8192^3, band 3: 912 M band voxels, 17 GiB of coordinates, values and
+    triangles as one field).
 
     The same regions and values as `sparse_distance_field` (arguments alike); each is
     dropped by the generator once yielded, so memory follows one region. Concatenated in
