@@ -71,8 +71,9 @@ class _Partial:
 
 
 def _region_dag(keys: np.ndarray, region_lo: np.ndarray, region: int) -> _Partial:
-    """The sub-DAG of one region's voxels (host uint32 [n] Morton words, Morton order, as
-    `region_voxels` yields them), by `build_dag`'s host levels in the region's own grid."""
+    """The sub-DAG of one region's voxels (host [n] Morton codes, uint32 words as
+    `region_voxels` yields them or uint64; only the region's own bits are read; Morton
+    order), by `build_dag`'s host levels in the region's own grid."""
     depth = region.bit_length() - 1
     local = (keys & np.uint32((1 << 3 * depth) - 1)).astype(np.uint64)  # the region is aligned
     levels, _ = voxel_levels(local, depth, dag=True)
