@@ -65,12 +65,11 @@ from jaxvox.topology import (
     welded_faces,
 )
 from jaxvox.winding import (
-    BRUTE_FORCE_BLOCK,
     brute_force_winding_numbers,
     point_tree,
     point_winding_numbers,
     relative_corners,
-    split_rows,
+    triangle_blocks,
 )
 
 POINT_CHUNK = 1 << 14  # band voxels per call of the sign kernels
@@ -80,7 +79,7 @@ CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below 
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
 ON_SURFACE = 1e-3  # voxels this close (grid units) to mesh or caps are evaluated alone
 REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get float64 distances
-F32_ERROR = 5e-7  # error of the float32 distance kernel per grid unit of the closest triangle's longest edge
+F32_ERROR = 5e-7  # measured error of the float32 distance kernel per grid unit of the closest triangle's longest edge
 SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
@@ -250,11 +249,10 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     """
     f = np.asarray(mesh.faces)
     rows = bucket(len(f))
-    normals = jnp.asarray(pad_rows(pseudo_normals(np.asarray(mesh.vertices), f), rows).reshape(-1, 3).T)
+    feature_normals = pseudo_normals(np.asarray(mesh.vertices), f)  # [F, 7, 3] float32
+    normals = jnp.asarray(pad_rows(feature_normals, rows).reshape(-1, 3).T)
     edge = longest_edges(tris)
     corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
-
-    feature_normals = pseudo_normals(np.asarray(mesh.vertices), f).astype(np.float64)  # [F, 7, 3]
 
     def sides(ijk, tri, dist):
         side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
@@ -262,7 +260,7 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
         refine = np.flatnonzero((dist < SIDE_REFINE * edge[tri]) | (edge[tri] > REFINE_EDGE))
         if len(refine):
             region, offset = exact_closest(tris, ijk[refine], tri[refine])
-            n = feature_normals[tri[refine], region]
+            n = feature_normals[tri[refine], region].astype(np.float64)
             side[refine] = np.where(np.einsum("ij,ij->i", offset, n) < 0, -1.0, 1.0)
         return side
 
@@ -327,16 +325,14 @@ class _Components:
     and free triangles at construction, the voxels' components per call of `signs`."""
 
     def __init__(self, tris, welded, suspect, chain, band):
-        self.tris, self.band = tris, band
+        self.tris = tris
         caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
         centroid = tris.mean(1)
         tri_radius = np.linalg.norm(tris - centroid[:, None], axis=-1).max(1)
         reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
-        pad = -len(caps) % BRUTE_FORCE_BLOCK
-        rows = split_rows(np.concatenate([caps, np.full((pad, 3, 3), _FAR)]).reshape(-1, 9).T)  # [18, C']
         self.has_caps = len(caps) > 0
-        self.blocks = jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+        self.blocks = triangle_blocks(caps, _FAR)  # padding far away: it must not be the nearest
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))

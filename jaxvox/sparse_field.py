@@ -63,7 +63,7 @@ from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, voxel_index
 from jaxvox.octree.stream import check_count, check_region, finish_dag, merge_all, push_region
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
-from jaxvox.voxelize.host import join_rows
+from jaxvox.voxelize.host import join_rows, progress_off
 
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 8  # triangles per work unit (a tile overlapped by more takes several units)
@@ -389,7 +389,7 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
-    for a, b in tqdm(zip(starts, ends), total=len(starts), desc="regions", disable=_quiet(progress, len(starts))):
+    for a, b in tqdm(zip(starts, ends), total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
         region_lo = (cells[a] * size).astype(np.int32)
         mine = ids[a:b]  # ascending, so ties still go to the lower id
         ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
@@ -420,11 +420,6 @@ def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: l
         CONSERVATIVE,
     )
     return SparseField(voxels, put(join_rows(values, (capacity,), UNUSED_VALUE, np.float32)), tree, grid, int(band))
-
-
-def _quiet(progress: bool | None, regions: int) -> bool:
-    """Whether the progress bar over `regions` regions is off (`progress` None: on for several)."""
-    return regions < 2 if progress is None else not progress
 
 
 _CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.int32)  # [8, 3] xyz bits

@@ -281,6 +281,14 @@ def split_rows(rows: np.ndarray) -> np.ndarray:
     return np.concatenate([hi, (rows - hi).astype(np.float32)])
 
 
+def triangle_blocks(tris: np.ndarray, pad: float) -> jax.Array:
+    """Float64 triangles [F, 3, 3] as device blocks [n, 18, BRUTE_FORCE_BLOCK] of
+    `split_rows` rows, padded with degenerate triangles whose corners are all `pad`."""
+    extra = -len(tris) % BRUTE_FORCE_BLOCK
+    rows = split_rows(np.concatenate([tris, np.full((extra, 3, 3), pad)]).reshape(-1, 9).T)  # [18, F']
+    return jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+
+
 def relative_corners(rows, p):
     """Corners a, b, c relative to points p (3 arrays) from `split_rows` rows [18, ...],
     each a tuple of (x, y, z) arrays."""
@@ -359,10 +367,7 @@ def point_winding_numbers(
 def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
     [F, 3, 3] (host arrays), at most `POINT_CHUNK` points per call."""
-    pad = -len(tris) % BRUTE_FORCE_BLOCK
-    tris = np.concatenate([np.asarray(tris, np.float64), np.zeros((pad, 3, 3))])  # zero-area padding
-    rows = split_rows(tris.reshape(-1, 9).T)  # [18, F']
-    parts = jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+    parts = triangle_blocks(np.asarray(tris, np.float64), 0.0)  # zero-area padding
     out = []
     size = min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):

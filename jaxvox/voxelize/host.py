@@ -313,9 +313,14 @@ def region_voxels(
     from tqdm.auto import tqdm
 
     mine = list(enumerate(regions))[share[0] :: share[1]]
-    disable = len(mine) < 2 if progress is None else not progress
+    disable = progress_off(progress, len(mine))
     for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
         yield (position, region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
+
+
+def progress_off(progress: bool | None, regions: int) -> bool:
+    """Whether the progress bar over `regions` regions is off (`progress` None: on for several)."""
+    return regions < 2 if progress is None else not progress
 
 
 def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
@@ -409,7 +414,7 @@ def voxelize(
     from tqdm.auto import tqdm
 
     parts, tri_parts = [], []
-    disable = len(regions) < 2 if progress is None else not progress
+    disable = progress_off(progress, len(regions))
     for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
         keys, triangle = _voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
         parts.append((region_lo, keys))  # on the host as we go: device memory holds one region
