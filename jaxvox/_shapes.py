@@ -90,6 +90,17 @@ def expand_counts(counts: jax.Array, capacity: int, start=0):
     return owner, slot - starts[owner], slot < ends[-1], ends[-1]
 
 
+SMALL_CHUNKS = 16  # a job smaller than one chunk runs in chunks this many times smaller
+
+
+def chunk_rows(n: int | np.integer, size: int) -> int:
+    """Rows per call for a host loop over `n` rows in fixed chunks of `size`: `size`, or
+    ``size // SMALL_CHUNKS`` when the whole job is smaller than one chunk (a small mesh,
+    or one small region, would otherwise pay a full chunk of padding per call). Two
+    programs per kernel at most, whatever `n`."""
+    return size if n >= size else max(size // SMALL_CHUNKS, 1)
+
+
 def pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:
     """Host array `a` with rows of `fill` appended up to `rows` rows (a shape on the
     ladder, or a fixed chunk size), same dtype."""

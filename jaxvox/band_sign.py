@@ -53,7 +53,7 @@ import numpy as np
 
 from jaxvox import morton
 from jaxvox._geometry import point_triangle_dist2, solid_angle_parts
-from jaxvox._shapes import bucket, pad_rows
+from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.mesh import Mesh
 from jaxvox.topology import (
     boundary_chain,
@@ -218,13 +218,14 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _chunked(fn, rows, *rest):
     """``fn(*row chunks [POINT_CHUNK, ...], *rest)`` over all rows of `rows` (an array, or
-    a tuple of arrays with the same first axis; host loop); each result (one array or a
-    tuple) concatenated over the chunks."""
+    a tuple of arrays with the same first axis; host loop; smaller chunks for a small job,
+    `chunk_rows`); each result (one array or a tuple) concatenated over the chunks."""
     rows = rows if isinstance(rows, tuple) else (rows,)
     out = []
-    for s in range(0, len(rows[0]), POINT_CHUNK):
-        parts = [r[s : s + POINT_CHUNK] for r in rows]
-        res = fn(*(jnp.asarray(pad_rows(x, POINT_CHUNK)) for x in parts), *rest)
+    width = chunk_rows(len(rows[0]), POINT_CHUNK)
+    for s in range(0, len(rows[0]), width):
+        parts = [r[s : s + width] for r in rows]
+        res = fn(*(jnp.asarray(pad_rows(x, width)) for x in parts), *rest)
         out.append(tuple(np.asarray(r)[: len(parts[0])] for r in (res if isinstance(res, tuple) else (res,))))
     if not out:
         return np.zeros(0, np.float32)

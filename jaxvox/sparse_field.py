@@ -56,7 +56,7 @@ from jaxvox import morton
 from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket, pad_rows
+from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.band_sign import REFINE_EDGE, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
@@ -211,10 +211,11 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     # The cull: an item whose triangle lies farther than band + _REACH from its tile's
     # centre has no cell within `band` (about 40% of the bunny's items).
     gap2 = np.empty(len(ids), np.float32)
-    for s in range(0, len(ids), CULL_CHUNK):
-        part = slice(s, s + CULL_CHUNK)
+    width = chunk_rows(len(ids), CULL_CHUNK)
+    for s in range(0, len(ids), width):
+        part = slice(s, s + width)
         m = len(ids[part])
-        chunk = pad_rows(ids[part].astype(np.int32), CULL_CHUNK, pad_id), pad_rows(tile[part] * TILE, CULL_CHUNK).T
+        chunk = pad_rows(ids[part].astype(np.int32), width, pad_id), pad_rows(tile[part] * TILE, width).T
         gap2[part] = np.asarray(_tile_gaps(hi, lo, *(jnp.asarray(np.ascontiguousarray(a)) for a in chunk)))[:m]
     keep = np.flatnonzero(gap2 <= np.float32((band + _REACH + CULL_SLACK) ** 2))
     ids, tile, code = ids[keep], tile[keep], code[keep]
@@ -240,12 +241,13 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         origin = (tile[starts[owner]] * TILE).astype(np.int32)
         d2 = np.empty((len(owner), _CELLS), np.float32)  # [units, TILE^3]
         tri = np.empty((len(owner), _CELLS), np.int32)
-        for u in range(0, len(owner), UNITS):
+        width = chunk_rows(len(owner), UNITS)
+        for u in range(0, len(owner), width):
             args = (
-                jnp.asarray(pad_rows(slot_ids[u : u + UNITS].astype(np.int32), UNITS, pad_id).T),
-                jnp.asarray(pad_rows(origin[u : u + UNITS], UNITS).T),
+                jnp.asarray(pad_rows(slot_ids[u : u + width].astype(np.int32), width, pad_id).T),
+                jnp.asarray(pad_rows(origin[u : u + width], width).T),
             )
-            m = min(UNITS, len(owner) - u)
+            m = min(width, len(owner) - u)
             dc, tc = _tile_units(hi, lo, *args)
             d2[u : u + m], tri[u : u + m] = np.asarray(dc)[:m], np.asarray(tc)[:m]
         first = np.cumsum(n_units) - n_units  # each tile's first unit

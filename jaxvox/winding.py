@@ -42,7 +42,7 @@ from jaxtyping import Array, Float32
 
 from jaxvox._checks import check_int, check_number, check_type, refuse
 from jaxvox._geometry import solid_angle_parts
-from jaxvox._shapes import bucket, expand_counts
+from jaxvox._shapes import bucket, chunk_rows, expand_counts, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 
@@ -350,11 +350,10 @@ def point_winding_numbers(
         return np.zeros(len(points), np.float32)
     tree = point_tree(np.asarray(tris, np.float64)) if tree is None else tree
     values, flags = [], []
-    for s in range(0, len(points), POINT_CHUNK):
-        part = points[s : s + POINT_CHUNK]
-        chunk = np.zeros((POINT_CHUNK, 3), np.float32)
-        chunk[: len(part)] = part
-        w, c = _point_tree_sum(tree, jnp.asarray(chunk), beta=float(beta))
+    width = chunk_rows(len(points), POINT_CHUNK)
+    for s in range(0, len(points), width):
+        part = points[s : s + width]
+        w, c = _point_tree_sum(tree, jnp.asarray(pad_rows(part.astype(np.float32), width)), beta=float(beta))
         values.append(np.asarray(w)[: len(part)])
         flags.append(np.asarray(c)[: len(part)])
     out = np.concatenate(values)

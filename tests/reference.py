@@ -458,18 +458,29 @@ def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
 def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
     """Unsigned distance (float64 ``[P]``) from points ``[P, 3]`` to a triangle mesh, brute force.
 
-    ``+inf`` for a mesh without faces.
+    ``+inf`` for a mesh without faces. Only (point, triangle) pairs that can hold the
+    minimum are evaluated exactly: the distance to the nearest vertex bounds the result
+    from above, and a triangle whose bounding box lies farther than that cannot be closest.
     """
     tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
     points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.full(len(points), np.inf)
     if len(tri) == 0:
         return out
+    lo, hi = tri.min(1), tri.max(1)  # [F, 3]
     step = max(1, chunk // len(tri))
     for s in range(0, len(points), step):
-        p = points[s : s + step, None, :]
-        q = closest_point_on_triangles(p, tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
-        out[s : s + step] = np.sqrt(((q - p) ** 2).sum(-1)).min(1)
+        p = points[s : s + step]
+        vertex2 = np.min([((p[:, None] - tri[None, :, k]) ** 2).sum(-1).min(1) for k in range(3)], 0)
+        box2 = sum(
+            np.maximum(np.maximum(lo[None, :, k] - p[:, k, None], p[:, k, None] - hi[None, :, k]), 0) ** 2
+            for k in range(3)
+        )
+        i, f = np.nonzero(box2 <= vertex2[:, None] * (1 + 1e-9))
+        q = closest_point_on_triangles(p[i], tri[f, 0], tri[f, 1], tri[f, 2])
+        d2 = np.full(len(p), np.inf)
+        np.minimum.at(d2, i, ((q - p[i]) ** 2).sum(-1))
+        out[s : s + step] = np.sqrt(d2)
     return out
 
 

@@ -64,7 +64,7 @@ def check_field(mesh: jv.Mesh, grid: jv.Grid, field: jv.SparseField, *, signed=T
     # farther than band * h + (longest edge) from every vertex cannot qualify.
     v = np.asarray(mesh.vertices, np.float64)
     tri = v[np.asarray(mesh.faces)]
-    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max()
+    longest = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(initial=0.0)
     all_ijk = np.indices((grid.resolution,) * 3).reshape(3, -1).T
     near, _ = cKDTree(v).query(centres(grid, all_ijk), distance_upper_bound=field.band * h + longest + h)
     cand = all_ijk[np.isfinite(near)]
