@@ -101,7 +101,7 @@ def test_shared_meshes(meshes_dir, name):
     )
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=8, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([2, 16]))
 def test_random_sets_and_lattice_rays(seed, resolution):
     """Random voxel sets at small R (depth 1 included: the root is a mask), with rays on
