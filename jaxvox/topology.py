@@ -60,7 +60,9 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
     rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
     n = per_axis[owner]
     cell = first[owner] + np.stack([rank // (n[:, 1] * n[:, 2]), (rank // n[:, 2]) % n[:, 1], rank % n[:, 2]], -1)
-    cell -= cell.min(0)
+    base = cell.min(0)
+    cell -= base
+    first -= base
     span = cell.max(0) + 1
     key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
     order = np.argsort(key, kind="stable")
@@ -69,11 +71,20 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
     later = end - 1 - np.arange(len(key))  # entries after it in its run
     a = np.repeat(np.arange(len(key)), later)
     b = a + 1 + (np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later))
-    i, j = np.minimum(owner[a], owner[b]), np.maximum(owner[a], owner[b])
-    pair = np.unique(i[i != j] * f_count + j[i != j])  # one integer key: no row sort
-    i, j = pair // f_count, pair % f_count
-    keep = (lo[i] <= hi[j]).all(1) & (lo[j] <= hi[i]).all(1)
-    keep &= ~(faces[i][:, :, None] == faces[j][:, None, :]).any((1, 2))
+    # Two triangles share every cell of the intersection of their cell ranges: the pair is
+    # kept in the first of them only (the largest of their first cells), so it is unique.
+    i, j = owner[a], owner[b]
+    home = np.zeros(len(a), np.int64)
+    for k in range(3):  # one axis at a time: 1-D gathers
+        axis = np.ascontiguousarray(first[:, k])
+        home = home * (span[k] if k else 1) + np.maximum(axis[i], axis[j])
+    keep = key[a] == home
+    i, j = np.minimum(i[keep], j[keep]), np.maximum(i[keep], j[keep])
+    for k in range(3):  # the boxes overlap, axis by axis
+        low, high = np.ascontiguousarray(lo[:, k]), np.ascontiguousarray(hi[:, k])
+        keep = (low[i] <= high[j]) & (low[j] <= high[i])
+        i, j = i[keep], j[keep]
+    keep = ~(faces[i][:, :, None] == faces[j][:, None, :]).any((1, 2))
     i, j = i[keep], j[keep]
     for s in range(0, len(i), 1 << 18):
         ti, tj = tris[i[s : s + (1 << 18)]], tris[j[s : s + (1 << 18)]]
