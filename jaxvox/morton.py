@@ -64,9 +64,23 @@ def encode_word_host(ijk: np.ndarray) -> np.ndarray:
 
 def encode_host(ijk: np.ndarray) -> np.ndarray:
     """The whole Morton code in numpy (compiles nothing): int [..., 3] (< 2^20) -> uint64 [...]."""
-    u = np.asarray(ijk, np.int64)
-    hi = encode_word_host(u >> WORD_BITS).astype(np.uint64)
-    return (hi << np.uint64(3 * WORD_BITS)) | encode_word_host(u & WORD_MASK).astype(np.uint64)
+    u = np.asarray(ijk)
+    return encode_axes_host(u[..., 0], u[..., 1], u[..., 2])
+
+
+def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """`encode_host` of the axes given as separate int arrays (< 2^20, broadcast): uint64."""
+    word = lambda shift, mask: (
+        _SPREAD[(i >> shift) & mask] | (_SPREAD[(j >> shift) & mask] << 1) | (_SPREAD[(k >> shift) & mask] << 2)
+    ).astype(np.uint64)
+    return (word(WORD_BITS, WORD_MASK) << np.uint64(3 * WORD_BITS)) | word(0, WORD_MASK)
+
+
+def decode_host(code: np.ndarray) -> np.ndarray:
+    """Inverse of `encode_host`: uint64 [...] (< 2^60) -> int32 [..., 3]."""
+    c = np.asarray(code, np.uint64)
+    high = decode_word_host(c >> np.uint64(3 * WORD_BITS))
+    return (high << WORD_BITS) | decode_word_host(c & np.uint64((1 << (3 * WORD_BITS)) - 1))
 
 
 def decode_word(word: jax.Array) -> jax.Array:

@@ -12,7 +12,7 @@ Method (no propagation, so no propagation error):
   grid-clipped box overlaps (one *item* per (triangle, tile)), orders the items by the
   Morton code of their tile, then by triangle, and deals each tile's triangles into work
   units of `SLOTS` (the counting pass). A jitted kernel of fixed shape evaluates every
-  cell of a unit's tile against each of its triangles (`jaxvox._geometry.point_triangle_dist2`
+  cell of a unit's tile against each of its triangles (`_rows_dist2`
   in float32 grid units relative to the tile, the corners carried as float32 pairs so that
   no precision is lost far from the origin) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
@@ -54,7 +54,6 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Float32
 
 from jaxvox import morton
 from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._geometry import point_triangle_dist2
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.band_sign import REFINE_EDGE, exact_closest, longest_edges, prepare_signs
@@ -68,7 +67,7 @@ from jaxvox.voxelize.host import join_rows, progress_off
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 8  # triangles per work unit (a tile overlapped by more takes several units)
 UNITS = 1 << 13  # work units per call of the tile kernel
-GROUP_ITEMS = 1 << 21  # (triangle, tile) items handled per host round
+GROUP_ITEMS = 1 << 17  # (triangle, tile) items per host round: its arrays stay small enough to reuse memory
 CULL_CHUNK = 1 << 16  # items per call of the cull kernel
 _REACH = float(np.sqrt(3) * (TILE - 1) / 2)  # farthest cell centre from its tile's centre (voxels)
 CULL_SLACK = 1e-2  # voxels: far above the float32 error of the cull's distance
@@ -114,15 +113,64 @@ class SparseField:
 # --------------------------------------------------------------------------------------
 
 
+def triangle_rows(tris: np.ndarray) -> np.ndarray:
+    """What the tile kernels need of each triangle, computed once in float64 on the host:
+    [_ROWS, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,
+    1/|ac|^2, 1/|bc|^2, proper`` for triangles tris [F, 3, 3] float64 (grid units).
+
+    ``a = a_hi + a_lo`` (so that ``(a_hi - o) + a_lo`` keeps float64 precision relative to
+    a tile origin o); u, v the dual basis of (ab, ac) in the triangle's plane (``q . u``
+    and ``q . v`` are the barycentric coordinates of the projection of ``q = p - a``); n
+    the unit normal; proper 1 for a triangle of nonzero area (else u, v, n are 0 and only
+    its edges count). Per-cell work is then products and sums only, no division."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    ab, ac, bc = b - a, c - a, c - b
+    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
+    d00, d01, d11 = dot(ab, ab), dot(ab, ac), dot(ac, ac)
+    normal = np.cross(ab, ac)
+    area2 = dot(normal, normal)
+    proper = area2 > 0
+    den = np.where(proper, d00 * d11 - d01 * d01, 1.0)[:, None]
+    keep = proper[:, None]
+    u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
+    v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)
+    n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
+    inverse = lambda e: np.where(dot(e, e) > 0, 1.0 / np.where(dot(e, e) > 0, dot(e, e), 1.0), 0.0)[:, None]
+    a_hi = a.astype(np.float32)
+    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, inverse(ab), inverse(ac), inverse(bc)]
+    return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
+
+
+_ROWS = 28  # rows of `triangle_rows`
+
+
+def _rows_dist2(p, r, o):
+    """Squared distance from points p (3 arrays, grid units relative to o) to triangles
+    given by `triangle_rows` rows r (28 arrays, broadcast against p), o: 3 float32 arrays
+    the origin the points are relative to."""
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    q = tuple(p[k] - ((r[k] - o[k]) + r[3 + k]) for k in range(3))  # p - a
+    ab, ac, bc, u, v, n = (tuple(r[6 + 3 * i + k] for k in range(3)) for i in range(6))
+
+    def segment(x, e, inverse):  # squared distance from x (relative to its start) to e
+        s = jnp.clip(dot(x, e) * inverse, 0.0, 1.0)
+        off = tuple(xi - s * ei for xi, ei in zip(x, e))
+        return dot(off, off)
+
+    qb = tuple(qi - ei for qi, ei in zip(q, ab))
+    edges = jnp.minimum(jnp.minimum(segment(q, ab, r[24]), segment(q, ac, r[25])), segment(qb, bc, r[26]))
+    s, t, h = dot(q, u), dot(q, v), dot(q, n)
+    inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
+    return jnp.where(inside, jnp.minimum(h * h, edges), edges)
+
+
 @jax.jit
-def _tile_units(hi, lo, ids, origin):
+def _tile_units(rows, ids, origin):
     """The closest of each work unit's triangles to every cell of its tile.
 
     Args:
-      hi, lo: [9, F'] float32 rows a_xyz, b_xyz, c_xyz of the triangles' corners in grid
-        units, split as ``hi + lo`` (float32 sum of float64 values: ``(hi - o) + lo`` keeps
-        the float64 precision relative to a tile origin o); the last column is a far-away
-        padding triangle.
+      rows: [_ROWS, F'] float32 `triangle_rows` of the triangles (grid units); the last
+        column is a far-away padding triangle.
       ids: [S, U] int32 each unit's S triangles (ascending; padding F' - 1).
       origin: [3, U] int32 each unit's tile origin (voxels).
 
@@ -131,14 +179,12 @@ def _tile_units(hi, lo, ids, origin):
       tri [U, TILE^3] int32 the triangle: the first of the slots on ties), cells in Morton
       order within the tile.
     """
-    o = [origin[k].astype(jnp.float32) for k in range(3)]
-    cells = [jnp.asarray(_LOCAL[:, k] + 0.5, jnp.float32)[:, None] for k in range(3)]
-    p = jnp.stack([jnp.broadcast_to(cells[k], (_CELLS, ids.shape[1])) for k in range(3)], -1)
+    o = [origin[k].astype(jnp.float32)[None] for k in range(3)]
+    p = [jnp.asarray(_LOCAL[:, k] + 0.5, jnp.float32)[:, None] for k in range(3)]
 
     def slot(carry, t):
         best, tri = carry
-        corner = lambda i: jnp.stack([(hi[3 * i + k][t] - o[k]) + lo[3 * i + k][t] for k in range(3)], -1)[None]
-        d2 = point_triangle_dist2(p, corner(0), corner(1), corner(2))
+        d2 = _rows_dist2(p, [row[t][None] for row in rows], o)
         better = d2 < best
         return (jnp.where(better, d2, best), jnp.where(better, t[None, :], tri)), None
 
@@ -148,14 +194,12 @@ def _tile_units(hi, lo, ids, origin):
 
 
 @jax.jit
-def _tile_gaps(hi, lo, ids, origin):
+def _tile_gaps(rows, ids, origin):
     """Squared distance [N] float32 (grid units) from the centre of each item's tile to
     its triangle: ids [N] int32 triangles, origin [3, N] int32 tile origins (voxels);
-    hi, lo as in `_tile_units`."""
+    rows as in `_tile_units`."""
     o = [origin[k].astype(jnp.float32) for k in range(3)]
-    corner = lambda i: jnp.stack([(hi[3 * i + k][ids] - o[k]) + lo[3 * i + k][ids] for k in range(3)], -1)
-    centre = jnp.full((ids.shape[0], 3), TILE / 2, jnp.float32)
-    return point_triangle_dist2(centre, corner(0), corner(1), corner(2))
+    return _rows_dist2([jnp.float32(TILE / 2)] * 3, [row[ids] for row in rows], o)
 
 
 # --------------------------------------------------------------------------------------
@@ -166,21 +210,33 @@ def _tile_gaps(hi, lo, ids, origin):
 def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     """Every triangle's dilated voxel box, clipped to the box of `shape` (an int R for R^3,
     or [3] ints), as the aligned cells of edge `cell` (tiles, or regions) it overlaps:
-    (triangle id [n] int64, cell [n, 3] int64, cell Morton code [n] uint64), ordered by
-    code, then by triangle id."""
+    (triangle id [n] int64, cell Morton code [n] uint64), ordered by code, then by
+    triangle id (`jaxvox.morton.decode_host` gives the cells)."""
     lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
     hi = np.minimum(np.floor(tris.max(1) + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
     first, last = lo[ids] // cell, hi[ids] // cell
     per_axis = last - first + 1
     counts = per_axis.prod(1)
-    owner = np.repeat(np.arange(len(ids)), counts)
-    rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-    n = per_axis[owner]
-    tile = first[owner] + np.stack([rank // (n[:, 1] * n[:, 2]), (rank // n[:, 2]) % n[:, 1], rank % n[:, 2]], -1)
-    code = morton.encode_host(tile)
+    # Each item's cell, one axis at a time (1-D arrays: the [n, 3] ones cost more in fresh
+    # memory than in arithmetic).
+    rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    along = lambda k: np.repeat(per_axis[:, k], counts)
+    n2 = along(2)
+    k_axis = rank % n2
+    rank //= n2
+    n1 = along(1)
+    j_axis = rank % n1
+    rank //= n1
+    corner = lambda k: np.repeat(first[:, k], counts)
+    code = morton.encode_axes_host(corner(0) + rank, corner(1) + j_axis, corner(2) + k_axis)
+    tri = np.repeat(ids, counts)  # ascending
+    if len(code) and int(code.max()) < (1 << 32) and len(tris) < (1 << 32):
+        key = code << np.uint64(32) | tri.astype(np.uint64)  # one sort of packed keys
+        key.sort()
+        return (key & np.uint64(0xFFFFFFFF)).astype(np.int64), key >> np.uint64(32)
     order = np.argsort(code, kind="stable")
-    return ids[owner[order]], tile[order], code[order]
+    return tri[order], code[order]
 
 
 def band_pairs(tris: np.ndarray, shape, band: int):
@@ -189,7 +245,8 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     Args:
       tris: [F, 3, 3] float64 triangles in grid units of the box (voxel ijk has its centre
         at ijk + 1/2); triangles outside the box count where within `band` of it.
-      shape: int R (an R^3 box) or [3] ints, each below 2^20.
+      shape: int R (an R^3 box) or [3] ints, each at most 1024 (`REGION_SIZE`: a voxel's
+        Morton code fits one 30-bit word).
       band: half width in voxels.
 
     Returns:
@@ -198,16 +255,12 @@ def band_pairs(tris: np.ndarray, shape, band: int):
       within `band`, in Morton order (see the module docstring).
     """
     nothing = np.zeros((0, 3), np.int32), np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.uint64)
-    ids, tile, code = _tile_items(tris, shape, band)
+    ids, code = _tile_items(tris, shape, band)
     if not len(ids):
         return nothing
-    rows = bucket(len(tris) + 1)
-    corners = np.full((rows, 9), _FAR)
-    corners[: len(tris)] = tris.reshape(-1, 9)
-    rounded = corners.astype(np.float32)
-    lo = jnp.asarray((corners - rounded).T.astype(np.float32))
-    hi = jnp.asarray(rounded.T)
-    pad_id = rows - 1
+    columns = bucket(len(tris) + 1)
+    rows = jnp.asarray(triangle_rows(pad_rows(tris, columns, _FAR)))
+    pad_id = columns - 1
     # The cull: an item whose triangle lies farther than band + _REACH from its tile's
     # centre has no cell within `band` (about 40% of the bunny's items).
     gap2 = np.empty(len(ids), np.float32)
@@ -215,17 +268,17 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     for s in range(0, len(ids), width):
         part = slice(s, s + width)
         m = len(ids[part])
-        chunk = pad_rows(ids[part].astype(np.int32), width, pad_id), pad_rows(tile[part] * TILE, width).T
-        gap2[part] = np.asarray(_tile_gaps(hi, lo, *(jnp.asarray(np.ascontiguousarray(a)) for a in chunk)))[:m]
+        origin = morton.decode_word_host(code[part]) * TILE
+        chunk = pad_rows(ids[part].astype(np.int32), width, pad_id), pad_rows(origin, width).T
+        gap2[part] = np.asarray(_tile_gaps(rows, *(jnp.asarray(np.ascontiguousarray(a)) for a in chunk)))[:m]
     keep = np.flatnonzero(gap2 <= np.float32((band + _REACH + CULL_SLACK) ** 2))
-    ids, tile, code = ids[keep], tile[keep], code[keep]
+    ids, code = ids[keep], code[keep]
     if not len(ids):
         return nothing
     starts = np.flatnonzero(np.concatenate([[True], code[1:] != code[:-1]]))
     counts = np.diff(np.append(starts, len(ids)))
+    tile_code = code[starts].astype(np.int64)
     limit = np.float32(band * band)  # compared in float32, as d2 is
-    corner_axes = [np.ascontiguousarray(tile[:, k] * TILE, np.int32) for k in range(3)]
-    local_axes = [np.ascontiguousarray(_LOCAL[:, k], np.int32) for k in range(3)]
     parts = []
     item_end = np.cumsum(counts)
     t0 = 0
@@ -238,7 +291,7 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         item = (starts[owner] + rank * SLOTS)[:, None] + np.arange(SLOTS)
         mine = item < (starts[owner] + counts[owner])[:, None]
         slot_ids = np.where(mine, ids[np.minimum(item, len(ids) - 1)], pad_id)
-        origin = (tile[starts[owner]] * TILE).astype(np.int32)
+        origin = morton.decode_word_host(tile_code[owner]) * TILE
         d2 = np.empty((len(owner), _CELLS), np.float32)  # [units, TILE^3]
         tri = np.empty((len(owner), _CELLS), np.int32)
         width = chunk_rows(len(owner), UNITS)
@@ -248,7 +301,7 @@ def band_pairs(tris: np.ndarray, shape, band: int):
                 jnp.asarray(pad_rows(origin[u : u + width], width).T),
             )
             m = min(width, len(owner) - u)
-            dc, tc = _tile_units(hi, lo, *args)
+            dc, tc = _tile_units(rows, *args)
             d2[u : u + m], tri[u : u + m] = np.asarray(dc)[:m], np.asarray(tc)[:m]
         first = np.cumsum(n_units) - n_units  # each tile's first unit
         best_d2, best_tri = d2[first], tri[first]
@@ -259,24 +312,12 @@ def band_pairs(tris: np.ndarray, shape, band: int):
             best_d2[more] = np.where(better, d2[cand], best_d2[more])
             best_tri[more] = np.where(better, tri[cand], best_tri[more])
         flat = np.flatnonzero(best_d2.reshape(-1) <= limit)  # tile order, then Morton order within
-        row, cell = flat >> _CELL_BITS, flat & (_CELLS - 1)
-        first_item = starts[t0 + row]
-        ijk = np.empty((len(flat), 3), np.int32)
-        for k in range(3):  # one axis at a time: 1-D gathers are several times faster than row gathers
-            ijk[:, k] = corner_axes[k][first_item] + local_axes[k][cell]
-        parts.append(
-            (
-                ijk,
-                best_d2.reshape(-1)[flat],
-                best_tri.reshape(-1)[flat],
-                code[first_item] << np.uint64(_CELL_BITS) | cell.astype(np.uint64),
-            )
-        )
+        # A cell's code is its tile's code, then its own bits: flat + (code - row) * 2^bits.
+        keys = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
+        parts.append((morton.decode_word_host(keys), best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat], keys))
         t0 = t1
-    if len(parts) == 1:
-        return parts[0]
-    ijk, band_d2, t, keys = (np.concatenate(x) for x in zip(*parts))
-    return ijk, band_d2, t, keys
+    ijk, band_d2, t, keys = parts[0] if len(parts) == 1 else (np.concatenate(x) for x in zip(*parts))
+    return ijk, band_d2, t, keys.view(np.uint64)  # non-negative int64
 
 
 def sparse_distance_field(
@@ -385,14 +426,14 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     tris = (host_triangles(mesh) - origin) / h
     signs = prepare_signs(mesh, tris, band) if signed and len(tris) else None
     edge = longest_edges(tris)
-    ids, cells, codes = _tile_items(tris, grid.resolution, band, cell=size)
+    ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
     starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
     ends = np.append(starts[1:], len(ids))
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
     for a, b in tqdm(zip(starts, ends), total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
-        region_lo = (cells[a] * size).astype(np.int32)
+        region_lo = morton.decode_host(codes[a]) * size
         mine = ids[a:b]  # ascending, so ties still go to the lower id
         ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
         if not len(ijk):
