@@ -1,7 +1,8 @@
 """Geometry kernels shared by several modules (private module, public names).
 
 Point-triangle squared distance (the voxelizer's closest-triangle ids, the distance
-fields), the signed solid angle of a triangle (winding numbers, the brute-force sign
+fields; `rows_dist2` from per-triangle rows computed once, for the sparse fields' many
+points per triangle), the signed solid angle of a triangle (winding numbers, the brute-force sign
 of the distance fields) and a NaN-safe vector norm (SDF scenes, sphere tracing). The
 first two work on x, y, z components as separate arrays, so XLA fuses each into one
 elementwise loop.
@@ -10,6 +11,7 @@ elementwise loop.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 
 def point_triangle_dist2(p, a, b, c):
@@ -73,3 +75,54 @@ def safe_norm(v):
     sq = jnp.sum(v * v, axis=-1)
     positive = sq > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def triangle_rows(tris: np.ndarray) -> np.ndarray:
+    """What the tile kernels need of each triangle, computed once in float64 on the host:
+    [ROWS, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,
+    1/|ac|^2, 1/|bc|^2, proper`` for triangles tris [F, 3, 3] float64 (grid units).
+
+    ``a = a_hi + a_lo`` (so that ``(a_hi - o) + a_lo`` keeps float64 precision relative to
+    a tile origin o); u, v the dual basis of (ab, ac) in the triangle's plane (``q . u``
+    and ``q . v`` are the barycentric coordinates of the projection of ``q = p - a``); n
+    the unit normal; proper 1 for a triangle of nonzero area (else u, v, n are 0 and only
+    its edges count). Per-cell work is then products and sums only, no division."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    ab, ac, bc = b - a, c - a, c - b
+    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
+    d00, d01, d11 = dot(ab, ab), dot(ab, ac), dot(ac, ac)
+    normal = np.cross(ab, ac)
+    area2 = dot(normal, normal)
+    proper = area2 > 0
+    den = np.where(proper, d00 * d11 - d01 * d01, 1.0)[:, None]
+    keep = proper[:, None]
+    u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
+    v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)
+    n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
+    inverse = lambda e: np.where(dot(e, e) > 0, 1.0 / np.where(dot(e, e) > 0, dot(e, e), 1.0), 0.0)[:, None]
+    a_hi = a.astype(np.float32)
+    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, inverse(ab), inverse(ac), inverse(bc)]
+    return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
+
+
+ROWS = 28  # rows of `triangle_rows`
+
+
+def rows_dist2(p, r, o):
+    """Squared distance from points p (3 arrays, grid units relative to o) to triangles
+    given by `triangle_rows` rows r (28 arrays, broadcast against p), o: 3 float32 arrays
+    the origin the points are relative to."""
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    q = tuple(p[k] - ((r[k] - o[k]) + r[3 + k]) for k in range(3))  # p - a
+    ab, ac, bc, u, v, n = (tuple(r[6 + 3 * i + k] for k in range(3)) for i in range(6))
+
+    def segment(x, e, inverse):  # squared distance from x (relative to its start) to e
+        s = jnp.clip(dot(x, e) * inverse, 0.0, 1.0)
+        off = tuple(xi - s * ei for xi, ei in zip(x, e))
+        return dot(off, off)
+
+    qb = tuple(qi - ei for qi, ei in zip(q, ab))
+    edges = jnp.minimum(jnp.minimum(segment(q, ab, r[24]), segment(q, ac, r[25])), segment(qb, bc, r[26]))
+    s, t, h = dot(q, u), dot(q, v), dot(q, n)
+    inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
+    return jnp.where(inside, jnp.minimum(h * h, edges), edges)

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._geometry import point_triangle_dist2, solid_angle_parts
+from jaxvox._geometry import ROWS, rows_dist2, solid_angle_parts, triangle_rows
 from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.mesh import Mesh
 from jaxvox.topology import (
@@ -65,6 +65,7 @@ from jaxvox.topology import (
     welded_faces,
 )
 from jaxvox.winding import (
+    BRUTE_FORCE_BLOCK,
     brute_force_winding_numbers,
     point_tree,
     point_winding_numbers,
@@ -157,23 +158,24 @@ def _pseudo_normal_sign(ijk, tri, corners, normals):
 
 
 @functools.partial(jax.jit, static_argnames="distance")
-def _cap_terms(points, blocks, *, distance: bool):
+def _cap_terms(points, blocks, rows, *, distance: bool):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
     [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`), and with `distance` also
-    the squared distance [P] float32 to the nearest of them; both relative to the points."""
+    the squared distance [P] float32 to the nearest of them (rows [n, ROWS,
+    BRUTE_FORCE_BLOCK]: their `triangle_rows`); both relative to the points."""
     p = [points[:, k, None] for k in range(3)]
+    zero = [jnp.float32(0)] * 3
 
     def step(carry, block):
         w, d2 = carry
-        rel = relative_corners(block, p)
-        w = w + jnp.sum(solid_angle_parts(*rel), -1)
+        corners, tri_rows = block
+        w = w + jnp.sum(solid_angle_parts(*relative_corners(corners, p)), -1)
         if distance:
-            corner = [jnp.stack(rel[i], -1) for i in range(3)]
-            d2 = jnp.minimum(d2, jnp.min(point_triangle_dist2(jnp.zeros(3, jnp.float32), *corner), -1))
+            d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows), p), -1))
         return (w, d2), None
 
     start = (jnp.zeros(points.shape[0], jnp.float32), jnp.full(points.shape[0], jnp.inf, jnp.float32))
-    w, d2 = jax.lax.scan(step, start, blocks)[0]
+    w, d2 = jax.lax.scan(step, start, (blocks, rows))[0]
     return (w, d2) if distance else w
 
 
@@ -334,6 +336,10 @@ class _Components:
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0
         self.blocks = triangle_blocks(caps, _FAR)  # padding far away: it must not be the nearest
+        padded = np.concatenate([caps, np.full((-len(caps) % BRUTE_FORCE_BLOCK, 3, 3), float(_FAR))])
+        self.rows = jnp.asarray(
+            np.ascontiguousarray(triangle_rows(padded).reshape(ROWS, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2))
+        )
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))
@@ -355,7 +361,9 @@ class _Components:
     def cap_terms(self, points: np.ndarray, *, distance: bool):
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
         also the squared distance [P] to the nearest cap."""
-        return _chunked(functools.partial(_cap_terms, distance=distance), points.astype(np.float32), self.blocks)
+        return _chunked(
+            functools.partial(_cap_terms, distance=distance), points.astype(np.float32), self.blocks, self.rows
+        )
 
     def winding_numbers(self, points: np.ndarray) -> np.ndarray:
         """The mesh's winding numbers [P] at points [P, 3] (grid units): the fast tree, then

@@ -12,7 +12,7 @@ Method (no propagation, so no propagation error):
   grid-clipped box overlaps (one *item* per (triangle, tile)), orders the items by the
   Morton code of their tile, then by triangle, and deals each tile's triangles into work
   units of `SLOTS` (the counting pass). A jitted kernel of fixed shape evaluates every
-  cell of a unit's tile against each of its triangles (`_rows_dist2`
+  cell of a unit's tile against each of its triangles (`jaxvox._geometry.rows_dist2`
   in float32 grid units relative to the tile, the corners carried as float32 pairs so that
   no precision is lost far from the origin) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
@@ -54,6 +54,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Float32
 
 from jaxvox import morton
 from jaxvox._checks import check_int, check_type, refuse
+from jaxvox._geometry import rows_dist2, triangle_rows
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.band_sign import REFINE_EDGE, exact_closest, longest_edges, prepare_signs
@@ -113,63 +114,12 @@ class SparseField:
 # --------------------------------------------------------------------------------------
 
 
-def triangle_rows(tris: np.ndarray) -> np.ndarray:
-    """What the tile kernels need of each triangle, computed once in float64 on the host:
-    [_ROWS, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,
-    1/|ac|^2, 1/|bc|^2, proper`` for triangles tris [F, 3, 3] float64 (grid units).
-
-    ``a = a_hi + a_lo`` (so that ``(a_hi - o) + a_lo`` keeps float64 precision relative to
-    a tile origin o); u, v the dual basis of (ab, ac) in the triangle's plane (``q . u``
-    and ``q . v`` are the barycentric coordinates of the projection of ``q = p - a``); n
-    the unit normal; proper 1 for a triangle of nonzero area (else u, v, n are 0 and only
-    its edges count). Per-cell work is then products and sums only, no division."""
-    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
-    ab, ac, bc = b - a, c - a, c - b
-    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
-    d00, d01, d11 = dot(ab, ab), dot(ab, ac), dot(ac, ac)
-    normal = np.cross(ab, ac)
-    area2 = dot(normal, normal)
-    proper = area2 > 0
-    den = np.where(proper, d00 * d11 - d01 * d01, 1.0)[:, None]
-    keep = proper[:, None]
-    u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
-    v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)
-    n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
-    inverse = lambda e: np.where(dot(e, e) > 0, 1.0 / np.where(dot(e, e) > 0, dot(e, e), 1.0), 0.0)[:, None]
-    a_hi = a.astype(np.float32)
-    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, inverse(ab), inverse(ac), inverse(bc)]
-    return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
-
-
-_ROWS = 28  # rows of `triangle_rows`
-
-
-def _rows_dist2(p, r, o):
-    """Squared distance from points p (3 arrays, grid units relative to o) to triangles
-    given by `triangle_rows` rows r (28 arrays, broadcast against p), o: 3 float32 arrays
-    the origin the points are relative to."""
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-    q = tuple(p[k] - ((r[k] - o[k]) + r[3 + k]) for k in range(3))  # p - a
-    ab, ac, bc, u, v, n = (tuple(r[6 + 3 * i + k] for k in range(3)) for i in range(6))
-
-    def segment(x, e, inverse):  # squared distance from x (relative to its start) to e
-        s = jnp.clip(dot(x, e) * inverse, 0.0, 1.0)
-        off = tuple(xi - s * ei for xi, ei in zip(x, e))
-        return dot(off, off)
-
-    qb = tuple(qi - ei for qi, ei in zip(q, ab))
-    edges = jnp.minimum(jnp.minimum(segment(q, ab, r[24]), segment(q, ac, r[25])), segment(qb, bc, r[26]))
-    s, t, h = dot(q, u), dot(q, v), dot(q, n)
-    inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
-    return jnp.where(inside, jnp.minimum(h * h, edges), edges)
-
-
 @jax.jit
 def _tile_units(rows, ids, origin):
     """The closest of each work unit's triangles to every cell of its tile.
 
     Args:
-      rows: [_ROWS, F'] float32 `triangle_rows` of the triangles (grid units); the last
+      rows: [ROWS, F'] float32 `triangle_rows` of the triangles (grid units); the last
         column is a far-away padding triangle.
       ids: [S, U] int32 each unit's S triangles (ascending; padding F' - 1).
       origin: [3, U] int32 each unit's tile origin (voxels).
@@ -184,7 +134,7 @@ def _tile_units(rows, ids, origin):
 
     def slot(carry, t):
         best, tri = carry
-        d2 = _rows_dist2(p, [row[t][None] for row in rows], o)
+        d2 = rows_dist2(p, [row[t][None] for row in rows], o)
         better = d2 < best
         return (jnp.where(better, d2, best), jnp.where(better, t[None, :], tri)), None
 
@@ -199,7 +149,7 @@ def _tile_gaps(rows, ids, origin):
     its triangle: ids [N] int32 triangles, origin [3, N] int32 tile origins (voxels);
     rows as in `_tile_units`."""
     o = [origin[k].astype(jnp.float32) for k in range(3)]
-    return _rows_dist2([jnp.float32(TILE / 2)] * 3, [row[ids] for row in rows], o)
+    return rows_dist2([jnp.float32(TILE / 2)] * 3, [row[ids] for row in rows], o)
 
 
 # --------------------------------------------------------------------------------------
