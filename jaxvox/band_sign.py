@@ -257,10 +257,12 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     edge = longest_edges(tris)
     corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
 
+    # float64 sides where the float32 closest point may be on the wrong side
+    side_limit = np.where(edge > REFINE_EDGE, np.inf, SIDE_REFINE * edge).astype(np.float32)
+
     def sides(ijk, tri, dist):
         side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
-        # float64 where the float32 closest point may be on the wrong side
-        refine = np.flatnonzero((dist < SIDE_REFINE * edge[tri]) | (edge[tri] > REFINE_EDGE))
+        refine = np.flatnonzero(dist < side_limit[tri])
         if len(refine):
             region, offset = exact_closest(tris, ijk[refine], tri[refine])
             n = feature_normals[tri[refine], region].astype(np.float64)
@@ -353,7 +355,9 @@ class _Components:
         ring = np.zeros(int(welded.max()) + 1, bool)
         ring[welded[suspect].reshape(-1)] = True
         self.free = ~ring[welded].any(1) & (tri_gap > MOVE)
-        self.tri_gap, self.tri_bound = tri_gap, tri_bound
+        gap32 = tri_gap.astype(np.float32)
+        self.tri_gap32 = np.where(gap32 > tri_gap, np.nextafter(gap32, np.float32(-np.inf)), gap32)
+        self.capped = tri_bound >= CAP_BOUND  # per triangle: the cap term is summed exactly
         pairs = regular_edge_pairs(welded)
         self.pairs = pairs[self.free[pairs].all(1)]
         self.tree = point_tree(tris)
@@ -381,15 +385,18 @@ class _Components:
         are side [n] (+-1)."""
         centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
         n, faces, tris = len(ijk), len(self.tris), self.tris
-        free, tri_gap, tri_bound = self.free, self.tri_gap, self.tri_bound
+        free = self.free
 
         # Cap terms: exact where the bound is not small, and with the distance for voxels
         # of a triangle that is not free within a move of a cap.
+        # (float32 per-voxel arrays: these passes cost what their fresh memory costs)
         loose = ~free[tri] | (dist < ON_SURFACE)
-        cap_gap = np.where(loose, tri_gap[tri], np.inf)  # lower bounds
-        near = np.flatnonzero(cap_gap <= MOVE)
-        bounded = np.flatnonzero((tri_bound[tri] >= CAP_BOUND) & (cap_gap > MOVE))
-        cap_w = np.zeros(n)
+        loose_ids = np.flatnonzero(loose)
+        cap_gap = np.full(n, np.inf, np.float32)  # lower bounds, rounded down
+        cap_gap[loose_ids] = self.tri_gap32[tri[loose_ids]]
+        near = loose_ids[cap_gap[loose_ids] <= MOVE]
+        bounded = np.flatnonzero(self.capped[tri] & (cap_gap > MOVE))
+        cap_w = np.zeros(n, np.float32)
         if len(near):
             w, d2 = self.cap_terms(centre(near), distance=True)
             cap_w[near], cap_gap[near] = w, np.sqrt(d2)
@@ -398,8 +405,8 @@ class _Components:
         alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
 
         # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
-        node = 2 * tri.astype(np.int64) + (side < 0)
-        loose_ids = np.flatnonzero(loose)
+        index = np.int32 if 2 * faces + len(loose_ids) < (1 << 31) else np.int64
+        node = 2 * tri.astype(index) + (side < 0)
         node[loose_ids] = 2 * faces + np.arange(len(loose_ids))
         u = [2 * self.pairs[:, 0], 2 * self.pairs[:, 0] + 1]
         v = [2 * self.pairs[:, 1], 2 * self.pairs[:, 1] + 1]
@@ -416,11 +423,11 @@ class _Components:
                 u.append(node[mover[ok]])
                 v.append(node[at[ok]])
         label = connected_components(2 * faces + len(loose_ids), np.concatenate(u), np.concatenate(v))
-        comp = label[node]
+        comp = label.astype(index)[node]
 
         # One winding number per component, at its voxel farthest from mesh and caps.
-        score = np.where(alone, -1.0, np.minimum(dist, cap_gap))
-        best = np.full(len(label), -1.0)
+        score = np.where(alone, np.float32(-1), np.minimum(dist.astype(np.float32, copy=False), cap_gap))
+        best = np.full(len(label), -1.0, np.float32)
         np.maximum.at(best, comp, score)
         hit = np.flatnonzero((score == best[comp]) & (score >= 0.5))
         rep = np.full(len(label), -1)
@@ -436,7 +443,7 @@ class _Components:
         if len(wrong):  # the fast value missed by more than its error: sum it exactly
             whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + rep_caps[wrong]
             total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
-        component_w = np.full(len(label), np.nan)
+        component_w = np.full(len(label), np.nan, np.float32)
         component_w[roots] = total
         w = component_w[comp] - cap_w
         exact = np.concatenate([near, bounded])  # elsewhere w is an integer (or NaN)
@@ -447,4 +454,4 @@ class _Components:
         single = np.flatnonzero(np.isnan(w))  # components whose rounding failed
         if len(single):
             w[single] = self.winding_numbers(centre(single))
-        return np.where(w > 0.5, -1.0, 1.0).astype(np.float32)
+        return np.where(w > 0.5, np.float32(-1), np.float32(1))

@@ -375,7 +375,7 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
     signs = prepare_signs(mesh, tris, band) if signed and len(tris) else None
-    edge = longest_edges(tris)
+    large = longest_edges(tris) > REFINE_EDGE
     ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
     starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
     ends = np.append(starts[1:], len(ids))
@@ -390,13 +390,14 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             continue
         ijk += region_lo
         tri = mine[tri].astype(np.int32)
-        dist = np.sqrt(d2.astype(np.float64))
-        refine = np.flatnonzero(edge[tri] > REFINE_EDGE)  # large triangles: float64 distances
+        dist = np.sqrt(d2)  # float32 grid units
+        refine = np.flatnonzero(large[tri])  # large triangles: float64 distances
         if len(refine):
             dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
         if signs is not None:
-            dist = dist * signs(ijk, codes[a] << shift | keys, dist, tri)
-        yield region_lo, ijk, (dist * h).astype(np.float32), tri, keys
+            dist *= signs(ijk, codes[a] << shift | keys, dist, tri)
+        dist *= np.float32(h)
+        yield region_lo, ijk, dist, tri, keys
 
 
 def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree) -> SparseField:
