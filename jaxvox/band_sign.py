@@ -78,7 +78,8 @@ EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by 
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
-ON_SURFACE = 1e-3  # voxels this close (grid units) to mesh or caps are evaluated alone
+ON_SURFACE = 1e-3  # voxels this close (grid units) to the caps are evaluated alone; to the mesh, sides in float64
+ON_MESH = 1e-6  # voxels this close (grid units, float64) to the mesh have no certain side: evaluated alone
 REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get float64 distances
 F32_ERROR = 5e-7  # measured error of the float32 distance kernel per grid unit of the closest triangle's longest edge
 SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
@@ -257,17 +258,22 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     edge = longest_edges(tris)
     corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
 
-    # float64 sides where the float32 closest point may be on the wrong side
-    side_limit = np.where(edge > REFINE_EDGE, np.inf, SIDE_REFINE * edge).astype(np.float32)
+    # float64 sides where the float32 closest point may be on the wrong side, and for
+    # every voxel within ON_SURFACE (its side decides whether it joins a component)
+    side_limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
 
     def sides(ijk, tri, dist):
+        """(side [n] float32 +-1, on [n] bool: within `ON_MESH` of the surface in float64,
+        so that no side is certain)."""
         side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+        on = np.zeros(len(side), bool)
         refine = np.flatnonzero(dist < side_limit[tri])
         if len(refine):
             region, offset = exact_closest(tris, ijk[refine], tri[refine])
             n = feature_normals[tri[refine], region].astype(np.float64)
             side[refine] = np.where(np.einsum("ij,ij->i", offset, n) < 0, -1.0, 1.0)
-        return side
+            on[refine] = np.einsum("ij,ij->i", offset, offset) < ON_MESH * ON_MESH
+        return side, on
 
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -279,9 +285,9 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     )
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
-        return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)
+        return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)[0]
     components = _Components(tris, welded, suspect, chain, band)
-    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, sides(ijk, tri, dist))
+    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, *sides(ijk, tri, dist))
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
@@ -379,10 +385,10 @@ class _Components:
             w[close] = brute_force_winding_numbers(self.tris, points[close])
         return w
 
-    def signs(self, ijk, keys, dist, tri, side):
+    def signs(self, ijk, keys, dist, tri, side, on):
         """+-1 [n] float32 at voxels ijk [n, 3] (Morton order, codes keys [n] uint64) of
         unsigned distance dist [n] and closest triangle tri [n], whose pseudo-normal sides
-        are side [n] (+-1)."""
+        are side [n] (+-1), on [n] bool those on the surface (no certain side)."""
         centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
         n, faces, tris = len(ijk), len(self.tris), self.tris
         free = self.free
@@ -390,7 +396,7 @@ class _Components:
         # Cap terms: exact where the bound is not small, and with the distance for voxels
         # of a triangle that is not free within a move of a cap.
         # (float32 per-voxel arrays: these passes cost what their fresh memory costs)
-        loose = ~free[tri] | (dist < ON_SURFACE)
+        loose = ~free[tri] | on
         loose_ids = np.flatnonzero(loose)
         cap_gap = np.full(n, np.inf, np.float32)  # lower bounds, rounded down
         cap_gap[loose_ids] = self.tri_gap32[tri[loose_ids]]
@@ -402,7 +408,7 @@ class _Components:
             cap_w[near], cap_gap[near] = w, np.sqrt(d2)
         if len(bounded):
             cap_w[bounded] = self.cap_terms(centre(bounded), distance=False)
-        alone = (dist < ON_SURFACE) | (cap_gap < ON_SURFACE)
+        alone = on | (cap_gap < ON_SURFACE)
 
         # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
         index = np.int32 if 2 * faces + len(loose_ids) < (1 << 31) else np.int64
