@@ -232,7 +232,12 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     counts = np.diff(np.append(starts, len(ids)))
     tile_code = code[starts].astype(np.int64)
     limit = np.float32(band * band)  # compared in float32, as d2 is
-    parts = []
+    # The outputs, at most every cell of every tile: pages past the band voxels are never
+    # touched, so the bound costs address space only, and no parts are joined at the end.
+    bound = len(starts) * _CELLS
+    ijk, band_d2 = np.empty((bound, 3), np.int32), np.empty(bound, np.float32)
+    band_tri, keys = np.empty(bound, np.int32), np.empty(bound, np.int64)
+    n = 0
     item_end = np.cumsum(counts)
     t0 = 0
     while t0 < len(starts):  # about GROUP_ITEMS items at a time, whole tiles
@@ -265,12 +270,14 @@ def band_pairs(tris: np.ndarray, shape, band: int):
             best_d2[more] = np.where(better, d2[cand], best_d2[more])
             best_tri[more] = np.where(better, tri[cand], best_tri[more])
         flat = np.flatnonzero(best_d2.reshape(-1) <= limit)  # tile order, then Morton order within
+        part = slice(n, n + len(flat))
         # A cell's code is its tile's code, then its own bits: flat + (code - row) * 2^bits.
-        keys = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
-        parts.append((morton.decode_word_host(keys), best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat], keys))
+        keys[part] = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
+        morton.decode_word_host(keys[part], out=ijk[part])
+        band_d2[part], band_tri[part] = best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat]
+        n += len(flat)
         t0 = t1
-    ijk, band_d2, t, keys = parts[0] if len(parts) == 1 else (np.concatenate(x) for x in zip(*parts))
-    return ijk, band_d2, t, keys.view(np.uint64)  # non-negative int64
+    return ijk[:n], band_d2[:n], band_tri[:n], keys[:n].view(np.uint64)  # non-negative int64
 
 
 def sparse_distance_field(
