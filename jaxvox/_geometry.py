@@ -79,7 +79,7 @@ def safe_norm(v):
 
 def triangle_rows(tris: np.ndarray) -> np.ndarray:
     """What the tile kernels need of each triangle, computed once in float64 on the host:
-    [ROWS, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,
+    [28, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,
     1/|ac|^2, 1/|bc|^2, proper`` for triangles tris [F, 3, 3] float64 (grid units).
 
     ``a = a_hi + a_lo`` (so that ``(a_hi - o) + a_lo`` keeps float64 precision relative to
@@ -99,13 +99,10 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
     v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)
     n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
-    inverse = lambda e: np.where(dot(e, e) > 0, 1.0 / np.where(dot(e, e) > 0, dot(e, e), 1.0), 0.0)[:, None]
+    inverse = [np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0)[:, None] for ee in (d00, d11, dot(bc, bc))]
     a_hi = a.astype(np.float32)
-    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, inverse(ab), inverse(ac), inverse(bc)]
+    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, *inverse]
     return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
-
-
-ROWS = 28  # rows of `triangle_rows`
 
 
 def rows_dist2(p, r, o):

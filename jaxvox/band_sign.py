@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._geometry import ROWS, rows_dist2, solid_angle_parts, triangle_rows
+from jaxvox._geometry import rows_dist2, solid_angle_parts, triangle_rows
 from jaxvox._shapes import bucket, chunk_rows, pad_rows
 from jaxvox.mesh import Mesh
 from jaxvox.topology import (
@@ -65,7 +65,6 @@ from jaxvox.topology import (
     welded_faces,
 )
 from jaxvox.winding import (
-    BRUTE_FORCE_BLOCK,
     brute_force_winding_numbers,
     point_tree,
     point_winding_numbers,
@@ -73,7 +72,9 @@ from jaxvox.winding import (
     triangle_blocks,
 )
 
-POINT_CHUNK = 1 << 16  # band voxels per call of the sign kernels (fewer dispatches: sides of 14 M voxels 1.8 -> 1.0 s)
+POINT_CHUNK = (
+    1 << 16
+)  # band voxels per call of the sign kernels (fewer dispatches than 2^14: sides of 14 M voxels 1.2-1.8 -> 1.0-1.3 s)
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
@@ -162,7 +163,7 @@ def _pseudo_normal_sign(ijk, tri, corners, normals):
 def _cap_terms(points, blocks, rows, *, distance: bool):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
     [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`), and with `distance` also
-    the squared distance [P] float32 to the nearest of them (rows [n, ROWS,
+    the squared distance [P] float32 to the nearest of them (rows [n, 28,
     BRUTE_FORCE_BLOCK]: their `triangle_rows`); both relative to the points."""
     p = [points[:, k, None] for k in range(3)]
     zero = [jnp.float32(0)] * 3
@@ -344,10 +345,7 @@ class _Components:
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0
         self.blocks = triangle_blocks(caps, _FAR)  # padding far away: it must not be the nearest
-        padded = np.concatenate([caps, np.full((-len(caps) % BRUTE_FORCE_BLOCK, 3, 3), float(_FAR))])
-        self.rows = jnp.asarray(
-            np.ascontiguousarray(triangle_rows(padded).reshape(ROWS, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2))
-        )
+        self.rows = triangle_blocks(caps, _FAR, triangle_rows)  # the same blocks, for distances
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))

@@ -35,7 +35,7 @@ Method (no propagation, so no propagation error):
 Nothing of size R^3 is allocated; the work is O(sum over triangles of the tiles their
 dilated boxes overlap). The grid is built in aligned regions (`sparse_distance_field`'s
 ``region``), so the working memory follows one region, and the result is the
-`SparseField` itself (the bunny at 4096^3: a 7.6 GiB peak for a 5.1 GiB field), or one
+`SparseField` itself (the bunny at 4096^3: a 7.3 GiB peak for a 5.1 GiB field), or one
 region's field at a time (`sparse_field_regions`).
 
 Precision: the tile kernel's float32 error grows with the closest triangle's size (up to
@@ -122,7 +122,7 @@ def _tile_units(rows, ids, origin):
     """The closest of each work unit's triangles to every cell of its tile.
 
     Args:
-      rows: [ROWS, F'] float32 `triangle_rows` of the triangles (grid units); the last
+      rows: [28, F'] float32 `triangle_rows` of the triangles (grid units); the last
         column is a far-away padding triangle.
       ids: [S, U] int32 each unit's S triangles (ascending; padding F' - 1).
       origin: [3, U] int32 each unit's tile origin (voxels).

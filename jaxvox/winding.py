@@ -281,12 +281,15 @@ def split_rows(rows: np.ndarray) -> np.ndarray:
     return np.concatenate([hi, (rows - hi).astype(np.float32)])
 
 
-def triangle_blocks(tris: np.ndarray, pad: float) -> jax.Array:
-    """Float64 triangles [F, 3, 3] as device blocks [n, 18, BRUTE_FORCE_BLOCK] of
-    `split_rows` rows, padded with degenerate triangles whose corners are all `pad`."""
+def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> jax.Array:
+    """Float64 triangles [F, 3, 3] as device blocks [n, R, BRUTE_FORCE_BLOCK] of rows,
+    padded with degenerate triangles whose corners are all `pad`. `layout` maps the padded
+    triangles [F', 3, 3] to their rows [R, F'] (default: the corners' `split_rows`, R = 18;
+    `jaxvox._geometry.triangle_rows` for distances)."""
     extra = -len(tris) % BRUTE_FORCE_BLOCK
-    rows = split_rows(np.concatenate([tris, np.full((extra, 3, 3), pad)]).reshape(-1, 9).T)  # [18, F']
-    return jnp.asarray(np.ascontiguousarray(rows.reshape(18, -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+    padded = np.concatenate([tris, np.full((extra, 3, 3), pad)])
+    rows = split_rows(padded.reshape(-1, 9).T) if layout is None else layout(padded)  # [R, F']
+    return jnp.asarray(np.ascontiguousarray(rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
 
 
 def relative_corners(rows, p):
