@@ -49,6 +49,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -321,12 +322,13 @@ def sparse_distance_field(
     size = _checked("sparse_distance_field", mesh, grid, band, signed, region)
     coords, values, closest = [], [], []
     stack: list = []
-    for region_lo, ijk, dist, tri, keys in _band_regions(mesh, grid, band, signed, size, progress):
-        push_region(stack, keys, region_lo, size)
+    build = lambda keys, region_lo: push_region(stack, keys, region_lo, size)  # in region order (one worker)
+    for _, ijk, dist, tri, pushed in _band_regions(mesh, grid, band, signed, size, progress, build):
+        pushed.result()
         coords.append(ijk)
         values.append(dist)
         closest.append(tri)
-        del ijk, dist, tri, keys
+        del ijk, dist, tri
     n = sum(len(c) for c in coords)
     check_count(n, grid, "sparse_distance_field")
     return _field(grid, band, n, coords, values, closest, finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n))
@@ -357,11 +359,14 @@ def sparse_field_regions(
       neighbour in the next region counts as outside the band.
     """
     size = _checked("sparse_field_regions", mesh, grid, band, signed, region)
-    for region_lo, ijk, dist, tri, keys in _band_regions(mesh, grid, band, signed, size, progress):
-        n = len(ijk)
+
+    def build(keys, region_lo):  # the region's DAG alone
         stack: list = []
         push_region(stack, keys, region_lo, size)
-        yield _field(grid, band, n, [ijk], [dist], [tri], finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n))
+        return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
+
+    for _, ijk, dist, tri, tree in _band_regions(mesh, grid, band, signed, size, progress, build):
+        yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result())
 
 
 def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
@@ -375,16 +380,22 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
     return min(check_region(f"{caller} region", region), grid.resolution)
 
 
-def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, progress: bool | None):
+def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, progress: bool | None, build):
     """The band voxels of each aligned region of edge `size` that holds some, in Morton
     order: (region_lo int32 [3], ijk int32 [n, 3] global voxel indices, values float32
-    [n] world units, tri int32 [n] closest triangles, keys uint64 [n] Morton codes within
-    the region), host arrays in Morton order."""
+    [n] world units, tri int32 [n] closest triangles, a `Future` of ``build(keys,
+    region_lo)``), host arrays in Morton order; keys [n] uint64 are the voxels' Morton
+    codes within the region.
+
+    Both cores work: a worker thread prepares the signs (what depends on the mesh alone)
+    while the first region's distances are computed, then runs `build` on each region's
+    keys (e.g. its DAG, which needs no values) while the region is signed. The worker
+    takes the tasks in order, so `build` sees the regions in Morton order.
+    """
     band = int(band)
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
-    signs = prepare_signs(mesh, tris, band) if signed and len(tris) else None
     large = longest_edges(tris) > REFINE_EDGE
     ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
     starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
@@ -392,22 +403,26 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
-    for a, b in tqdm(zip(starts, ends), total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
-        region_lo = morton.decode_host(codes[a]) * size
-        mine = ids[a:b]  # ascending, so ties still go to the lower id
-        ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
-        if not len(ijk):
-            continue
-        ijk += region_lo
-        tri = mine[tri].astype(np.int32)
-        dist = np.sqrt(d2)  # float32 grid units
-        refine = np.flatnonzero(large[tri])  # large triangles: float64 distances
-        if len(refine):
-            dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
-        if signs is not None:
-            dist *= signs(ijk, codes[a] << shift | keys, dist, tri)
-        dist *= np.float32(h)
-        yield region_lo, ijk, dist, tri, keys
+    with ThreadPoolExecutor(1) as worker:
+        signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        regions = zip(starts, ends)
+        for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
+            region_lo = morton.decode_host(codes[a]) * size
+            mine = ids[a:b]  # ascending, so ties still go to the lower id
+            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
+            if not len(ijk):
+                continue
+            built = worker.submit(build, keys, region_lo)
+            ijk += region_lo
+            tri = mine[tri].astype(np.int32)
+            dist = np.sqrt(d2)  # float32 grid units
+            refine = np.flatnonzero(large[tri])  # large triangles: float64 distances
+            if len(refine):
+                dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
+            if signs is not None:
+                dist *= signs.result()(ijk, codes[a] << shift | keys, dist, tri)
+            dist *= np.float32(h)
+            yield region_lo, ijk, dist, tri, built
 
 
 def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree) -> SparseField:
