@@ -222,7 +222,7 @@ def environment_sample(env: Environment, surf: Surface, u, last):
 
 
 def shade(
-    path: PathState, surf: Surface, sun_visible, u, *, rho, emitted, env: Environment, first: bool, last, light=None
+    path: PathState, surf: Surface, sun_visible, u, *, rho, emitted, env: Environment, first, last, light=None
 ) -> PathState:
     """One path vertex: gathers emission, escape, the sun and the environment sample;
     samples the next direction.
@@ -237,9 +237,9 @@ def shade(
     bounce leaves the surface and none starts inside its own voxel.
     """
     live = valid_rays(path.origin, path.direction)
-    sky = (env.camera_radiance if first else env.radiance)(path.direction)
-    if env.sampled and not first:
-        sky = sky * _mis(path.pdf, env.pdf(path.direction))[:, None]
+    sky = jnp.where(first, env.camera_radiance(path.direction), env.radiance(path.direction))
+    if env.sampled:
+        sky = sky * jnp.where(first, 1.0, _mis(path.pdf, env.pdf(path.direction)))[:, None]
     radiance = path.radiance + jnp.where(surf.escaped[:, None], path.throughput * sky, 0.0)
     gathered = emitted
     if env.sun:
@@ -323,34 +323,40 @@ def _render_batch(
     path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
     go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False, beam=False)
 
-    def segment(k, path, first):
+    # One segment program for every vertex (the first one too: `first` is traced) and one
+    # traversal for all its shadow rays: each traversal written into the program costs
+    # its compile time again.
+    def segment(k, path):
+        first, last = k == 0, k >= bounces
         surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction), normals)
-        visible = jnp.zeros(batch, jnp.float32)
         shadow = shadow_origins(tree, surf) if env.sun or env.sampled else surf.point
+        towards = []  # shadow ray directions: to the sun, to the environment sample
         if env.sun:
-            towards = jnp.where(
-                (surf.hit & (jnp.sum(surf.shading * env.sun_direction, -1) > 0))[:, None], env.sun_direction, 0.0
-            )
-            visible = (go(shadow, towards).status != HIT).astype(jnp.float32)
-        light = None
+            lit = surf.hit & (jnp.sum(surf.shading * env.sun_direction, -1) > 0)
+            towards.append(jnp.where(lit[:, None], env.sun_direction, 0.0))
         if env.sampled:
-            d, pdf = environment_sample(env, surf, uniforms(keys, LIGHT_STREAM + k, 3), k >= bounces)
-            light = (d, pdf, (go(shadow, d).status != HIT).astype(jnp.float32))
+            d, pdf = environment_sample(env, surf, uniforms(keys, LIGHT_STREAM + k, 3), last)
+            towards.append(d)
+        visible = light = None
+        if towards:
+            hits = go(jnp.concatenate([shadow] * len(towards)), jnp.concatenate(towards)).status
+            escaped = jnp.split((hits != HIT).astype(jnp.float32), len(towards))
+            visible = escaped[0] if env.sun else None
+            light = (d, pdf, escaped[-1]) if env.sampled else None
         return shade(
             path,
             surf,
-            visible,
+            jnp.zeros(batch, jnp.float32) if visible is None else visible,
             uniforms(keys, k + 1, 2),
             rho=_lookup(albedo, surf.index),
             emitted=_lookup(emission, surf.index),
             env=env,
             first=first,
-            last=k >= bounces,
+            last=last,
             light=light,
         )
 
-    path = segment(0, path, True)
-    path = jax.lax.fori_loop(1, bounces + 1, lambda k, p: segment(k, p, False), path)
+    path = jax.lax.fori_loop(0, bounces + 1, segment, path)
     pixel = jnp.where(valid, ids % (width * height), width * height)
     image = image.at[pixel].add(path.radiance, mode="drop")
     return image, stopped + jnp.sum(path.stopped & valid).astype(jnp.int32)
