@@ -32,9 +32,14 @@ Two methods, both exact (the float64 brute-force winding number is the reference
   voxel farthest from mesh and caps) plus the exact cap term, rounded, gives its ``W``.
   Each voxel then takes ``w = W - w_caps``: the cap term is summed exactly (brute force
   over the cap triangles) unless a bound keeps it below `CAP_BOUND`, in which case
-  ``w = W``. The bound: a cap of area A_k inside the ball of radius r_k about c_k adds at
-  most ``A_k / (4 pi (|p - c_k| - r_k)^2)``; where that is not small, the exact term at
-  the closest triangle's centroid plus the reach times a bound on its gradient. A
+  ``w = W``. The bound, per triangle: a cap of area A_k inside the ball of radius r_k
+  about c_k adds at most ``A_k / (4 pi (|p - c_k| - r_k)^2)``; where that is not small,
+  the exact term at the closest triangle's centroid plus the reach times a bound on its
+  gradient. Voxels whose triangle fails it are tried again by aligned blocks of
+  `BLOCK`^3 (`Components.bounded_cap_terms`): the exact term at the block's centre plus
+  the block's radius times a Biot-Savart bound on the gradient (the caps' boundary is
+  the mesh's boundary chain), where the block's ball misses the caps. On the bunny at
+  1024^3 that settles all but 112 of the 899 K voxels that took exact terms before. A
   component whose voxels all lie within 1/2 voxel of mesh or caps (voxels on the surface
   are alone) is evaluated voxel by voxel, and values within `CLOSE` of 1/2 are summed
   again by brute force. The bunny at 256^3 (897 K band voxels) takes 2 components and
@@ -84,6 +89,9 @@ ON_MESH = 1e-6  # voxels this close (grid units, float64) to the mesh have no ce
 REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get float64 distances
 F32_ERROR = 5e-7  # measured error of the float32 distance kernel per grid unit of the closest triangle's longest edge
 SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
+BLOCK_BITS = 2  # voxels whose cap term only needs a bound are settled in aligned blocks of BLOCK^3
+BLOCK = 1 << BLOCK_BITS
+BLOCK_RADIUS = np.float32(np.sqrt(3.0) * (BLOCK - 1) / 2)  # from a block's centre to its farthest voxel centre
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
 
@@ -159,26 +167,40 @@ def _pseudo_normal_sign(ijk, tri, corners, normals):
     return jnp.where(sum((pk - qk) * nk for pk, qk, nk in zip(p, q, n)) < 0, -1.0, 1.0).astype(jnp.float32)
 
 
-@functools.partial(jax.jit, static_argnames="distance")
-def _cap_terms(points, blocks, rows, *, distance: bool):
+@functools.partial(jax.jit, static_argnames=("distance", "slope"))
+def _cap_terms(points, blocks, rows, *, distance: bool, slope: bool = False):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
-    [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`), and with `distance` also
-    the squared distance [P] float32 to the nearest of them (rows [n, 28,
-    BRUTE_FORCE_BLOCK]: their `triangle_rows`); both relative to the points."""
+    [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`; each a fan triangle
+    (centre, b, a) over a boundary edge a -> b), and with `distance` also the squared
+    distance [P] float32 to the nearest of them (rows [n, 28, BRUTE_FORCE_BLOCK]: their
+    `triangle_rows`); both relative to the points. With `slope` also the bound [P]
+    float32 on the term's gradient in the ball of radius `BLOCK_RADIUS` about each point
+    (inf where a boundary edge comes that close; see `Components.bounded_cap_terms`)."""
     p = [points[:, k, None] for k in range(3)]
     zero = [jnp.float32(0)] * 3
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
     def step(carry, block):
-        w, d2 = carry
+        w, d2, bound = carry
         corners, tri_rows = block
-        w = w + jnp.sum(solid_angle_parts(*relative_corners(corners, p)), -1)
+        centre, b, a = relative_corners(corners, p)
+        w = w + jnp.sum(solid_angle_parts(centre, b, a), -1)
         if distance:
             d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows), p), -1))
-        return (w, d2), None
+        if slope:  # sum over the edges of len / (4 pi gap^2), gap = distance to the edge - radius
+            ab = tuple(y - x for x, y in zip(a, b))
+            length2 = dot(ab, ab)
+            t = jnp.clip(-dot(a, ab) / jnp.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+            nearest = tuple(x + t * e for x, e in zip(a, ab))  # the edge's point nearest to the centre
+            gap = jnp.sqrt(dot(nearest, nearest)) - BLOCK_RADIUS
+            term = jnp.sqrt(length2) / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
+            bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), -1)
+        return (w, d2, bound), None
 
-    start = (jnp.zeros(points.shape[0], jnp.float32), jnp.full(points.shape[0], jnp.inf, jnp.float32))
-    w, d2 = jax.lax.scan(step, start, (blocks, rows))[0]
-    return (w, d2) if distance else w
+    n = points.shape[0]
+    start = (jnp.zeros(n, jnp.float32), jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, jnp.float32))
+    w, d2, bound = jax.lax.scan(step, start, (blocks, rows))[0]
+    return (w, d2, bound) if slope else (w, d2) if distance else w
 
 
 def longest_edges(tris: np.ndarray) -> np.ndarray:
@@ -287,7 +309,7 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
         return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)[0]
-    components = _Components(tris, welded, suspect, chain, band)
+    components = Components(tris, welded, suspect, chain, band)
     return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, *sides(ijk, tri, dist))
 
 
@@ -332,7 +354,7 @@ def _cap_gaps(points: np.ndarray, reach: np.ndarray, centre: np.ndarray, radius:
     return gap, bound, slope
 
 
-class _Components:
+class Components:
     """Signs by components of mesh plus caps (module docstring): the mesh's caps, bounds
     and free triangles at construction, the voxels' components per call of `signs`."""
 
@@ -344,6 +366,7 @@ class _Components:
         reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0
+        self.caps = caps  # [C, 3, 3] float64 fan triangles (centre, b, a) over the boundary edges a -> b
         self.blocks = triangle_blocks(caps, _FAR)  # padding far away: it must not be the nearest
         self.rows = triangle_blocks(caps, _FAR, triangle_rows)  # the same blocks, for distances
         # Where the balls about the caps do not settle it: the exact cap term and distance
@@ -366,12 +389,40 @@ class _Components:
         self.pairs = pairs[self.free[pairs].all(1)]
         self.tree = point_tree(tris)
 
-    def cap_terms(self, points: np.ndarray, *, distance: bool):
+    def cap_terms(self, points: np.ndarray, *, distance: bool, slope: bool = False):
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
-        also the squared distance [P] to the nearest cap."""
+        also the squared distance [P] to the nearest cap; with `slope` also the gradient
+        bound of `_cap_terms`."""
         return _chunked(
-            functools.partial(_cap_terms, distance=distance), points.astype(np.float32), self.blocks, self.rows
+            functools.partial(_cap_terms, distance=distance, slope=slope),
+            points.astype(np.float32),
+            self.blocks,
+            self.rows,
         )
+
+    def bounded_cap_terms(self, ijk: np.ndarray, keys: np.ndarray) -> np.ndarray:
+        """The caps' winding number [n] float32 at voxels ijk [n, 3] (Morton order, codes
+        keys [n] uint64) whose sign needs only ``|w_caps| < CAP_BOUND``: 0 where that holds
+        for a whole aligned block of `BLOCK`^3 voxels, the exact term elsewhere.
+
+        A block is settled from its centre q: the exact term and distance to the caps at
+        q, and a bound on the term's gradient in the ball of radius r = `BLOCK_RADIUS`
+        about q, which holds the block's voxel centres. Off the caps, the gradient of the solid angle of a
+        surface is a Biot-Savart integral over its boundary, at most
+        ``sum_e len_e / g_e^2`` for boundary edges e at least g_e away; the caps'
+        boundary is the mesh's boundary chain. So where the ball misses the caps,
+        ``|w_caps| <= |w(q)| + r sum_e len_e / (4 pi g_e^2)`` in it.
+        """
+        w = np.zeros(len(ijk), np.float32)
+        block = keys >> np.uint64(3 * BLOCK_BITS)
+        starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
+        q = (ijk[starts] >> BLOCK_BITS << BLOCK_BITS) + BLOCK / 2  # float64 block centres
+        term, d2, slope = self.cap_terms(q, distance=True, slope=True)
+        settled = (np.sqrt(d2) > BLOCK_RADIUS + ON_SURFACE) & (np.abs(term) + BLOCK_RADIUS * slope < CAP_BOUND)
+        rest = np.flatnonzero(~np.repeat(settled, np.diff(np.append(starts, len(ijk)))))
+        if len(rest):
+            w[rest] = self.cap_terms(ijk[rest] + 0.5, distance=False)
+        return w
 
     def winding_numbers(self, points: np.ndarray) -> np.ndarray:
         """The mesh's winding numbers [P] at points [P, 3] (grid units): the fast tree, then
@@ -405,7 +456,7 @@ class _Components:
             w, d2 = self.cap_terms(centre(near), distance=True)
             cap_w[near], cap_gap[near] = w, np.sqrt(d2)
         if len(bounded):
-            cap_w[bounded] = self.cap_terms(centre(bounded), distance=False)
+            cap_w[bounded] = self.bounded_cap_terms(ijk[bounded], keys[bounded])
         alone = on | (cap_gap < ON_SURFACE)
 
         # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.

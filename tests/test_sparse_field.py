@@ -16,8 +16,10 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import jaxvox as jv
-from jaxvox.band_sign import pseudo_normals
+from jaxvox import morton
+from jaxvox.band_sign import CAP_BOUND, Components, pseudo_normals
 from jaxvox.sparse_field import SLOTS, TILE, UNUSED_VALUE
+from jaxvox.topology import boundary_chain, welded_faces
 from tests.reference import mesh_distance, winding_number
 
 TOL = 1e-4  # voxels
@@ -296,6 +298,35 @@ def test_signs_of_damaged_meshes(seed):
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)
     region = (None, 4)[seed % 2]  # half the examples in regions of 4^3, each signed alone
     check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2, region=region))
+
+
+def test_cap_blocks_settle_only_where_the_bound_holds():
+    """A sphere with a hole: voxels whose cap term needs only a bound are settled by
+    4^3 blocks (`Components.bounded_cap_terms`). Every voxel of a settled block must have
+    |w_caps| < CAP_BOUND by the float64 winding number of the caps; the others get the
+    exact term. Both kinds occur."""
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
+    faces = s.faces[s.vertices[s.faces].mean(1)[:, 2] < 12.0]  # a hole of radius about 15
+    tris = s.vertices[faces] + 32.0  # grid units, the centre at (32, 32, 32)
+    welded = welded_faces(s.vertices, faces)
+    components = Components(tris, welded, np.zeros(len(faces), bool), boundary_chain(welded), band=3)
+    ijk = np.indices((64, 64, 64)).reshape(3, -1).T
+    ijk = ijk[np.abs(np.linalg.norm(ijk + 0.5 - 32.0, axis=1) - 20.0) < 8.0]  # a shell about the sphere
+    keys = morton.encode_host(ijk)
+    order = np.argsort(keys)
+    ijk, keys = ijk[order].astype(np.int32), keys[order]
+    got = components.bounded_cap_terms(ijk, keys)
+    caps = components.caps
+    exact = winding_number(caps.reshape(-1, 3), np.arange(3 * len(caps)).reshape(-1, 3), ijk + 0.5)
+    settled = got == 0
+    assert 0.1 < settled.mean() < 0.99
+    assert np.abs(exact[settled]).max() < CAP_BOUND
+    # the others: the exact term (float32 kernel), away from the caps' own surface
+    off = ~settled & (np.abs(np.abs(exact) - 0.5) > 0.05)
+    assert off.sum() > 100
+    np.testing.assert_allclose(got[off], exact[off], atol=1e-4)
 
 
 @pytest.mark.parametrize("name, resolution", [("stanford-bunny", 32), ("teapot", 64)])
