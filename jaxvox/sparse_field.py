@@ -238,10 +238,11 @@ def band_pairs(tris: np.ndarray, shape, band: int):
     bound = len(starts) * _CELLS
     ijk, band_d2 = np.empty((bound, 3), np.int32), np.empty(bound, np.float32)
     band_tri, keys = np.empty(bound, np.int32), np.empty(bound, np.int64)
-    n = 0
     item_end = np.cumsum(counts)
-    t0 = 0
-    while t0 < len(starts):  # about GROUP_ITEMS items at a time, whole tiles
+
+    def dispatch(t0: int):
+        """Starts the kernels of the round from tile t0 (about GROUP_ITEMS items, whole
+        tiles): (t0, t1, units per tile, [(kernel outputs, rows)])."""
         t1 = max(int(np.searchsorted(item_end, item_end[t0] - counts[t0] + GROUP_ITEMS, side="right")), t0 + 1)
         tiles = np.arange(t0, t1)
         n_units = -(-counts[tiles] // SLOTS)
@@ -251,17 +252,21 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         mine = item < (starts[owner] + counts[owner])[:, None]
         slot_ids = np.where(mine, ids[np.minimum(item, len(ids) - 1)], pad_id)
         origin = morton.decode_word_host(tile_code[owner]) * TILE
-        d2 = np.empty((len(owner), _CELLS), np.float32)  # [units, TILE^3]
-        tri = np.empty((len(owner), _CELLS), np.int32)
         width = chunk_rows(len(owner), UNITS)
+        calls = []
         for u in range(0, len(owner), width):
             args = (
                 jnp.asarray(pad_rows(slot_ids[u : u + width].astype(np.int32), width, pad_id).T),
                 jnp.asarray(pad_rows(origin[u : u + width], width).T),
             )
-            m = min(width, len(owner) - u)
-            dc, tc = _tile_units(rows, *args)
-            d2[u : u + m], tri[u : u + m] = np.asarray(dc)[:m], np.asarray(tc)[:m]
+            calls.append((_tile_units(rows, *args), min(width, len(owner) - u)))
+        return t0, t1, n_units, calls
+
+    def collect(n: int, t0: int, t1: int, n_units, calls) -> int:
+        """Waits for a round's kernels, keeps each cell's closest triangle within the band
+        and writes it at row n of the outputs; returns the next free row."""
+        d2 = np.concatenate([np.asarray(dc)[:m] for (dc, _), m in calls])  # [units, TILE^3]
+        tri = np.concatenate([np.asarray(tc)[:m] for (_, tc), m in calls])
         first = np.cumsum(n_units) - n_units  # each tile's first unit
         best_d2, best_tri = d2[first], tri[first]
         for j in range(1, int(n_units.max())):  # later units hold higher triangle ids
@@ -276,8 +281,15 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         keys[part] = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
         morton.decode_word_host(keys[part], out=ijk[part])
         band_d2[part], band_tri[part] = best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat]
-        n += len(flat)
-        t0 = t1
+        return n + len(flat)
+
+    # The kernels of each round run (asynchronously, on XLA's threads) while the host
+    # prepares the next round and collects the previous one.
+    n, pending = 0, dispatch(0)
+    while pending is not None:
+        started = dispatch(pending[1]) if pending[1] < len(starts) else None
+        n = collect(n, *pending)
+        pending = started
     return ijk[:n], band_d2[:n], band_tri[:n], keys[:n].view(np.uint64)  # non-negative int64
 
 
