@@ -372,7 +372,7 @@ def sparse_field_regions(
     """
     size = _checked("sparse_field_regions", mesh, grid, band, signed, region)
 
-    def build(keys, region_lo):  # the region's DAG alone
+    def build(keys: np.ndarray, region_lo: np.ndarray) -> Octree:  # the region's DAG alone
         stack: list = []
         push_region(stack, keys, region_lo, size)
         return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
