@@ -407,8 +407,8 @@ class Components:
 
         A block is settled from its centre q: the exact term and distance to the caps at
         q, and a bound on the term's gradient in the ball of radius r = `BLOCK_RADIUS`
-        about q, which holds the block's voxel centres. Off the caps, the gradient of the solid angle of a
-        surface is a Biot-Savart integral over its boundary, at most
+        about q, which holds the block's voxel centres. Off the caps, the gradient of the
+        solid angle of a surface is a Biot-Savart integral over its boundary, at most
         ``sum_e len_e / g_e^2`` for boundary edges e at least g_e away; the caps'
         boundary is the mesh's boundary chain. So where the ball misses the caps,
         ``|w_caps| <= |w(q)| + r sum_e len_e / (4 pi g_e^2)`` in it.

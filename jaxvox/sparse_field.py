@@ -335,7 +335,7 @@ def sparse_distance_field(
     coords, values, closest = [], [], []
     stack: list = []
     build = lambda keys, region_lo: push_region(stack, keys, region_lo, size)  # in region order (one worker)
-    for _, ijk, dist, tri, pushed in _band_regions(mesh, grid, band, signed, size, progress, build):
+    for ijk, dist, tri, pushed in _band_regions(mesh, grid, band, signed, size, progress, build):
         pushed.result()
         coords.append(ijk)
         values.append(dist)
@@ -377,7 +377,7 @@ def sparse_field_regions(
         push_region(stack, keys, region_lo, size)
         return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
 
-    for _, ijk, dist, tri, tree in _band_regions(mesh, grid, band, signed, size, progress, build):
+    for ijk, dist, tri, tree in _band_regions(mesh, grid, band, signed, size, progress, build):
         yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result())
 
 
@@ -394,10 +394,10 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
 
 def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, progress: bool | None, build):
     """The band voxels of each aligned region of edge `size` that holds some, in Morton
-    order: (region_lo int32 [3], ijk int32 [n, 3] global voxel indices, values float32
-    [n] world units, tri int32 [n] closest triangles, a `Future` of ``build(keys,
-    region_lo)``), host arrays in Morton order; keys [n] uint64 are the voxels' Morton
-    codes within the region.
+    order: (ijk int32 [n, 3] global voxel indices, values float32 [n] world units, tri
+    int32 [n] closest triangles, a `Future` of ``build(keys, region_lo)``), host arrays in
+    Morton order; keys [n] uint64 are the voxels' Morton codes within the region and
+    region_lo [3] its first voxel.
 
     Both cores work: a worker thread prepares the signs (what depends on the mesh alone)
     while the first region's distances are computed, then runs `build` on each region's
@@ -434,7 +434,7 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             if signs is not None:
                 dist *= signs.result()(ijk, codes[a] << shift | keys, dist, tri)
             dist *= np.float32(h)
-            yield region_lo, ijk, dist, tri, built
+            yield ijk, dist, tri, built
 
 
 def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree) -> SparseField:
