@@ -202,6 +202,17 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         on_surface=jnp.zeros(n, bool),
         d=jnp.zeros(n, jnp.float32),
     )
+    # One traversal first ends the rays that enter no leaf (88% of the csg scene's image),
+    # so that the rounds, whose marches cost the whole batch MARCH evaluations, start on
+    # the rays that do: when at most 1/8 remain, the first stage is skipped. The others
+    # start just before their first leaf (the space before it is empty).
+    running = state.status == RUNNING
+    leaf = trace(tree, o, u, t_max=jnp.where(running, t_max, -jnp.inf), method=method, shard=False)
+    entered = running & (leaf.status == HIT)
+    state = state._replace(
+        t=jnp.where(entered, jnp.maximum(leaf.t - nudge, 0.0), state.t),
+        status=jnp.where(running & ~entered, leaf.status, state.status).astype(jnp.int32),
+    )
     # Grazing rays enter tens of leaves where most stop in one or two: the running rays
     # are gathered into smaller batches (csg scene, 480x270: 0.96 s against 5.8 s;
     # 0.63 s with MARCH).
