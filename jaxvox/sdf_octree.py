@@ -15,9 +15,10 @@ the kept cells between levels.
 Laine & Karras): `jaxvox.trace` finds the first occupied leaf along the ray, the ray is
 sphere-traced only inside that leaf's box, and if it leaves the box without a hit the
 traversal resumes where sphere tracing stopped. Empty space costs octree steps instead
-of scene evaluations. The loop runs in rounds (one traversal and a leaf march of at most
-`MARCH` evaluations per round), first over the whole batch, then over the rays still
-running gathered into smaller batches (`jaxvox._stages.run_in_stages`).
+of scene evaluations. One traversal of the whole batch first ends the rays that enter
+no leaf; the loop then runs in rounds (one traversal and a leaf march of at most `MARCH`
+evaluations per round), over the whole batch while more than 1/8 of it runs, then over
+the rays still running gathered into smaller batches (`jaxvox._stages.run_in_stages`).
 """
 
 from __future__ import annotations
