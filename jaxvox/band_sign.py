@@ -489,7 +489,7 @@ class Components:
         rep[comp[hit]] = hit
         roots = np.flatnonzero(rep >= 0)
         reps = rep[roots]
-        lone = np.flatnonzero(rep[comp] < 0)  # components without a representative
+        lone = np.flatnonzero(~(rep >= 0)[comp])  # components without a representative
         values = self.winding_numbers(np.concatenate([centre(reps), centre(lone)]))  # one call for both
         rep_caps = self.cap_terms(centre(reps), distance=False) if self.has_caps else np.zeros(len(reps))
         whole = values[: len(reps)] + rep_caps
