@@ -71,11 +71,12 @@ _TAN_PI_8 = np.float32(np.sqrt(2.0) - 1.0)
 
 
 def atan2(y, x):
-    """``jnp.arctan2`` for float32, about 1.7x faster on XLA's CPU backend (whose own
-    does not vectorize here) and as accurate: at most 2.7e-7 rad from the float64 value,
-    against 2.5e-7 for ``jnp.arctan2`` (4 M random pairs over 60 decades); the same
-    results at signed zeros and infinities. Octant reduction to ``|t| <= tan(pi/8)``,
-    then Cephes' ``atanf`` polynomial."""
+    """``jnp.arctan2`` for float32, as accurate (at most 2.7e-7 rad from the float64
+    value against 2.5e-7 for ``jnp.arctan2``, 4 M random pairs over 60 decades; the same
+    results at signed zeros and infinities) and faster in some of XLA's CPU kernels: 1.75x
+    in a kernel of solid angles alone, 1.25x in the brute-force winding numbers, no change
+    in the cap-term kernel. Octant reduction to ``|t| <= tan(pi/8)``, then Cephes'
+    ``atanf`` polynomial."""
     ax, ay = jnp.abs(x), jnp.abs(y)
     big, small = jnp.maximum(ax, ay), jnp.minimum(ax, ay)
     t = small / jnp.where(big > 0, big, 1.0)  # in [0, 1]

@@ -337,16 +337,18 @@ def _render_batch(
         if env.sampled:
             d, pdf = environment_sample(env, surf, uniforms(keys, LIGHT_STREAM + k, 3), last)
             towards.append(d)
-        visible = light = None
+        visible, light = jnp.zeros(batch, jnp.float32), None
         if towards:
             hits = go(jnp.concatenate([shadow] * len(towards)), jnp.concatenate(towards)).status
             escaped = jnp.split((hits != HIT).astype(jnp.float32), len(towards))
-            visible = escaped[0] if env.sun else None
-            light = (d, pdf, escaped[-1]) if env.sampled else None
+            if env.sun:
+                visible = escaped[0]
+            if env.sampled:
+                light = (d, pdf, escaped[-1])
         return shade(
             path,
             surf,
-            jnp.zeros(batch, jnp.float32) if visible is None else visible,
+            visible,
             uniforms(keys, k + 1, 2),
             rho=_lookup(albedo, surf.index),
             emitted=_lookup(emission, surf.index),
