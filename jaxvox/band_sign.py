@@ -151,8 +151,9 @@ def exact_closest(tris: np.ndarray, ijk: np.ndarray, tri: np.ndarray):
 
 
 @jax.jit
-def _pseudo_normal_sign(ijk, tri, corners, normals):
-    """-1 inside, +1 outside, by the pseudo-normal of the closest feature.
+def _behind(ijk, tri, corners, normals):
+    """Whether each voxel is behind (inside) the pseudo-normal of its closest feature, [P]
+    bool.
 
     ijk [P, 3] int32 voxels (centres at ijk + 1/2, grid units), tri [P] int32 their
     closest triangles, corners [9, F] float32 rows a_xyz, b_xyz, c_xyz of the triangles
@@ -164,7 +165,7 @@ def _pseudo_normal_sign(ijk, tri, corners, normals):
     a, b, c = (tuple(corners[3 * i + k][t] for k in range(3)) for i in range(3))
     region, q = closest_feature(p, a, b, c)
     n = tuple(normals[k][7 * t + region] for k in range(3))
-    return jnp.where(sum((pk - qk) * nk for pk, qk, nk in zip(p, q, n)) < 0, -1.0, 1.0).astype(jnp.float32)
+    return sum((pk - qk) * nk for pk, qk, nk in zip(p, q, n)) < 0
 
 
 @functools.partial(jax.jit, static_argnames=("distance", "slope"))
@@ -269,7 +270,7 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
         band: the half width.
 
     Returns:
-      ``signs(ijk, keys, dist, tri)``: +-1 (float32 [n], -1 inside) at band voxels ijk
+      ``inside(ijk, keys, dist, tri)``: whether each is inside ([n] bool) at band voxels ijk
       [n, 3] int (Morton order; any subset of the band, e.g. one region's), keys [n] uint64
       their Morton codes, dist [n] float unsigned distance (grid units, at most `band`),
       tri [n] int closest triangle.
@@ -286,17 +287,17 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     side_limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
 
     def sides(ijk, tri, dist):
-        """(side [n] float32 +-1, on [n] bool: within `ON_MESH` of the surface in float64,
-        so that no side is certain)."""
-        side = _chunked(_pseudo_normal_sign, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
-        on = np.zeros(len(side), bool)
+        """(behind [n] bool: behind the closest feature's pseudo-normal, on [n] bool:
+        within `ON_MESH` of the surface in float64, so that no side is certain)."""
+        behind = _chunked(_behind, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
+        on = np.zeros(len(behind), bool)
         refine = np.flatnonzero(dist < side_limit[tri])
         if len(refine):
             region, offset = exact_closest(tris, ijk[refine], tri[refine])
             n = feature_normals[tri[refine], region].astype(np.float64)
-            side[refine] = np.where(np.einsum("ij,ij->i", offset, n) < 0, -1.0, 1.0)
+            behind[refine] = np.einsum("ij,ij->i", offset, n) < 0
             on[refine] = np.einsum("ij,ij->i", offset, offset) < ON_MESH * ON_MESH
-        return side, on
+        return behind, on
 
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -310,7 +311,7 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     if not len(chain) and not suspect.any():
         return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)[0]
     components = Components(tris, welded, suspect, chain, band)
-    return lambda ijk, keys, dist, tri: components.signs(ijk, keys, dist, tri, *sides(ijk, tri, dist))
+    return lambda ijk, keys, dist, tri: components.inside(ijk, keys, dist, tri, *sides(ijk, tri, dist))
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
@@ -356,7 +357,7 @@ def _cap_gaps(points: np.ndarray, reach: np.ndarray, centre: np.ndarray, radius:
 
 class Components:
     """Signs by components of mesh plus caps (module docstring): the mesh's caps, bounds
-    and free triangles at construction, the voxels' components per call of `signs`."""
+    and free triangles at construction, the voxels' components per call of `inside`."""
 
     def __init__(self, tris, welded, suspect, chain, band):
         self.tris = tris
@@ -434,62 +435,77 @@ class Components:
             w[close] = brute_force_winding_numbers(self.tris, points[close])
         return w
 
-    def signs(self, ijk, keys, dist, tri, side, on):
-        """+-1 [n] float32 at voxels ijk [n, 3] (Morton order, codes keys [n] uint64) of
-        unsigned distance dist [n] and closest triangle tri [n], whose pseudo-normal sides
-        are side [n] (+-1), on [n] bool those on the surface (no certain side)."""
+    def inside(self, ijk, keys, dist, tri, behind, on):
+        """Whether each voxel is inside, [n] bool, at voxels ijk [n, 3] (Morton order,
+        codes keys [n] uint64) of unsigned distance dist [n] and closest triangle tri [n]
+        int32, behind [n] bool those behind their closest feature's pseudo-normal, on [n]
+        bool those on the surface (no certain side).
+
+        Most voxels are *tied*: of a free triangle, so their node is their (triangle,
+        side) and their winding number the integer ``W`` of its component (less the cap
+        term where the triangle is `capped`). The per-voxel work is a few gathers from
+        per-node tables; the *loose* voxels (not free, or on the surface) are nodes of
+        their own and take the detailed steps."""
         centre = lambda rows: ijk[rows] + 0.5  # float64 grid units
         n, faces, tris = len(ijk), len(self.tris), self.tris
-        free = self.free
 
-        # Cap terms: exact where the bound is not small, and with the distance for voxels
-        # of a triangle that is not free within a move of a cap.
-        # (float32 per-voxel arrays: these passes cost what their fresh memory costs)
-        loose = ~free[tri] | on
-        loose_ids = np.flatnonzero(loose)
-        cap_gap = np.full(n, np.inf, np.float32)  # lower bounds, rounded down
-        cap_gap[loose_ids] = self.tri_gap32[tri[loose_ids]]
-        near = loose_ids[cap_gap[loose_ids] <= MOVE]
-        bounded = np.flatnonzero(self.capped[tri] & (cap_gap > MOVE))
-        cap_w = np.zeros(n, np.float32)
+        # Cap terms: exact where the bound is not small, and with the distance for loose
+        # voxels within a move of a cap (lower bounds elsewhere, rounded down).
+        loose = np.flatnonzero(~self.free[tri] | on)
+        gap = self.tri_gap32[tri[loose]]  # [loose]
+        near = np.flatnonzero(gap <= MOVE)  # rows of loose
+        capped = self.capped[tri]
+        capped[loose[near]] = False
+        bounded = np.flatnonzero(capped)
+        del capped
+        near_w = np.zeros(len(near), np.float32)
         if len(near):
-            w, d2 = self.cap_terms(centre(near), distance=True)
-            cap_w[near], cap_gap[near] = w, np.sqrt(d2)
-        if len(bounded):
-            cap_w[bounded] = self.bounded_cap_terms(ijk[bounded], keys[bounded])
-        alone = on | (cap_gap < ON_SURFACE)
+            near_w, d2 = self.cap_terms(centre(loose[near]), distance=True)
+            gap[near] = np.sqrt(d2)
+        bounded_w = self.bounded_cap_terms(ijk[bounded], keys[bounded]) if len(bounded) else near_w[:0]
+        alone = on[loose] | (gap < ON_SURFACE)  # [loose]
 
         # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
-        index = np.int32 if 2 * faces + len(loose_ids) < (1 << 31) else np.int64
-        node = 2 * tri.astype(index) + (side < 0)
-        node[loose_ids] = 2 * faces + np.arange(len(loose_ids))
+        index = np.int32 if 2 * faces + len(loose) < (1 << 31) else np.int64
+        node = 2 * tri.astype(index) + behind
+        node[loose] = 2 * faces + np.arange(len(loose), dtype=index)
         u = [2 * self.pairs[:, 0], 2 * self.pairs[:, 0] + 1]
         v = [2 * self.pairs[:, 1], 2 * self.pairs[:, 1] + 1]
-        mover = loose_ids[~alone[loose_ids]]
+        movers = np.flatnonzero(~alone)  # rows of loose
+        mover = loose[movers]
         for axis in range(3):
             for step in (-1, 1):
                 other = ijk[mover].copy()
                 other[:, axis] += step
-                inside = (other[:, axis] >= 0) & (other[:, axis] < (1 << 20))
+                within = (other[:, axis] >= 0) & (other[:, axis] < (1 << 20))
                 key = morton.encode_host(np.clip(other, 0, None))
                 at = np.minimum(np.searchsorted(keys, key), n - 1)
-                found = inside & (keys[at] == key) & ~alone[at]
-                ok = found & (dist[mover] + dist[at] > MOVE) & (cap_gap[mover] + cap_gap[at] > MOVE)
+                row = np.minimum(np.searchsorted(loose, at), len(loose) - 1)
+                tied = loose[row] != at  # a tied voxel: no cap within a move, not alone
+                at_gap = np.where(tied, np.float32(np.inf), gap[row])
+                found = within & (keys[at] == key) & (tied | ~alone[row])
+                ok = found & (dist[mover] + dist[at] > MOVE) & (gap[movers] + at_gap > MOVE)
                 u.append(node[mover[ok]])
                 v.append(node[at[ok]])
-        label = connected_components(2 * faces + len(loose_ids), np.concatenate(u), np.concatenate(v))
-        comp = label.astype(index)[node]
+        nodes = 2 * faces + len(loose)
+        label = connected_components(nodes, np.concatenate(u), np.concatenate(v))
 
-        # One winding number per component, at its voxel farthest from mesh and caps.
-        score = np.where(alone, np.float32(-1), np.minimum(dist.astype(np.float32, copy=False), cap_gap))
+        # One winding number per component, at its voxel farthest from mesh and caps:
+        # the best score per node (a loose node has one voxel), then per component.
+        node_best = np.full(nodes, -1.0, np.float32)
+        np.maximum.at(node_best, node, dist.astype(np.float32, copy=False))
+        node_best[2 * faces :] = np.where(alone, np.float32(-1), np.minimum(dist[loose], gap))
         best = np.full(len(label), -1.0, np.float32)
-        np.maximum.at(best, comp, score)
-        hit = np.flatnonzero((score == best[comp]) & (score >= 0.5))
+        np.maximum.at(best, label, node_best)
+        winner = (node_best == best[label]) & (node_best >= 0.5)
+        hit = np.flatnonzero(winner[node])
+        hit = hit[(dist[hit] == node_best[node[hit]]) | (node[hit] >= 2 * faces)]  # a loose node has one voxel
         rep = np.full(len(label), -1)
-        rep[comp[hit]] = hit
-        roots = np.flatnonzero(rep >= 0)
+        rep[label[node[hit]]] = hit
+        has_rep = rep >= 0
+        roots = np.flatnonzero(has_rep)
         reps = rep[roots]
-        lone = np.flatnonzero(~(rep >= 0)[comp])  # components without a representative
+        lone = np.flatnonzero(~has_rep[label][node])  # components without a representative
         values = self.winding_numbers(np.concatenate([centre(reps), centre(lone)]))  # one call for both
         rep_caps = self.cap_terms(centre(reps), distance=False) if self.has_caps else np.zeros(len(reps))
         whole = values[: len(reps)] + rep_caps
@@ -500,13 +516,18 @@ class Components:
             total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
         component_w = np.full(len(label), np.nan, np.float32)
         component_w[roots] = total
-        w = component_w[comp] - cap_w
-        exact = np.concatenate([near, bounded])  # elsewhere w is an integer (or NaN)
-        close = exact[np.abs(w[exact] - 0.5) < CLOSE]
+        node_w = component_w[label]
+        # per node: 0 outside, 1 inside, 2 no representative (lone), 3 rounding failed
+        state = np.where(np.isnan(node_w), np.where(has_rep[label], 3, 2), node_w > 0.5).astype(np.int8)[node]
+        result = state == 1
+        exact = np.concatenate([loose[near], bounded])  # elsewhere w is an integer (or NaN)
+        w = node_w[node[exact]] - np.concatenate([near_w, bounded_w])
+        result[exact] = w > 0.5
+        close = exact[np.abs(w - 0.5) < CLOSE]
         if len(close):
-            w[close] = brute_force_winding_numbers(tris, centre(close))
-        w[lone] = values[len(reps) :]
-        single = np.flatnonzero(np.isnan(w))  # components whose rounding failed
+            result[close] = brute_force_winding_numbers(tris, centre(close)) > 0.5
+        result[lone] = values[len(reps) :] > 0.5
+        single = np.flatnonzero(state == 3)  # components whose rounding failed
         if len(single):
-            w[single] = self.winding_numbers(centre(single))
-        return np.where(w > 0.5, np.float32(-1), np.float32(1))
+            result[single] = self.winding_numbers(centre(single)) > 0.5
+        return result

@@ -432,7 +432,7 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             if len(refine):
                 dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
             if signs is not None:
-                dist *= signs.result()(ijk, codes[a] << shift | keys, dist, tri)
+                np.negative(dist, out=dist, where=signs.result()(ijk, codes[a] << shift | keys, dist, tri))
             dist *= np.float32(h)
             yield ijk, dist, tri, built
 
