@@ -71,6 +71,7 @@ from jaxvox.topology import (
 )
 from jaxvox.winding import (
     brute_force_winding_numbers,
+    exact_winding_numbers,
     point_tree,
     point_winding_numbers,
     relative_corners,
@@ -426,13 +427,13 @@ class Components:
         return w
 
     def winding_numbers(self, points: np.ndarray) -> np.ndarray:
-        """The mesh's winding numbers [P] at points [P, 3] (grid units): the fast tree, then
-        brute force where it lands within `EXACT_BELOW` of 1/2 (the tree's error reaches a
-        few 1e-2)."""
-        w = point_winding_numbers(self.tris, points, tree=self.tree)
+        """The mesh's winding numbers [P] float64 at points [P, 3] (grid units): the fast
+        tree, then `exact_winding_numbers` where it lands within `EXACT_BELOW` of 1/2 (the
+        tree's error reaches a few 1e-2)."""
+        w = point_winding_numbers(self.tris, points, tree=self.tree).astype(np.float64)
         close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
         if len(close):
-            w[close] = brute_force_winding_numbers(self.tris, points[close])
+            w[close] = exact_winding_numbers(self.tris, points[close])
         return w
 
     def inside(self, ijk, keys, dist, tri, behind, on):
@@ -506,16 +507,21 @@ class Components:
         roots = np.flatnonzero(has_rep)
         reps = rep[roots]
         lone = np.flatnonzero(~has_rep[label][node])  # components without a representative
-        values = self.winding_numbers(np.concatenate([centre(reps), centre(lone)]))  # one call for both
-        rep_caps = self.cap_terms(centre(reps), distance=False) if self.has_caps else np.zeros(len(reps))
-        whole = values[: len(reps)] + rep_caps
-        total = np.rint(whole)
-        wrong = np.flatnonzero(np.abs(whole - total) > 0.25)
-        if len(wrong):  # the fast value missed by more than its error: sum it exactly
-            whole[wrong] = brute_force_winding_numbers(tris, centre(reps[wrong])) + rep_caps[wrong]
-            total[wrong] = np.where(np.abs(whole[wrong] - np.rint(whole[wrong])) > 0.25, np.nan, np.rint(whole[wrong]))
+        # W of mesh plus caps (an integer, within the fast tree's error) at the
+        # representatives and the lone voxels; a lone voxel's own w is W less its cap term.
+        points = np.concatenate([centre(reps), centre(lone)])
+        values = point_winding_numbers(tris, points, tree=self.tree)
+        caps = self.cap_terms(points, distance=False) if self.has_caps else np.zeros(len(points), np.float32)
+        total = np.rint(values + caps)
+        wrong = np.flatnonzero(np.abs(values + caps - total) > 0.25)
+        if len(wrong):  # the fast value missed by more than its error, or the point is on a cap
+            values[wrong] = brute_force_winding_numbers(tris, points[wrong])
+            whole = values[wrong] + caps[wrong]
+            total[wrong] = np.where(np.abs(whole - np.rint(whole)) > 0.25, np.nan, np.rint(whole))
+        own = total - caps
+        own[wrong] = values[wrong]  # summed exactly
         component_w = np.full(len(label), np.nan, np.float32)
-        component_w[roots] = total
+        component_w[roots] = total[: len(reps)]
         node_w = component_w[label]
         # per node: 0 outside, 1 inside, 2 no representative (lone), 3 rounding failed
         state = np.where(np.isnan(node_w), np.where(has_rep[label], 3, 2), node_w > 0.5).astype(np.int8)[node]
@@ -523,10 +529,10 @@ class Components:
         exact = np.concatenate([loose[near], bounded])  # elsewhere w is an integer (or NaN)
         w = node_w[node[exact]] - np.concatenate([near_w, bounded_w])
         result[exact] = w > 0.5
-        close = exact[np.abs(w - 0.5) < CLOSE]
+        result[lone] = own[len(reps) :] > 0.5
+        close = np.concatenate([exact[np.abs(w - 0.5) < CLOSE], lone[np.abs(own[len(reps) :] - 0.5) < CLOSE]])
         if len(close):
-            result[close] = brute_force_winding_numbers(tris, centre(close)) > 0.5
-        result[lone] = values[len(reps) :] > 0.5
+            result[close] = exact_winding_numbers(tris, centre(close)) > 0.5
         single = np.flatnonzero(state == 3)  # components whose rounding failed
         if len(single):
             result[single] = self.winding_numbers(centre(single)) > 0.5
