@@ -35,16 +35,19 @@ Two methods, both exact (the float64 brute-force winding number is the reference
   ``w = W``. The bound, per triangle: a cap of area A_k inside the ball of radius r_k
   about c_k adds at most ``A_k / (4 pi (|p - c_k| - r_k)^2)``; where that is not small,
   the exact term at the closest triangle's centroid plus the reach times a bound on its
-  gradient. Voxels whose triangle fails it are tried again by aligned blocks of
-  `BLOCK`^3 (`Components.bounded_cap_terms`): the exact term at the block's centre plus
-  the block's radius times a Biot-Savart bound on the gradient (the caps' boundary is
-  the mesh's boundary chain), where the block's ball misses the caps. On the bunny at
-  1024^3 that settles all but 112 of the 899 K voxels that took exact terms before. A
-  component whose voxels all lie within 1/2 voxel of mesh or caps (voxels on the surface
-  are alone) is evaluated voxel by voxel, and values within `CLOSE` of 1/2 are summed
-  again by brute force. The bunny at 256^3 (897 K band voxels) takes 2 components and
-  about 900 voxels on their own this way, where one winding number per (triangle, side)
-  and per voxel near a hole took 264 K.
+  gradient. Voxels whose triangle fails it, and those within a move of a cap by their
+  triangle's bound, are tried again by aligned blocks of 4^3, then 2^3 voxels
+  (`Components.blocked_cap_terms`): the exact term and cap distance at the block's
+  centre, with the block's radius times a Biot-Savart bound on the gradient (the caps'
+  boundary is the mesh's boundary chain) where the block's ball misses the caps. On the
+  bunny at 1024^3, 60 K voxels take exact terms this way, where 1.1 M did with a bound
+  per triangle. A component whose voxels all lie within 1/2 voxel of mesh or caps
+  (voxels on the surface are alone) is evaluated voxel by voxel: its W from the fast
+  tree plus the exact cap term, rounded, less the cap term. Winding numbers within
+  `CLOSE` of 1/2 are summed again by brute force (in float64 within
+  `jaxvox.winding.F32_CLOSE`). The bunny at 256^3 (897 K band voxels) takes 2
+  components and about 900 voxels on their own this way, where one winding number per
+  (triangle, side) and per voxel near a hole took 264 K.
 """
 
 from __future__ import annotations
@@ -90,9 +93,7 @@ ON_MESH = 1e-6  # voxels this close (grid units, float64) to the mesh have no ce
 REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get float64 distances
 F32_ERROR = 5e-7  # measured error of the float32 distance kernel per grid unit of the closest triangle's longest edge
 SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
-BLOCK_BITS = 2  # voxels whose cap term only needs a bound are settled in aligned blocks of BLOCK^3
-BLOCK = 1 << BLOCK_BITS
-BLOCK_RADIUS = np.float32(np.sqrt(3.0) * (BLOCK - 1) / 2)  # from a block's centre to its farthest voxel centre
+BLOCK_BITS = (2, 1)  # cap terms and distances are bounded by aligned blocks of 4^3 voxels, then 2^3
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
 
@@ -170,14 +171,14 @@ def _behind(ijk, tri, corners, normals):
 
 
 @functools.partial(jax.jit, static_argnames=("distance", "slope"))
-def _cap_terms(points, blocks, rows, *, distance: bool, slope: bool = False):
+def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool = False):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
     [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`; each a fan triangle
     (centre, b, a) over a boundary edge a -> b), and with `distance` also the squared
     distance [P] float32 to the nearest of them (rows [n, 28, BRUTE_FORCE_BLOCK]: their
     `triangle_rows`); both relative to the points. With `slope` also the bound [P]
-    float32 on the term's gradient in the ball of radius `BLOCK_RADIUS` about each point
-    (inf where a boundary edge comes that close; see `Components.bounded_cap_terms`)."""
+    float32 on the term's gradient in the ball of radius `radius` ([] float32) about each
+    point (inf where a boundary edge comes that close; see `Components.blocked_cap_terms`)."""
     p = [points[:, k, None] for k in range(3)]
     zero = [jnp.float32(0)] * 3
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
@@ -194,7 +195,7 @@ def _cap_terms(points, blocks, rows, *, distance: bool, slope: bool = False):
             length2 = dot(ab, ab)
             t = jnp.clip(-dot(a, ab) / jnp.where(length2 > 0, length2, 1.0), 0.0, 1.0)
             nearest = tuple(x + t * e for x, e in zip(a, ab))  # the edge's point nearest to the centre
-            gap = jnp.sqrt(dot(nearest, nearest)) - BLOCK_RADIUS
+            gap = jnp.sqrt(dot(nearest, nearest)) - radius
             term = jnp.sqrt(length2) / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
             bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), -1)
         return (w, d2, bound), None
@@ -391,40 +392,62 @@ class Components:
         self.pairs = pairs[self.free[pairs].all(1)]
         self.tree = point_tree(tris)
 
-    def cap_terms(self, points: np.ndarray, *, distance: bool, slope: bool = False):
+    def cap_terms(self, points: np.ndarray, *, distance: bool, radius: float | None = None):
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
-        also the squared distance [P] to the nearest cap; with `slope` also the gradient
-        bound of `_cap_terms`."""
+        also the squared distance [P] to the nearest cap; with a `radius` also the bound of
+        `_cap_terms` on the term's gradient within it."""
+        slope = radius is not None
         return _chunked(
             functools.partial(_cap_terms, distance=distance, slope=slope),
             points.astype(np.float32),
             self.blocks,
             self.rows,
+            jnp.float32(radius) if slope else None,
         )
 
-    def bounded_cap_terms(self, ijk: np.ndarray, keys: np.ndarray) -> np.ndarray:
-        """The caps' winding number [n] float32 at voxels ijk [n, 3] (Morton order, codes
-        keys [n] uint64) whose sign needs only ``|w_caps| < CAP_BOUND``: 0 where that holds
-        for a whole aligned block of `BLOCK`^3 voxels, the exact term elsewhere.
+    def blocked_cap_terms(self, ijk: np.ndarray, keys: np.ndarray, gap: np.ndarray):
+        """The caps' winding numbers and distances at voxels ijk [n, 3] (Morton order,
+        codes keys [n] uint64) whose distance to the caps is at least gap [n] (grid
+        units), exact only where the sign needs it.
 
-        A block is settled from its centre q: the exact term and distance to the caps at
-        q, and a bound on the term's gradient in the ball of radius r = `BLOCK_RADIUS`
-        about q, which holds the block's voxel centres. Off the caps, the gradient of the
-        solid angle of a surface is a Biot-Savart integral over its boundary, at most
-        ``sum_e len_e / g_e^2`` for boundary edges e at least g_e away; the caps'
-        boundary is the mesh's boundary chain. So where the ball misses the caps,
-        ``|w_caps| <= |w(q)| + r sum_e len_e / (4 pi g_e^2)`` in it.
+        Voxels are taken in aligned blocks of 4^3, then 2^3 (`BLOCK_BITS`). At a block's
+        centre q: the exact term and distance to the caps, and a bound on the term's
+        gradient in the ball of radius r about q that holds the block's voxel centres.
+        Off the caps, the gradient of the solid angle of a surface is a Biot-Savart
+        integral over its boundary, at most ``sum_e len_e / g_e^2`` for boundary edges e
+        at least g_e away; the caps' boundary is the mesh's boundary chain. So where the
+        ball misses the caps, every voxel of the block lies at least ``|q - caps| - r``
+        from them, and ``|w_caps| <= |w(q)| + r sum_e len_e / (4 pi g_e^2)``: where that
+        is below `CAP_BOUND`, the block is settled.
+
+        Returns:
+          (w [n] float32: the exact term, or 0 where ``|w_caps| < CAP_BOUND`` holds for
+          the voxel's whole block; gap [n] float32: a lower bound on the distance to the
+          caps, the exact distance where no block puts it beyond `MOVE`).
         """
-        w = np.zeros(len(ijk), np.float32)
-        block = keys >> np.uint64(3 * BLOCK_BITS)
-        starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
-        q = (ijk[starts] >> BLOCK_BITS << BLOCK_BITS) + BLOCK / 2  # float64 block centres
-        term, d2, slope = self.cap_terms(q, distance=True, slope=True)
-        settled = (np.sqrt(d2) > BLOCK_RADIUS + ON_SURFACE) & (np.abs(term) + BLOCK_RADIUS * slope < CAP_BOUND)
-        rest = np.flatnonzero(~np.repeat(settled, np.diff(np.append(starts, len(ijk)))))
-        if len(rest):
-            w[rest] = self.cap_terms(ijk[rest] + 0.5, distance=False)
-        return w
+        w, gap = np.zeros(len(ijk), np.float32), gap.astype(np.float32)  # a copy
+        rest = np.arange(len(ijk))
+        for bits in BLOCK_BITS:
+            if not len(rest):
+                break
+            radius = np.sqrt(3.0) * ((1 << bits) - 1) / 2  # from a block's centre to its farthest voxel centre
+            block = keys[rest] >> np.uint64(3 * bits)
+            starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
+            q = (ijk[rest[starts]] >> bits << bits) + (1 << bits) / 2  # float64 block centres
+            term, d2, slope = self.cap_terms(q, distance=True, radius=radius)
+            reach = np.sqrt(d2) - np.float32(radius)
+            counts = np.diff(np.append(starts, len(rest)))
+            gap[rest] = np.maximum(gap[rest], np.repeat(reach, counts))
+            settled = (reach > ON_SURFACE) & (np.abs(term) + np.float32(radius) * slope < CAP_BOUND)
+            rest = rest[~(np.repeat(settled, counts) & (gap[rest] > MOVE))]  # nearer: exact distances
+        far = gap[rest] > MOVE
+        if far.any():
+            w[rest[far]] = self.cap_terms(ijk[rest[far]] + 0.5, distance=False)
+        if not far.all():
+            close = rest[~far]
+            w[close], d2 = self.cap_terms(ijk[close] + 0.5, distance=True)
+            gap[close] = np.sqrt(d2)
+        return w, gap
 
     def winding_numbers(self, points: np.ndarray) -> np.ndarray:
         """The mesh's winding numbers [P] float64 at points [P, 3] (grid units): the fast
@@ -459,11 +482,8 @@ class Components:
         capped[loose[near]] = False
         bounded = np.flatnonzero(capped)
         del capped
-        near_w = np.zeros(len(near), np.float32)
-        if len(near):
-            near_w, d2 = self.cap_terms(centre(loose[near]), distance=True)
-            gap[near] = np.sqrt(d2)
-        bounded_w = self.bounded_cap_terms(ijk[bounded], keys[bounded]) if len(bounded) else near_w[:0]
+        near_w, gap[near] = self.blocked_cap_terms(ijk[loose[near]], keys[loose[near]], gap[near])
+        bounded_w = self.blocked_cap_terms(ijk[bounded], keys[bounded], np.full(len(bounded), np.inf))[0]
         alone = on[loose] | (gap < ON_SURFACE)  # [loose]
 
         # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox import morton
-from jaxvox.band_sign import CAP_BOUND, Components, pseudo_normals
+from jaxvox.band_sign import CAP_BOUND, MOVE, Components, pseudo_normals
 from jaxvox.sparse_field import SLOTS, TILE, UNUSED_VALUE
 from jaxvox.topology import boundary_chain, welded_faces
 from tests.reference import mesh_distance, winding_number
@@ -309,9 +309,10 @@ def test_signs_of_damaged_meshes(seed):
 
 def test_cap_blocks_settle_only_where_the_bound_holds():
     """A sphere with a hole: voxels whose cap term needs only a bound are settled by
-    4^3 blocks (`Components.bounded_cap_terms`). Every voxel of a settled block must have
-    |w_caps| < CAP_BOUND by the float64 winding number of the caps; the others get the
-    exact term. Both kinds occur."""
+    4^3 and 2^3 blocks (`Components.blocked_cap_terms`). Every voxel of a settled block
+    must have |w_caps| < CAP_BOUND by the float64 winding number of the caps; the others
+    get the exact term. Both kinds occur. The distances are lower bounds, exact up to
+    `MOVE`."""
     import trimesh
 
     s = trimesh.creation.icosphere(subdivisions=3, radius=20.0)
@@ -324,9 +325,14 @@ def test_cap_blocks_settle_only_where_the_bound_holds():
     keys = morton.encode_host(ijk)
     order = np.argsort(keys)
     ijk, keys = ijk[order].astype(np.int32), keys[order]
-    got = components.bounded_cap_terms(ijk, keys)
+    got, gap = components.blocked_cap_terms(ijk, keys, np.zeros(len(ijk)))
     caps = components.caps
     exact = winding_number(caps.reshape(-1, 3), np.arange(3 * len(caps)).reshape(-1, 3), ijk + 0.5)
+    distance = mesh_distance(caps.reshape(-1, 3), np.arange(3 * len(caps)).reshape(-1, 3), ijk + 0.5)
+    assert np.all(gap <= distance + 1e-4)
+    near = gap <= MOVE
+    assert near.sum() > 100
+    np.testing.assert_allclose(gap[near], distance[near], atol=1e-4)
     settled = got == 0
     assert 0.1 < settled.mean() < 0.99
     assert np.abs(exact[settled]).max() < CAP_BOUND
