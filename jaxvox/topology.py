@@ -184,6 +184,6 @@ def pinched_vertex_faces(faces: np.ndarray) -> np.ndarray:
     key, who = key[order], who[order]
     same = np.flatnonzero(key[1:] == key[:-1])
     fan = connected_components(len(corners), who[same], who[same + 1])
-    pairs = np.unique(np.stack([corner_vertex, fan], 1), axis=0)
-    fans_per_vertex = np.bincount(pairs[:, 0], minlength=base)
+    pairs = np.unique(corner_vertex * len(corners) + fan)  # (vertex, fan), packed
+    fans_per_vertex = np.bincount(pairs // len(corners), minlength=base)
     return np.asarray((fans_per_vertex[f] > 1).any(1))
