@@ -245,21 +245,73 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def _chunked(fn, rows, *rest):
-    """``fn(*row chunks [POINT_CHUNK, ...], *rest)`` over all rows of `rows` (an array, or
-    a tuple of arrays with the same first axis; host loop; smaller chunks for a small job,
-    `chunk_rows`); each result (one array or a tuple) concatenated over the chunks."""
+def _start_chunks(fn, rows, *rest) -> list:
+    """Dispatches ``fn(*row chunks [POINT_CHUNK, ...], *rest)`` over all rows of `rows` (an
+    array, or a tuple of arrays with the same first axis; smaller chunks for a small job,
+    `chunk_rows`) without waiting: [(result, rows in the chunk)], for `_join_chunks`."""
     rows = rows if isinstance(rows, tuple) else (rows,)
-    out = []
     width = chunk_rows(len(rows[0]), POINT_CHUNK)
+    started = []
     for s in range(0, len(rows[0]), width):
         parts = [r[s : s + width] for r in rows]
-        res = fn(*(jnp.asarray(pad_rows(x, width)) for x in parts), *rest)
-        out.append(tuple(np.asarray(r)[: len(parts[0])] for r in (res if isinstance(res, tuple) else (res,))))
+        started.append((fn(*(jnp.asarray(pad_rows(x, width)) for x in parts), *rest), len(parts[0])))
+    return started
+
+
+def _join_chunks(started: list):
+    """The results of `_start_chunks` (one array or a tuple each) as host arrays,
+    concatenated over the chunks."""
+    out = [tuple(np.asarray(r)[:m] for r in (res if isinstance(res, tuple) else (res,))) for res, m in started]
     if not out:
         return np.zeros(0, np.float32)
     joined = tuple(np.concatenate(x) for x in zip(*out))
     return joined if len(joined) > 1 else joined[0]
+
+
+def _chunked(fn, rows, *rest):
+    """``fn`` over all rows of `rows` in chunks (`_start_chunks`), joined on the host."""
+    return _join_chunks(_start_chunks(fn, rows, *rest))
+
+
+class Sides:
+    """Which side of its closest feature's pseudo-normal each band voxel lies on: the
+    float32 kernel (`_behind`), started while the voxels are still being found
+    (`start`), then float64 where the float32 closest point may be on the wrong side
+    (`finish`)."""
+
+    def __init__(self, mesh: Mesh, tris: np.ndarray):
+        """mesh: the `Mesh`; tris: [F, 3, 3] float64 its triangles in grid units."""
+        f = np.asarray(mesh.faces)
+        rows = bucket(len(f))
+        self.tris = tris
+        self.feature_normals = pseudo_normals(np.asarray(mesh.vertices), f)  # [F, 7, 3] float32
+        self.normals = jnp.asarray(pad_rows(self.feature_normals, rows).reshape(-1, 3).T)
+        self.corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
+        # float64 sides where the float32 closest point may be on the wrong side, and for
+        # every voxel within ON_SURFACE (its side decides whether it joins a component)
+        edge = longest_edges(tris)
+        self.limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
+
+    def start(self, ijk: np.ndarray, tri: np.ndarray) -> list:
+        """Starts the float32 sides of voxels ijk [m, 3] int with closest triangles tri
+        [m] int (global ids); returns the pending chunks."""
+        return _start_chunks(_behind, (ijk.astype(np.int32), tri.astype(np.int32)), self.corners, self.normals)
+
+    def finish(self, started: list, ijk: np.ndarray, tri: np.ndarray, dist: np.ndarray):
+        """The sides of voxels ijk [n, 3] (tri [n], unsigned distances dist [n] in grid
+        units) whose kernels `start` began, in order, in `started` (a list of its
+        results): (behind [n] bool: behind the closest feature's pseudo-normal, on [n]
+        bool: within `ON_MESH` of the surface in float64, so that no side is certain)."""
+        behind = _join_chunks([chunk for part in started for chunk in part])
+        behind = behind if len(behind) else np.zeros(0, bool)
+        on = np.zeros(len(behind), bool)
+        refine = np.flatnonzero(dist < self.limit[tri])
+        if len(refine):
+            region, offset = exact_closest(self.tris, ijk[refine], tri[refine])
+            n = self.feature_normals[tri[refine], region].astype(np.float64)
+            behind[refine] = np.einsum("ij,ij->i", offset, n) < 0
+            on[refine] = np.einsum("ij,ij->i", offset, offset) < ON_MESH * ON_MESH
+        return behind, on
 
 
 def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.ndarray]:
@@ -272,35 +324,13 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
         band: the half width.
 
     Returns:
-      ``inside(ijk, keys, dist, tri)``: whether each is inside ([n] bool) at band voxels ijk
-      [n, 3] int (Morton order; any subset of the band, e.g. one region's), keys [n] uint64
-      their Morton codes, dist [n] float unsigned distance (grid units, at most `band`),
-      tri [n] int closest triangle.
+      ``inside(ijk, keys, dist, tri, behind, on)``: whether each is inside ([n] bool) at
+      band voxels ijk [n, 3] int (Morton order; any subset of the band, e.g. one
+      region's), keys [n] uint64 their Morton codes, dist [n] float unsigned distance
+      (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
+      their sides (`Sides.finish`).
     """
     f = np.asarray(mesh.faces)
-    rows = bucket(len(f))
-    feature_normals = pseudo_normals(np.asarray(mesh.vertices), f)  # [F, 7, 3] float32
-    normals = jnp.asarray(pad_rows(feature_normals, rows).reshape(-1, 3).T)
-    edge = longest_edges(tris)
-    corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
-
-    # float64 sides where the float32 closest point may be on the wrong side, and for
-    # every voxel within ON_SURFACE (its side decides whether it joins a component)
-    side_limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
-
-    def sides(ijk, tri, dist):
-        """(behind [n] bool: behind the closest feature's pseudo-normal, on [n] bool:
-        within `ON_MESH` of the surface in float64, so that no side is certain)."""
-        behind = _chunked(_behind, (ijk.astype(np.int32), tri.astype(np.int32)), corners, normals)
-        on = np.zeros(len(behind), bool)
-        refine = np.flatnonzero(dist < side_limit[tri])
-        if len(refine):
-            region, offset = exact_closest(tris, ijk[refine], tri[refine])
-            n = feature_normals[tri[refine], region].astype(np.float64)
-            behind[refine] = np.einsum("ij,ij->i", offset, n) < 0
-            on[refine] = np.einsum("ij,ij->i", offset, offset) < ON_MESH * ON_MESH
-        return behind, on
-
     welded = welded_faces(np.asarray(mesh.vertices), f)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     suspect = (
@@ -311,9 +341,8 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     )
     chain = boundary_chain(welded)
     if not len(chain) and not suspect.any():
-        return lambda ijk, keys, dist, tri: sides(ijk, tri, dist)[0]
-    components = Components(tris, welded, suspect, chain, band)
-    return lambda ijk, keys, dist, tri: components.inside(ijk, keys, dist, tri, *sides(ijk, tri, dist))
+        return lambda ijk, keys, dist, tri, behind, on: behind
+    return Components(tris, welded, suspect, chain, band).inside
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -61,7 +61,7 @@ from jaxvox._checks import check_int, check_type, refuse
 from jaxvox._geometry import rows_dist2, triangle_rows
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket, chunk_rows, pad_rows
-from jaxvox.band_sign import REFINE_EDGE, exact_closest, longest_edges, prepare_signs
+from jaxvox.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, voxel_index
@@ -193,7 +193,7 @@ def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     return tri[order], code[order]
 
 
-def band_pairs(tris: np.ndarray, shape, band: int):
+def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = None):
     """Per-voxel minima over all triangles in the box of voxels ``0 <= ijk < shape``.
 
     Args:
@@ -202,6 +202,9 @@ def band_pairs(tris: np.ndarray, shape, band: int):
       shape: int R (an R^3 box) or [3] ints, each at most 1024 (`REGION_SIZE`: a voxel's
         Morton code fits one 30-bit word).
       band: half width in voxels.
+      on_round: called as ``on_round(ijk, tri)`` with the band voxels of each round (in
+        order; views of the outputs) as soon as they are known, e.g. to start device work
+        on them while the next rounds are computed.
 
     Returns:
       (ijk int32 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
@@ -281,6 +284,8 @@ def band_pairs(tris: np.ndarray, shape, band: int):
         keys[part] = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
         morton.decode_word_host(keys[part], out=ijk[part])
         band_d2[part], band_tri[part] = best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat]
+        if on_round is not None and len(flat):
+            on_round(ijk[part], band_tri[part])
         return n + len(flat)
 
     # The kernels of each round run (asynchronously, on XLA's threads) while the host
@@ -415,13 +420,16 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
+    sides = Sides(mesh, tris) if signed and len(tris) else None
     with ThreadPoolExecutor(1) as worker:
-        signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        signs = worker.submit(prepare_signs, mesh, tris, band) if sides else None
         regions = zip(starts, ends)
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
             region_lo = morton.decode_host(codes[a]) * size
             mine = ids[a:b]  # ascending, so ties still go to the lower id
-            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band)
+            started: list = []  # the sides' kernels, started round by round
+            start = lambda ijk, tri: started.append(sides.start(ijk + region_lo, mine[tri]))  # noqa: B023
+            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start if sides else None)
             if not len(ijk):
                 continue
             built = worker.submit(build, keys, region_lo)
@@ -431,8 +439,9 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             refine = np.flatnonzero(large[tri])  # large triangles: float64 distances
             if len(refine):
                 dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
-            if signs is not None:
-                np.negative(dist, out=dist, where=signs.result()(ijk, codes[a] << shift | keys, dist, tri))
+            if sides:
+                behind, on = sides.finish(started, ijk, tri, dist)
+                np.negative(dist, out=dist, where=signs.result()(ijk, codes[a] << shift | keys, dist, tri, behind, on))
             dist *= np.float32(h)
             yield ijk, dist, tri, built
 
