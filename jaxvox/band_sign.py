@@ -305,7 +305,11 @@ class Sides:
         behind = _join_chunks([chunk for part in started for chunk in part])
         behind = behind if len(behind) else np.zeros(0, bool)
         on = np.zeros(len(behind), bool)
-        refine = np.flatnonzero(dist < self.limit[tri])
+        if np.isfinite(self.limit).all():  # a pass over dist alone first: its few voxels are then looked at
+            refine = np.flatnonzero(dist < self.limit.max(initial=0))
+            refine = refine[dist[refine] < self.limit[tri[refine]]]
+        else:
+            refine = np.flatnonzero(dist < self.limit[tri])
         if len(refine):
             region, offset = exact_closest(self.tris, ijk[refine], tri[refine])
             n = self.feature_normals[tri[refine], region].astype(np.float64)
@@ -316,7 +320,7 @@ class Sides:
 
 def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.ndarray]:
     """The sign function of a mesh's band voxels (module docstring for the methods): what
-    depends on the mesh alone (normals, crossings, caps, free triangles, the winding tree)
+    depends on the mesh alone (crossings, caps, free triangles, the winding tree)
     is computed here, once, so that the voxels can come in parts (regions).
 
     Args:

@@ -433,15 +433,19 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             if not len(ijk):
                 continue
             built = worker.submit(build, keys, region_lo)
-            ijk += region_lo
-            tri = mine[tri].astype(np.int32)
-            dist = np.sqrt(d2)  # float32 grid units
-            refine = np.flatnonzero(large[tri])  # large triangles: float64 distances
-            if len(refine):
+            codes_in_grid = keys  # (passes over every voxel are skipped where they change nothing)
+            if region_lo.any():
+                ijk += region_lo
+                codes_in_grid = codes[a] << shift | keys
+            if len(mine) < len(tris):  # else mine is every id, in order
+                tri = mine[tri].astype(np.int32)
+            dist = np.sqrt(d2, out=d2)  # float32 grid units
+            if large.any():  # large triangles: float64 distances
+                refine = np.flatnonzero(large[tri])
                 dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
             if sides:
                 behind, on = sides.finish(started, ijk, tri, dist)
-                np.negative(dist, out=dist, where=signs.result()(ijk, codes[a] << shift | keys, dist, tri, behind, on))
+                np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
             dist *= np.float32(h)
             yield ijk, dist, tri, built
 
