@@ -407,7 +407,9 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     Both cores work: a worker thread prepares the signs (what depends on the mesh alone)
     while the first region's distances are computed, then runs `build` on each region's
     keys (e.g. its DAG, which needs no values) while the region is signed. The worker
-    takes the tasks in order, so `build` sees the regions in Morton order.
+    takes the tasks in order, so `build` sees the regions in Morton order. The kernels of
+    the voxels' pseudo-normal sides (`band_sign.Sides`) start round by round during the
+    tile pairs (`band_pairs`'s ``on_round``), so they run while the next rounds are found.
     """
     band = int(band)
     origin = np.asarray(grid.origin, np.float64)
