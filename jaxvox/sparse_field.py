@@ -424,14 +424,14 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
 
     sides = Sides(mesh, tris) if signed and len(tris) else None
     with ThreadPoolExecutor(1) as worker:
-        signs = worker.submit(prepare_signs, mesh, tris, band) if sides else None
+        signs = worker.submit(prepare_signs, mesh, tris, band) if sides is not None else None
         regions = zip(starts, ends)
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
             region_lo = morton.decode_host(codes[a]) * size
             mine = ids[a:b]  # ascending, so ties still go to the lower id
             started: list = []  # the sides' kernels, started round by round
-            start = lambda ijk, tri: started.append(sides.start(ijk + region_lo, mine[tri]))  # noqa: B023
-            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start if sides else None)
+            start = None if sides is None else functools.partial(_start_sides, sides, started, region_lo, mine)
+            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start)
             if not len(ijk):
                 continue
             built = worker.submit(build, keys, region_lo)
@@ -445,11 +445,18 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             if large.any():  # large triangles: float64 distances
                 refine = np.flatnonzero(large[tri])
                 dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
-            if sides:
+            if sides is not None and signs is not None:
                 behind, on = sides.finish(started, ijk, tri, dist)
                 np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
             dist *= np.float32(h)
             yield ijk, dist, tri, built
+
+
+def _start_sides(sides: Sides, started: list, region_lo: np.ndarray, ids: np.ndarray, ijk, tri) -> None:
+    """`band_pairs`'s ``on_round`` for a region: starts the sides of a round's voxels ijk
+    (region-local) with closest triangles tri (indices into the region's triangle ids
+    `ids`), appending the pending kernels to `started`."""
+    started.append(sides.start(ijk + region_lo, ids[tri]))
 
 
 def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree) -> SparseField:
