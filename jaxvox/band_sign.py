@@ -303,7 +303,6 @@ class Sides:
         results): (behind [n] bool: behind the closest feature's pseudo-normal, on [n]
         bool: within `ON_MESH` of the surface in float64, so that no side is certain)."""
         behind = _join_chunks([chunk for part in started for chunk in part])
-        behind = behind if len(behind) else np.zeros(0, bool)
         on = np.zeros(len(behind), bool)
         if np.isfinite(self.limit).all():  # a pass over dist alone first: its few voxels are then looked at
             refine = np.flatnonzero(dist < self.limit.max(initial=0))
@@ -319,7 +318,7 @@ class Sides:
 
 
 def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.ndarray]:
-    """The sign function of a mesh's band voxels (module docstring for the methods): what
+    """The inside test of a mesh's band voxels (module docstring for the methods): what
     depends on the mesh alone (crossings, caps, free triangles, the winding tree)
     is computed here, once, so that the voxels can come in parts (regions).
 
@@ -330,7 +329,7 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
     Returns:
       ``inside(ijk, keys, dist, tri, behind, on)``: whether each is inside ([n] bool) at
       band voxels ijk [n, 3] int (Morton order; any subset of the band, e.g. one
-      region's), keys [n] uint64 their Morton codes, dist [n] float unsigned distance
+      region's), keys [n] uint64 their Morton codes, dist [n] float32 unsigned distance
       (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
       their sides (`Sides.finish`).
     """
@@ -456,7 +455,8 @@ class Components:
         Returns:
           (w [n] float32: the exact term, or 0 where ``|w_caps| < CAP_BOUND`` holds for
           the voxel's whole block; gap [n] float32: a lower bound on the distance to the
-          caps, the exact distance where no block puts it beyond `MOVE`).
+          caps, the exact distance where neither the given gap nor a block puts it beyond
+          `MOVE`).
         """
         w, gap = np.zeros(len(ijk), np.float32), gap.astype(np.float32)  # a copy
         rest = np.arange(len(ijk))
@@ -507,7 +507,7 @@ class Components:
         n, faces, tris = len(ijk), len(self.tris), self.tris
 
         # Cap terms: exact where the bound is not small, and with the distance for loose
-        # voxels within a move of a cap (lower bounds elsewhere, rounded down).
+        # voxels within a move of a cap (lower bounds elsewhere).
         loose = np.flatnonzero(~self.free[tri] | on)
         gap = self.tri_gap32[tri[loose]]  # [loose]
         near = np.flatnonzero(gap <= MOVE)  # rows of loose
@@ -547,7 +547,8 @@ class Components:
         # One winding number per component, at its voxel farthest from mesh and caps:
         # the best score per node (a loose node has one voxel), then per component.
         node_best = np.full(nodes, -1.0, np.float32)
-        np.maximum.at(node_best, node, dist.astype(np.float32, copy=False))
+        dist = dist.astype(np.float32, copy=False)  # compared with node_best below
+        np.maximum.at(node_best, node, dist)
         node_best[2 * faces :] = np.where(alone, np.float32(-1), np.minimum(dist[loose], gap))
         best = np.full(len(label), -1.0, np.float32)
         np.maximum.at(best, label, node_best)

@@ -203,8 +203,9 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
         Morton code fits one 30-bit word).
       band: half width in voxels.
       on_round: called as ``on_round(ijk, tri)`` with the band voxels of each round (in
-        order; views of the outputs) as soon as they are known, e.g. to start device work
-        on them while the next rounds are computed.
+        order) as soon as they are known, e.g. to start device work on them while the
+        next rounds are computed. They are views of the outputs, which the caller may
+        change later: copy what is kept.
 
     Returns:
       (ijk int32 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
@@ -404,12 +405,13 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     Morton order; keys [n] uint64 are the voxels' Morton codes within the region and
     region_lo [3] its first voxel.
 
-    Both cores work: a worker thread prepares the signs (what depends on the mesh alone)
-    while the first region's distances are computed, then runs `build` on each region's
-    keys (e.g. its DAG, which needs no values) while the region is signed. The worker
-    takes the tasks in order, so `build` sees the regions in Morton order. The kernels of
-    the voxels' pseudo-normal sides (`band_sign.Sides`) start round by round during the
-    tile pairs (`band_pairs`'s ``on_round``), so they run while the next rounds are found.
+    Both cores work: a worker thread prepares the signs (crossings, caps, winding tree:
+    what depends on the mesh alone) while the first region's distances are computed,
+    then runs `build` on each region's keys (e.g. its DAG, which needs no values) while
+    the region is signed. The worker takes the tasks in order, so `build` sees the regions
+    in Morton order. The kernels of the voxels' pseudo-normal sides (`band_sign.Sides`)
+    start round by round during the tile pairs (`band_pairs`'s ``on_round``), so they run
+    while the next rounds are found.
     """
     band = int(band)
     origin = np.asarray(grid.origin, np.float64)
@@ -422,9 +424,9 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
-    sides = Sides(mesh, tris) if signed and len(tris) else None
     with ThreadPoolExecutor(1) as worker:
-        signs = worker.submit(prepare_signs, mesh, tris, band) if sides is not None else None
+        signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        sides = Sides(mesh, tris) if signs is not None else None  # beside the worker
         regions = zip(starts, ends)
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
             region_lo = morton.decode_host(codes[a]) * size
@@ -442,8 +444,8 @@ def _band_regions(mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, pr
             if len(mine) < len(tris):  # else mine is every id, in order
                 tri = mine[tri].astype(np.int32)
             dist = np.sqrt(d2, out=d2)  # float32 grid units
-            if large.any():  # large triangles: float64 distances
-                refine = np.flatnonzero(large[tri])
+            refine = np.flatnonzero(large[tri]) if large.any() else np.zeros(0, np.int64)  # float64 distances
+            if len(refine):
                 dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
             if sides is not None and signs is not None:
                 behind, on = sides.finish(started, ijk, tri, dist)

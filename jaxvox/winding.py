@@ -226,7 +226,7 @@ TOP = 8  # leaves per top node of the point tree
 NEAR_TOPS = 96  # top nodes opened per point; more near ones send the point to brute force
 NEAR_LEAVES = 96  # leaves evaluated exactly per point; likewise
 POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
-F32_CLOSE = 1e-5  # float32 brute-force winding numbers this close to 1/2 are summed in float64
+F32_CLOSE = 1e-4  # float32 brute-force winding numbers this close to 1/2 are summed in float64
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
 
 
@@ -384,16 +384,17 @@ def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndar
 def exact_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Winding numbers [P] float64 at points [P, 3] of triangles [F, 3, 3] (host arrays):
     `brute_force_winding_numbers`, then, where that lands within `F32_CLOSE` of 1/2 (its
-    float32 error is about 1e-6), the sum again in float64 on the host, so that the side
-    of 1/2 is that of the float64 sum."""
+    float32 sum of F / `BRUTE_FORCE_BLOCK` block sums can be off by about that many times
+    3e-8: 1e-5 for 100 K triangles), the sum again in float64 on the host, so that the
+    side of 1/2 is that of the float64 sum."""
     w = brute_force_winding_numbers(tris, points).astype(np.float64)
     close = np.flatnonzero(np.abs(w - 0.5) < F32_CLOSE)
-    tris = np.asarray(tris, np.float64)
+    tris, points = np.asarray(tris, np.float64), np.asarray(points, np.float64)
     dot = lambda x, y: np.einsum("...k,...k->...", x, y)
     block = max(1, (1 << 20) // max(len(tris), 1))  # points per block: [block, F, 3] temporaries
     for s in range(0, len(close), block):
         rows = close[s : s + block]
-        a, b, c = (tris[None, :, k] - np.asarray(points, np.float64)[rows, None] for k in range(3))
+        a, b, c = (tris[None, :, k] - points[rows, None] for k in range(3))
         la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
         det = dot(a, np.cross(b, c))
         den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb

@@ -60,13 +60,14 @@ def check_field(mesh: jv.Mesh, grid: jv.Grid, field: jv.SparseField, *, signed=T
     assert np.all(values[n:] == UNUSED_VALUE)
     p = centres(grid, ijk)
     d = mesh_distance(mesh.vertices, mesh.faces, p)
-    error = np.abs(values[:n] - d)
+    tie = np.zeros(n, bool)
     if signed:
         w = winding_number(mesh.vertices, mesh.faces, p)
         d = np.where(w > 0.5, -d, d)
         # A winding number of 1/2 up to float64 rounding (a centre in the plane of a planar
         # hole, within it) has no side: either sign passes there.
-        error = np.where(np.abs(w - 0.5) < TIE, np.abs(np.abs(values[:n]) - np.abs(d)), np.abs(values[:n] - d))
+        tie = np.abs(w - 0.5) < TIE
+    error = np.where(tie, np.abs(np.abs(values[:n]) - np.abs(d)), np.abs(values[:n] - d))
     assert np.max(error, initial=0.0) / h < TOL
     assert np.all(np.abs(d) <= (field.band + TOL) * h)
     # Completeness: every centre within band - TOL of the surface is present. Centres
