@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import mmap
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -67,7 +68,7 @@ from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, voxel_index
 from jaxvox.octree.stream import check_count, check_region, finish_dag, merge_all, push_region
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
-from jaxvox.voxelize.host import join_rows, progress_off
+from jaxvox.voxelize.host import aligned_empty, join_rows, progress_off
 
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 8  # triangles per work unit (a tile overlapped by more takes several units)
@@ -240,8 +241,9 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
     # The outputs, at most every cell of every tile: pages past the band voxels are never
     # touched, so the bound costs address space only, and no parts are joined at the end.
     bound = len(starts) * _CELLS
-    ijk, band_d2 = np.empty((bound, 3), np.int32), np.empty(bound, np.float32)
-    band_tri, keys = np.empty(bound, np.int32), np.empty(bound, np.int64)
+    # (page-aligned: a single region's outputs become the field's buffers, `_joined`)
+    ijk, band_d2 = aligned_empty((bound, 3), np.int32), aligned_empty((bound,), np.float32)
+    band_tri, keys = aligned_empty((bound,), np.int32), np.empty(bound, np.int64)
     item_end = np.cumsum(counts)
 
     def dispatch(t0: int):
@@ -467,14 +469,38 @@ def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: l
     capacity = bucket(n)
     put = functools.partial(jax.device_put, may_alias=True)
     voxels = Voxels(
-        put(join_rows(coords, (capacity, 3), UNUSED, np.int32)),
+        put(_joined(coords, (capacity, 3), UNUSED, np.int32)),
         jnp.int32(n),
         jnp.int32(0),
-        put(join_rows(closest, (capacity,), UNUSED, np.int32)),
+        put(_joined(closest, (capacity,), UNUSED, np.int32)),
         grid,
         CONSERVATIVE,
     )
-    return SparseField(voxels, put(join_rows(values, (capacity,), UNUSED_VALUE, np.float32)), tree, grid, int(band))
+    return SparseField(voxels, put(_joined(values, (capacity,), UNUSED_VALUE, np.float32)), tree, grid, int(band))
+
+
+def _joined(parts: list, shape: tuple[int, ...], fill, dtype) -> np.ndarray:
+    """`join_rows` of the parts, except that a single part at the start of a page-aligned
+    buffer of `band_pairs` (`aligned_empty`) that holds `shape` is extended in place: its
+    rows past the part, which nothing else uses, are set to `fill` (no copy, and
+    `jax.device_put` aliases the buffer)."""
+    if len(parts) == 1:
+        part, whole = parts[0], parts[0].base
+        size = int(np.prod(shape))
+        address = lambda a: a.__array_interface__["data"][0]
+        if (
+            isinstance(whole, np.ndarray)
+            and part.dtype == whole.dtype == dtype
+            and part.flags.c_contiguous
+            and address(part) == address(whole)
+            and address(whole) % mmap.PAGESIZE == 0
+            and whole.size >= size
+        ):
+            parts.clear()
+            out = whole[:size].reshape(shape)
+            out[len(part) :] = fill
+            return out
+    return join_rows(parts, shape, fill, dtype)
 
 
 _CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.int32)  # [8, 3] xyz bits
