@@ -30,7 +30,7 @@ jv.enable_compilation_cache()  # compiled programs persist across sessions (~/.c
 SMOKE = os.environ.get("SMOKE", "0") == "1"
 MESHES = pathlib.Path(os.environ.get("JAXVOX_MESHES", "../../shared/meshes"))  # from notebooks/
 RESOLUTION = 32 if SMOKE else 128
-SWEEP = [16, 32] if SMOKE else [64, 128, 256, 512]
+SWEEP = [RESOLUTION] if SMOKE else [64, 128, 256, 512]  # smoke: the programs compiled above
 
 path = MESHES / "spot.obj"
 mesh = jv.load_mesh(path) if path.exists() else jv.default_scene()

@@ -101,7 +101,7 @@ def test_shared_meshes(meshes_dir, name):
     )
 
 
-@settings(max_examples=4, deadline=None)
+@settings(max_examples=2, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([2, 16]))
 @example(seed=11, resolution=16)  # the empty set
 @example(seed=1, resolution=2)  # the full grid at depth 1

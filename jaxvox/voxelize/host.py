@@ -338,6 +338,22 @@ def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
     return np.frombuffer(buffer, dtype).reshape(shape)
 
 
+MAP_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000)  # Linux's value (Python 3.13 names it)
+
+
+def reserved_empty(shape: tuple[int, ...], dtype) -> np.ndarray | None:
+    """Like `aligned_empty`, but address space only (a private map that reserves no
+    memory): a page costs memory once written, so `shape` may be a generous bound, e.g.
+    every voxel of the grid, for rows whose count is found as they are written. None
+    where the system refuses the map (strict overcommit, a small address space)."""
+    size = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    try:
+        buffer = mmap.mmap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | MAP_NORESERVE)
+    except (OSError, OverflowError, ValueError):
+        return None
+    return np.frombuffer(buffer, dtype, count=int(np.prod(shape, dtype=np.int64))).reshape(shape)
+
+
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED` (see `join_rows`)."""
     return join_rows(parts, shape, UNUSED, dtype=np.int32)
