@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import mmap
+import sys
 from collections.abc import Iterator
 
 import jax
@@ -338,7 +339,8 @@ def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
     return np.frombuffer(buffer, dtype).reshape(shape)
 
 
-MAP_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000)  # Linux's value (Python 3.13 names it)
+# Linux's value where Python does not name it (before 3.13); elsewhere a plain private map.
+MAP_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000 if sys.platform.startswith("linux") else 0)
 
 
 def reserved_empty(shape: tuple[int, ...], dtype) -> np.ndarray | None:
@@ -349,7 +351,7 @@ def reserved_empty(shape: tuple[int, ...], dtype) -> np.ndarray | None:
     size = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
     try:
         buffer = mmap.mmap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | MAP_NORESERVE)
-    except (OSError, OverflowError, ValueError):
+    except (OSError, OverflowError, ValueError, AttributeError):  # (AttributeError: no MAP_PRIVATE on Windows)
         return None
     return np.frombuffer(buffer, dtype, count=int(np.prod(shape, dtype=np.int64))).reshape(shape)
 
