@@ -355,12 +355,15 @@ def sparse_distance_field(
     coords, values, closest = [], [], []
     stack: list = []
     build = lambda keys, region_lo: push_region(stack, keys, region_lo, size)  # in region order (one worker)
-    for ijk, dist, tri, pushed in _band_regions(mesh, grid, band, signed, size, progress, build, out):
-        pushed.result()
+    pushed = []  # waited for at the end: each region is finished while the next is found
+    for ijk, dist, tri, done in _band_regions(mesh, grid, band, signed, size, progress, build, out):
+        pushed.append(done)
         coords.append(ijk)
         values.append(dist)
         closest.append(tri)
         del ijk, dist, tri
+    for done in pushed:
+        done.result()
     n = sum(len(c) for c in coords)
     if out is not None:  # the regions' rows follow each other in the reserved buffers
         coords, values, closest = ([a[:n]] for a in out)
@@ -435,17 +438,19 @@ def _band_regions(
     """The band voxels of each aligned region of edge `size` that holds some, in Morton
     order: (ijk int32 [n, 3] global voxel indices, values float32 [n] world units, tri
     int32 [n] closest triangles, a `Future` of ``build(keys, region_lo)``), host arrays in
-    Morton order; keys [n] uint64 are the voxels' Morton codes within the region and
+    Morton order, final when the `Future` is done; keys [n] uint64 are the voxels' Morton codes within the region and
     region_lo [3] its first voxel. With `out` (`_field_rows`), each region's rows are
     written into it after the last region's, and the arrays are views of it.
 
     Both cores work: a worker thread prepares the signs (crossings, caps, winding tree:
     what depends on the mesh alone) while the first region's distances are computed,
-    then runs `build` on each region's keys (e.g. its DAG, which needs no values) while
-    the region is signed. The worker takes the tasks in order, so `build` sees the regions
-    in Morton order. The kernels of the voxels' pseudo-normal sides (`band_sign.Sides`)
-    start round by round during the tile pairs (`band_pairs`'s ``on_round``), so they run
-    while the next rounds are found.
+    then finishes each region (its values: square roots, float64 distances near large
+    triangles, signs, world units) and runs `build` on its keys (e.g. its DAG) while the
+    next region's distances are computed. The arrays are handed out at once, so they
+    hold the region's values only once the `Future` is done. The worker takes the tasks
+    in order, so `build` sees the regions in Morton order. The kernels of the voxels'
+    pseudo-normal sides (`band_sign.Sides`) start round by round during the tile pairs
+    (`band_pairs`'s ``on_round``), so they run while the next rounds are found.
     """
     band = int(band)
     origin = np.asarray(grid.origin, np.float64)
@@ -461,6 +466,26 @@ def _band_regions(
     with ThreadPoolExecutor(1) as worker:
         signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
         sides = Sides(mesh, tris) if signs is not None else None  # beside the worker
+
+        def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
+            """A region's values (in place: ijk global, tri mesh ids, dist signed world
+            units), then ``build``; on the worker."""
+            codes_in_grid = keys  # (passes over every voxel are skipped where they change nothing)
+            if region_lo.any():
+                ijk += region_lo
+                codes_in_grid = code << shift | keys
+            if len(mine) < len(tris):  # else mine is every id, in order
+                tri[:] = mine[tri]
+            np.sqrt(dist, out=dist)  # float32 grid units
+            refine = np.flatnonzero(large[tri]) if large.any() else np.zeros(0, np.int64)  # float64 distances
+            if len(refine):
+                dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
+            if sides is not None and signs is not None:
+                behind, on = sides.finish(started, ijk, tri, dist)
+                np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
+            dist *= np.float32(h)
+            return build(keys, region_lo)
+
         regions, n = zip(starts, ends), 0
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
             region_lo = morton.decode_host(codes[a]) * size
@@ -472,22 +497,7 @@ def _band_regions(
             if not len(ijk):
                 continue
             n += len(ijk)
-            built = worker.submit(build, keys, region_lo)
-            codes_in_grid = keys  # (passes over every voxel are skipped where they change nothing)
-            if region_lo.any():
-                ijk += region_lo
-                codes_in_grid = codes[a] << shift | keys
-            if len(mine) < len(tris):  # else mine is every id, in order
-                tri[:] = mine[tri]
-            dist = np.sqrt(d2, out=d2)  # float32 grid units
-            refine = np.flatnonzero(large[tri]) if large.any() else np.zeros(0, np.int64)  # float64 distances
-            if len(refine):
-                dist[refine] = np.linalg.norm(exact_closest(tris, ijk[refine], tri[refine])[1], axis=1)
-            if sides is not None and signs is not None:
-                behind, on = sides.finish(started, ijk, tri, dist)
-                np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
-            dist *= np.float32(h)
-            yield ijk, dist, tri, built
+            yield ijk, d2, tri, worker.submit(finish, ijk, d2, tri, keys, region_lo, codes[a], mine, started)
 
 
 def _start_sides(sides: Sides, started: list, region_lo: np.ndarray, ids: np.ndarray, ijk, tri) -> None:
