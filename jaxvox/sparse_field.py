@@ -71,7 +71,7 @@ from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 from jaxvox.voxelize.host import aligned_empty, join_rows, progress_off, reserved_empty
 
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
-SLOTS = 8  # triangles per work unit (a tile overlapped by more takes several units)
+SLOTS = 4  # triangles per work unit (a tile overlapped by more takes several); 4 pads less than 8
 UNITS = 1 << 13  # work units per call of the tile kernel
 GROUP_ITEMS = 1 << 17  # (triangle, tile) items per host round: its arrays stay small enough to reuse memory
 CULL_CHUNK = 1 << 16  # items per call of the cull kernel
