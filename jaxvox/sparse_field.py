@@ -446,7 +446,8 @@ def _band_regions(
     what depends on the mesh alone) while the first region's distances are computed,
     then finishes each region (its values: square roots, float64 distances near large
     triangles, signs, world units) and runs `build` on its keys (e.g. its DAG) while the
-    next region's distances are computed. The arrays are handed out at once, so they
+    next region's distances are computed; the last region is finished on this thread
+    while the worker builds. The arrays are handed out at once, so they
     hold the region's values only once the `Future` is done. The worker takes the tasks
     in order, so `build` sees the regions in Morton order. The kernels of the voxels'
     pseudo-normal sides (`band_sign.Sides`) start round by round during the tile pairs
@@ -468,8 +469,7 @@ def _band_regions(
         sides = Sides(mesh, tris) if signs is not None else None  # beside the worker
 
         def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
-            """A region's values (in place: ijk global, tri mesh ids, dist signed world
-            units), then ``build``; on the worker."""
+            """A region's values, in place: ijk global, tri mesh ids, dist signed world units."""
             codes_in_grid = keys  # (passes over every voxel are skipped where they change nothing)
             if region_lo.any():
                 ijk += region_lo
@@ -484,6 +484,10 @@ def _band_regions(
                 behind, on = sides.finish(started, ijk, tri, dist)
                 np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
             dist *= np.float32(h)
+
+        def finish_and_build(*region):
+            finish(*region)
+            keys, region_lo = region[3:5]
             return build(keys, region_lo)
 
         regions, n = zip(starts, ends), 0
@@ -497,7 +501,13 @@ def _band_regions(
             if not len(ijk):
                 continue
             n += len(ijk)
-            yield ijk, d2, tri, worker.submit(finish, ijk, d2, tri, keys, region_lo, codes[a], mine, started)
+            region = ijk, d2, tri, keys, region_lo, codes[a], mine, started
+            if b < len(ids):  # finished on the worker while the next region's pairs are found
+                yield ijk, d2, tri, worker.submit(finish_and_build, *region)
+            else:  # the last region: finished here, while the worker builds
+                built = worker.submit(build, keys, region_lo)
+                finish(*region)
+                yield ijk, d2, tri, built
 
 
 def _start_sides(sides: Sides, started: list, region_lo: np.ndarray, ids: np.ndarray, ijk, tri) -> None:
