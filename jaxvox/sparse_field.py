@@ -32,11 +32,12 @@ Method (no propagation, so no propagation error):
   signs all its voxels. Measured on the shared meshes at 32^3-64^3 and on generated
   damaged meshes: every sign equals the brute-force winding number's.
 
-Nothing of size R^3 is allocated; the work is O(sum over triangles of the tiles their
-dilated boxes overlap). The grid is built in aligned regions (`sparse_distance_field`'s
-``region``), so the working memory follows one region, and the result is the
-`SparseField` itself (the bunny at 4096^3: a 7.3 GiB peak for a 5.1 GiB field), or one
-region's field at a time (`sparse_field_regions`).
+Nothing of size R^3 is allocated (the field's buffers are reserved for every voxel of
+the grid as address space only, and take memory as the band is written into them); the
+work is O(sum over triangles of the tiles their dilated boxes overlap). The grid is built
+in aligned regions (`sparse_distance_field`'s ``region``), so the working memory follows
+one region, and the result is the `SparseField` itself (the bunny at 4096^3: a 6.3 GiB
+peak for a 5.1 GiB field), or one region's field at a time (`sparse_field_regions`).
 
 Precision: the tile kernel's float32 error grows with the closest triangle's size (up to
 about `jaxvox.band_sign.F32_ERROR` per grid unit of its longest edge); voxels of
