@@ -248,9 +248,10 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
     # touched, so the bound costs address space only, and no parts are joined at the end.
     bound = len(starts) * _CELLS
     if out is None:  # (page-aligned: a single region's outputs become the field's buffers, `_joined`)
-        out = tuple(
-            aligned_empty(shape, t)
-            for shape, t in (((bound, 3), np.int32), ((bound,), np.float32), ((bound,), np.int32))
+        out = (
+            aligned_empty((bound, 3), np.int32),
+            aligned_empty((bound,), np.float32),
+            aligned_empty((bound,), np.int32),
         )
     ijk, band_d2, band_tri = out
     if len(ijk) < bound:
@@ -421,7 +422,7 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
 def _field_rows(resolution: int, size: int) -> tuple | None:
     """Buffers for a whole field's rows (ijk int32 [m, 3], values float32 [m], triangles
     int32 [m]) written region after region (`_band_regions`' ``out``), so that they become
-    the field's own without a join (4096^3: 228 M rows, 8.4 s to join). m bounds both
+    the field's own without a join (4096^3: 228 M rows, 8.4 s to join on 2026-12-03). m bounds both
     the rows (every cell, in whole tiles, of the regions of edge `size` that cover the
     grid) and the field's capacity (`bucket` of R^3): address space only
     (`reserved_empty`). None where the system will not reserve it; the regions are then
@@ -439,8 +440,8 @@ def _band_regions(
     """The band voxels of each aligned region of edge `size` that holds some, in Morton
     order: (ijk int32 [n, 3] global voxel indices, values float32 [n] world units, tri
     int32 [n] closest triangles, a `Future` of ``build(keys, region_lo)``), host arrays in
-    Morton order, final when the `Future` is done; keys [n] uint64 are the voxels' Morton codes within the region and
-    region_lo [3] its first voxel. With `out` (`_field_rows`), each region's rows are
+    Morton order, final when the `Future` is done; keys [n] uint64 are the voxels' Morton
+    codes within the region and region_lo [3] its first voxel. With `out` (`_field_rows`), each region's rows are
     written into it after the last region's, and the arrays are views of it.
 
     Both cores work: a worker thread prepares the signs (crossings, caps, winding tree:
@@ -448,8 +449,7 @@ def _band_regions(
     then finishes each region (its values: square roots, float64 distances near large
     triangles, signs, world units) and runs `build` on its keys (e.g. its DAG) while the
     next region's distances are computed; the last region is finished on this thread
-    while the worker builds. The arrays are handed out at once, so they
-    hold the region's values only once the `Future` is done. The worker takes the tasks
+    while the worker builds. The worker takes the tasks
     in order, so `build` sees the regions in Morton order. The kernels of the voxels'
     pseudo-normal sides (`band_sign.Sides`) start round by round during the tile pairs
     (`band_pairs`'s ``on_round``), so they run while the next rounds are found.
@@ -486,9 +486,8 @@ def _band_regions(
                 np.negative(dist, out=dist, where=signs.result()(ijk, codes_in_grid, dist, tri, behind, on))
             dist *= np.float32(h)
 
-        def finish_and_build(*region):
-            finish(*region)
-            keys, region_lo = region[3:5]
+        def finish_and_build(ijk, dist, tri, keys, region_lo, code, mine, started):
+            finish(ijk, dist, tri, keys, region_lo, code, mine, started)
             return build(keys, region_lo)
 
         regions, n = zip(starts, ends), 0
