@@ -387,8 +387,8 @@ def sparse_field_regions(
     progress: bool | None = None,
 ) -> Iterator[SparseField]:
     """`sparse_distance_field` handed out region by region, for fields larger than memory
-    (the bunny at 8192^3, band 3: 912 M band voxels, 17 GiB of coordinates, values and
-    triangles as one field).
+    (the bunny at 8192^3, band 3: 912 M band voxels, a 20.3 GiB field whose build peaks
+    at 22.7 GiB in one piece, against 2.8 GiB by regions).
 
     The same regions and values as `sparse_distance_field` (arguments alike); each is
     dropped by the generator once yielded, so memory follows one region. Concatenated in
