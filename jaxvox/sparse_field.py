@@ -141,15 +141,12 @@ def _tile_units(rows, ids, origin):
     o = [origin[k].astype(jnp.float32)[:, None] for k in range(3)]
     p = [jnp.asarray(_LOCAL[:, k] + 0.5, jnp.float32)[None, :] for k in range(3)]
     slot_rows = [row[ids] for row in rows]  # 28 x [S, U]
-    best = tri = None
-    for s in range(ids.shape[0]):
+    shape = (ids.shape[1], _CELLS)
+    best, tri = jnp.full(shape, jnp.inf, jnp.float32), jnp.zeros(shape, jnp.int32)
+    for s in range(ids.shape[0]):  # strictly closer: ties keep the earlier slot (the lower id)
         d2 = rows_dist2(p, [r[s][:, None] for r in slot_rows], o)
-        t = ids[s][:, None]
-        if best is None:
-            best, tri = d2, jnp.broadcast_to(t, d2.shape)
-        else:  # strictly closer: ties keep the earlier slot (the lower id)
-            better = d2 < best
-            best, tri = jnp.where(better, d2, best), jnp.where(better, t, tri)
+        better = d2 < best
+        best, tri = jnp.where(better, d2, best), jnp.where(better, ids[s][:, None], tri)
     return best, tri
 
 
