@@ -5,10 +5,13 @@ Two methods, both exact (the float64 brute-force winding number is the reference
 
 * **Pseudo-normals.** For a watertight mesh whose triangles neither cross one another
   (`jaxvox.topology.crossing_faces`) nor have an irregular edge, a pinched vertex or zero
-  area: the side of the angle-weighted pseudo-normal (Baerentzen & Aanaes 2005) of the
-  closest feature of the voxel's closest triangle (the face normal when the closest point
-  is interior to the face, the sum of the two face normals for an edge, the angle-weighted
-  normal sum for a vertex; vertices welded by position).
+  area, and none of whose shells winds around another (`nested_shells`: between two
+  nested spheres of the same orientation the winding number is 1, but the closest
+  surface is the inner sphere, seen from outside): the side of the angle-weighted
+  pseudo-normal (Baerentzen & Aanaes 2005) of the closest feature of the voxel's closest
+  triangle (the face normal when the closest point is interior to the face, the sum of
+  the two face normals for an edge, the angle-weighted normal sum for a vertex; vertices
+  welded by position).
 
 * **Components** (every other mesh: holes like the bunny's base, crossings like the
   teapot's handle, irregular edges). The mesh's boundary, as a chain of directed edges, is
@@ -75,6 +78,7 @@ from jaxvox.topology import (
 from jaxvox.winding import (
     brute_force_winding_numbers,
     exact_winding_numbers,
+    host_winding_numbers,
     point_tree,
     point_winding_numbers,
     relative_corners,
@@ -179,17 +183,17 @@ def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool
     `triangle_rows`); both relative to the points. With `slope` also the bound [P]
     float32 on the term's gradient in the ball of radius `radius` ([] float32) about each
     point (inf where a boundary edge comes that close; see `Components.blocked_cap_terms`)."""
-    p = [points[:, k, None] for k in range(3)]
+    p = [points[None, :, k] for k in range(3)]  # points along the minor axis (as `winding._brute_force`)
     zero = [jnp.float32(0)] * 3
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
     def step(carry, block):
         w, d2, bound = carry
         corners, tri_rows = block
-        centre, b, a = relative_corners(corners, p)
-        w = w + jnp.sum(solid_angle_parts(centre, b, a), -1)
+        centre, b, a = relative_corners(corners[:, :, None], p)  # [block, P]
+        w = w + jnp.sum(solid_angle_parts(centre, b, a), 0)
         if distance:
-            d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows), p), -1))
+            d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows[:, :, None]), p), 0))
         if slope:  # sum over the edges of len / (4 pi gap^2), gap = distance to the edge - radius
             ab = tuple(y - x for x, y in zip(a, b))
             length2 = dot(ab, ab)
@@ -197,7 +201,7 @@ def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool
             nearest = tuple(x + t * e for x, e in zip(a, ab))  # the edge's point nearest to the centre
             gap = jnp.sqrt(dot(nearest, nearest)) - radius
             term = jnp.sqrt(length2) / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
-            bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), -1)
+            bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), 0)
         return (w, d2, bound), None
 
     n = points.shape[0]
@@ -343,9 +347,46 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
         | pinched_vertex_faces(welded)
     )
     chain = boundary_chain(welded)
-    if not len(chain) and not suspect.any():
+    if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
         return lambda ijk, keys, dist, tri, behind, on: behind
     return Components(tris, welded, suspect, chain, band).inside
+
+
+NESTED_WORK = 1 << 26  # (point, triangle) pairs `nested_shells` sums at most
+
+
+def nested_shells(tris: np.ndarray, welded: np.ndarray) -> bool:
+    """Whether a shell (faces joined by shared welded vertices) of a mesh winds around a
+    vertex of another: float64 winding number of the shell at one vertex of each other
+    shell inside its box, ``|w| > 1/2``. tris [F, 3, 3] float64, welded [F, 3] int
+    (`welded_faces`). Meant for closed meshes whose shells do not cross (each one's winding
+    number is then an integer off its surface); True, conservatively, when the pairs to
+    sum exceed `NESTED_WORK`."""
+    if not len(welded):
+        return False
+    shell = connected_components(int(welded.max()) + 1, welded[:, [0, 1]].ravel(), welded[:, [1, 2]].ravel())
+    face_shell = shell[welded[:, 0]]
+    ids, face_shell = np.unique(face_shell, return_inverse=True)
+    if len(ids) == 1:
+        return False
+    lo = np.full((len(ids), 3), np.inf)
+    hi = np.full((len(ids), 3), -np.inf)
+    np.minimum.at(lo, face_shell, tris.min(1))
+    np.maximum.at(hi, face_shell, tris.max(1))
+    point = tris[np.unique(face_shell, return_index=True)[1], 0]  # [S, 3] a vertex of each shell
+    inside = np.all((point[None] >= lo[:, None]) & (point[None] <= hi[:, None]), -1)  # [around, point]
+    np.fill_diagonal(inside, False)
+    around, points = np.nonzero(inside)
+    sizes = np.bincount(face_shell, minlength=len(ids))
+    if int(sizes[around].sum()) > NESTED_WORK:
+        return True
+    order = np.argsort(face_shell, kind="stable")
+    first = np.concatenate([[0], np.cumsum(sizes)])
+    for a in np.unique(around):
+        faces_a = tris[order[first[a] : first[a + 1]]]
+        if np.any(np.abs(host_winding_numbers(faces_a, point[points[around == a]])) > 0.5):
+            return True
+    return False
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):

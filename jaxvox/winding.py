@@ -391,11 +391,19 @@ def exact_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     the bunny's 69 K triangles.)"""
     w = brute_force_winding_numbers(tris, points).astype(np.float64)
     close = np.flatnonzero(np.abs(w - 0.5) < F32_CLOSE + len(tris) * F32_CLOSE_PER_TRIANGLE)
+    w[close] = host_winding_numbers(tris, np.asarray(points, np.float64)[close])
+    return w
+
+
+def host_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Winding numbers [P] float64 at points [P, 3] of triangles [F, 3, 3], summed in
+    float64 on the host (van Oosterom and Strackee's solid angles; for a few points)."""
     tris, points = np.asarray(tris, np.float64), np.asarray(points, np.float64)
+    w = np.zeros(len(points))
     dot = lambda x, y: np.einsum("...k,...k->...", x, y)
     block = max(1, (1 << 20) // max(len(tris), 1))  # points per block: [block, F, 3] temporaries
-    for s in range(0, len(close), block):
-        rows = close[s : s + block]
+    for s in range(0, len(points), block):
+        rows = slice(s, s + block)
         a, b, c = (tris[None, :, k] - points[rows, None] for k in range(3))
         la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
         det = dot(a, np.cross(b, c))
@@ -407,11 +415,14 @@ def exact_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
 @jax.jit
 def _brute_force(blocks, points):
     """Sum over blocks [n, 18, BRUTE_FORCE_BLOCK] of triangle corners (`split_rows`) at
-    points [P, 3]."""
-    p = [points[:, k, None] for k in range(3)]
+    points [P, 3]. The points run along the minor axis ([block, P]; each triangle's rows
+    [block, 1]) and each block is summed over its major axis: XLA's CPU loops then
+    vectorize over points (2.8x faster than [P, block] summed over its minor axis: bunny,
+    4096 points, 0.55 against 1.5 s)."""
+    p = [points[None, :, k] for k in range(3)]
 
     def step(w, block):
-        return w + jnp.sum(solid_angle_parts(*relative_corners(block, p)), -1), None
+        return w + jnp.sum(solid_angle_parts(*relative_corners(block[:, :, None], p)), 0), None
 
     return jax.lax.scan(step, jnp.zeros(points.shape[0], jnp.float32), blocks)[0]
 

@@ -14,13 +14,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox import morton
-from jaxvox.band_sign import CAP_BOUND, MOVE, Components, pseudo_normals
+from jaxvox.band_sign import CAP_BOUND, MOVE, Components, nested_shells, pseudo_normals
 from jaxvox.sparse_field import SLOTS, TILE, UNUSED_VALUE
 from jaxvox.topology import boundary_chain, welded_faces
 from tests.reference import mesh_distance, winding_number
@@ -316,13 +316,37 @@ def damaged_mesh(seed: int, resolution: int) -> jv.Mesh:
 
 @settings(max_examples=5, deadline=None)
 @given(st.integers(0, 2**32 - 1))
+@example(seed=16711705)  # a sphere inside another: pseudo-normals had 91 wrong signs between them
 def test_signs_of_damaged_meshes(seed):
-    """Holes (cut on voxel planes or not), crossing spheres, pinched vertices, flipped
-    faces: values and signs against the float64 winding number (`check_field`)."""
+    """Holes (cut on voxel planes or not), crossing or nested spheres, pinched vertices,
+    flipped faces: values and signs against the float64 winding number (`check_field`)."""
     mesh = damaged_mesh(seed, 16)
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)
     region = (None, 4)[seed % 2]  # half the examples in regions of 4^3, each signed alone
     check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2, region=region))
+
+
+def test_nested_shells_are_signed_by_winding_numbers():
+    """Closed shells that do not cross: apart, pseudo-normals sign them; a sphere inside
+    another of the same orientation (winding number 2 inside both, 1 between them) or
+    inverted (a hollow ball: 0 in the cavity) takes winding numbers (`nested_shells`)."""
+    outer, inner, apart = icosphere(2, 0.35), icosphere(2, 0.15), icosphere(1, 0.1, shift=0.1)
+
+    def union(*parts, flip=()):
+        faces = [np.asarray(p.faces)[:, ::-1] if i in flip else np.asarray(p.faces) for i, p in enumerate(parts)]
+        offsets = np.cumsum([0] + [len(p.vertices) for p in parts[:-1]])
+        v = np.concatenate([np.asarray(p.vertices) for p in parts])
+        return jv.Mesh(v, np.concatenate([f + o for f, o in zip(faces, offsets)]).astype(np.int32))
+
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    for mesh, nested in [
+        (union(outer, apart), False),
+        (union(outer, inner), True),
+        (union(outer, inner, flip=(1,)), True),
+    ]:
+        tris = np.asarray(mesh.vertices, np.float64)[np.asarray(mesh.faces)]
+        assert nested_shells(tris, welded_faces(mesh.vertices, mesh.faces)) == nested
+        check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2))
 
 
 def test_cap_blocks_settle_only_where_the_bound_holds():
