@@ -365,28 +365,23 @@ def nested_shells(tris: np.ndarray, welded: np.ndarray) -> bool:
     if not len(welded):
         return False
     shell = connected_components(int(welded.max()) + 1, welded[:, [0, 1]].ravel(), welded[:, [1, 2]].ravel())
-    face_shell = shell[welded[:, 0]]
-    ids, face_shell = np.unique(face_shell, return_inverse=True)
-    if len(ids) == 1:
+    _, first, face_shell = np.unique(shell[welded[:, 0]], return_index=True, return_inverse=True)
+    if len(first) == 1:
         return False
-    lo = np.full((len(ids), 3), np.inf)
-    hi = np.full((len(ids), 3), -np.inf)
+    lo = np.full((len(first), 3), np.inf)
+    hi = np.full((len(first), 3), -np.inf)
     np.minimum.at(lo, face_shell, tris.min(1))
     np.maximum.at(hi, face_shell, tris.max(1))
-    point = tris[np.unique(face_shell, return_index=True)[1], 0]  # [S, 3] a vertex of each shell
+    point = tris[first, 0]  # [S, 3] a vertex of each shell
     inside = np.all((point[None] >= lo[:, None]) & (point[None] <= hi[:, None]), -1)  # [around, point]
     np.fill_diagonal(inside, False)
     around, points = np.nonzero(inside)
-    sizes = np.bincount(face_shell, minlength=len(ids))
-    if int(sizes[around].sum()) > NESTED_WORK:
+    if int(np.bincount(face_shell)[around].sum()) > NESTED_WORK:
         return True
-    order = np.argsort(face_shell, kind="stable")
-    first = np.concatenate([[0], np.cumsum(sizes)])
-    for a in np.unique(around):
-        faces_a = tris[order[first[a] : first[a + 1]]]
-        if np.any(np.abs(host_winding_numbers(faces_a, point[points[around == a]])) > 0.5):
-            return True
-    return False
+    return any(
+        np.any(np.abs(host_winding_numbers(tris[face_shell == a], point[points[around == a]])) > 0.5)
+        for a in np.unique(around)
+    )
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
