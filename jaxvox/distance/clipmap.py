@@ -276,7 +276,8 @@ def _boxes_inside(mesh: Mesh, padded, boxes: list, r: int, sign: str) -> list[np
     ("winding"), so that the sign is the exact inside test's. Parity: every box's count,
     then every box's voxelization, are dispatched before any is waited for."""
     cuts = [tuple(slice(0, int(n)) for n in size) for _, _, size in boxes]
-    shapes: list[tuple[int, int, int]] = [tuple(_side(int(n), r, 0) for n in size) for _, _, size in boxes]  # type: ignore[misc]
+    side = lambda n: _side(int(n), r, 0)
+    shapes = [(side(x), side(y), side(z)) for _, _, (x, y, z) in boxes]
     local = [(padded - corner) / h for corner, h, _ in boxes]  # grid units of each box (padding subtends nothing)
     if sign == "parity":
         tris = [jnp.asarray(t, jnp.float32) for t in local]
