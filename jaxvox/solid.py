@@ -155,10 +155,19 @@ def solid_inside(mesh: Mesh, tris, grid: Grid, shape: tuple[int, int, int], meth
     if mesh.num_faces == 0:
         return jnp.zeros(shape, bool)
     if method == "parity":
-        return _parity(tris, shape=shape, capacity=bucket(int(_parity_count(tris, shape=shape))))
+        return parity_boxes([(tris, shape)])[0]
     return (
         box_winding_numbers(mesh, np.asarray(grid.origin, np.float64), float(grid.voxel_size), shape, beta=beta) > 0.5
     )
+
+
+def parity_boxes(boxes: list) -> list[jax.Array]:
+    """The "parity" inside bits of several boxes: [(tris, shape)] (a box's padded
+    triangles in its grid units, [nx, ny, nz] voxels) -> [nx, ny, nz] bool each. Every
+    box's crossing count, then every box's voxelization, is dispatched before any is
+    waited for (the counts size the voxelizations)."""
+    counts = [_parity_count(tris, shape=shape) for tris, shape in boxes]
+    return [_parity(tris, shape=shape, capacity=bucket(int(c))) for (tris, shape), c in zip(boxes, counts)]
 
 
 def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> Bool[Array, "R R R"]:

@@ -25,7 +25,7 @@ from jaxvox.band_sign import EXACT_BELOW
 from jaxvox.distance.field import METHODS, box_distance, box_grid
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
-from jaxvox.solid import _parity, _parity_count, grid_triangles, open_edges, padded_mesh, solid_inside
+from jaxvox.solid import grid_triangles, open_edges, padded_mesh, parity_boxes, solid_inside
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
 from jaxvox.trace.hit import RUNNING
 from jaxvox.winding import box_winding_numbers, brute_force_winding_numbers
@@ -280,9 +280,7 @@ def _boxes_inside(mesh: Mesh, padded, boxes: list, r: int, sign: str) -> list[np
     shapes = [(side(x), side(y), side(z)) for _, _, (x, y, z) in boxes]
     local = [(padded - corner) / h for corner, h, _ in boxes]  # grid units of each box (padding subtends nothing)
     if sign == "parity":
-        tris = [jnp.asarray(t, jnp.float32) for t in local]
-        counts = [_parity_count(t, shape=shape) for t, shape in zip(tris, shapes)]
-        solids = [_parity(t, shape=shape, capacity=bucket(int(c))) for t, shape, c in zip(tris, shapes, counts)]
+        solids = parity_boxes([(jnp.asarray(t, jnp.float32), shape) for t, shape in zip(local, shapes)])
         return [np.asarray(x)[cut] for x, cut in zip(solids, cuts)]
     out = []
     for (corner, h, _), shape, cut, tris in zip(boxes, shapes, cuts, local):
