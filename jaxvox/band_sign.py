@@ -375,13 +375,17 @@ def nested_shells(tris: np.ndarray, welded: np.ndarray) -> bool:
     point = tris[first, 0]  # [S, 3] a vertex of each shell
     inside = np.all((point[None] >= lo[:, None]) & (point[None] <= hi[:, None]), -1)  # [around, point]
     np.fill_diagonal(inside, False)
-    around, points = np.nonzero(inside)
-    if int(np.bincount(face_shell)[around].sum()) > NESTED_WORK:
+    around, points = np.nonzero(inside)  # ordered by `around`
+    sizes = np.bincount(face_shell)
+    if int(sizes[around].sum()) > NESTED_WORK:
         return True
-    return any(
-        np.any(np.abs(host_winding_numbers(tris[face_shell == a], point[points[around == a]])) > 0.5)
-        for a in np.unique(around)
-    )
+    faces = tris[np.argsort(face_shell, kind="stable")]  # shell by shell: each a slice, no mask over F
+    first_face = np.cumsum(sizes) - sizes
+    shells, first_pair = np.unique(around, return_index=True)
+    for a, pairs in zip(shells, np.split(points, first_pair[1:])):
+        if np.any(np.abs(host_winding_numbers(faces[first_face[a] : first_face[a] + sizes[a]], point[pairs])) > 0.5):
+            return True
+    return False
 
 
 def _caps(tris: np.ndarray, welded: np.ndarray, chain: np.ndarray):
