@@ -23,6 +23,7 @@ from jaxvox.trace.ray import (
     root_row,
     settle,
     slot_bits,
+    stack_set,
     step_status,
     times,
     vec,
@@ -33,14 +34,14 @@ class _Esvo(NamedTuple):
     level: jax.Array  # [] int32 level of the current cell, 1..D (its size is 2^(D - level))
     corner: tuple  # 3 x [] int32 mirrored corner of the current cell
     parent: jax.Array  # [] int32 row of the node the cell belongs to
-    stack: jax.Array  # [D] int32 stack[l]: row of the level-l node on the current path
+    stack: tuple  # D x [] int32 stack[l]: row of the level-l node on the current path
     status: jax.Array  # [] int32
 
 
 def esvo_init(tree: Octree, ray: Ray, t_start, status) -> _Esvo:
     res = tree.grid.resolution
     corner = first_cell(ray, (jnp.int32(0),) * 3, res // 2, t_start)
-    return _Esvo(jnp.int32(1), corner, root_row(tree), jnp.full(tree.depth, root_row(tree), jnp.int32), status)
+    return _Esvo(jnp.int32(1), corner, root_row(tree), (root_row(tree),) * tree.depth, status)
 
 
 def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
@@ -68,8 +69,8 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     stepped = _Esvo(
         level=jnp.where(push, s.level + 1, pop_level),
         corner=vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
-        parent=jnp.where(push, row, s.stack[pop_level - 1]),
-        stack=jnp.where(push & (jnp.arange(depth) == s.level), row, s.stack),
+        parent=jnp.where(push, row, pick(s.stack, pop_level - 1)),
+        stack=stack_set(s.stack, s.level, row, push),
         status=status,
     )
     return settle(s, stepped, status)
