@@ -59,7 +59,10 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     status = step_status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
     row = child_row(tree, s.parent, slot)
     high = 31 - jax.lax.clz(before ^ (before + size))  # after ADVANCE the cell has size 2^high
-    t_in, axis, push, status, row, high = materialize((t_in, axis, push, status, row, high), opaque(tree))
+    parent = jnp.where(push, row, pick(s.stack, depth - high - 1))
+    t_in, axis, push, status, row, high, parent = materialize(
+        (t_in, axis, push, status, row, high, parent), opaque(tree)
+    )
     # PUSH: the cell is an occupied node; enter its child the ray is in at entry.
     pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, 0.0))
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
@@ -69,7 +72,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     stepped = _Esvo(
         level=jnp.where(push, s.level + 1, pop_level),
         corner=vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
-        parent=jnp.where(push, row, pick(s.stack, pop_level - 1)),
+        parent=parent,
         stack=stack_set(s.stack, s.level, row, push),
         status=status,
     )
