@@ -92,8 +92,8 @@ class Clipmap:
     origin: jax.Array  # [3] float32
     voxel_size: jax.Array  # [] float32
     truncation: float = dataclasses.field(metadata=dict(static=True))
-    method: str = dataclasses.field(default="exact", metadata=dict(static=True))
-    sign: str = dataclasses.field(default="parity", metadata=dict(static=True))
+    method: str = dataclasses.field(metadata=dict(static=True))
+    sign: str = dataclasses.field(metadata=dict(static=True))
 
     @property
     def resolution(self) -> int:
