@@ -59,7 +59,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     status = step_status((t_in > ray.t_max) | (~live & (before + size >= res)), live & (s.level == depth))
     row = child_row(tree, s.parent, slot)
     high = 31 - jax.lax.clz(before ^ (before + size))  # after ADVANCE the cell has size 2^high
-    parent = jnp.where(push, row, pick(s.stack, depth - high - 1))
+    parent = jnp.where(push, row, pick(s.stack, depth - high - 1))  # POP: the stack's node of level depth - high - 1
     t_in, axis, push, status, row, high, parent = materialize(
         (t_in, axis, push, status, row, high, parent), opaque(tree)
     )
@@ -68,9 +68,8 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
     moved = tuple(jnp.where(axis == a, c + size, c) for a, c in enumerate(s.corner))
     popped = vec(lambda c: c & -jnp.left_shift(1, high), moved)
-    pop_level = depth - high
     stepped = _Esvo(
-        level=jnp.where(push, s.level + 1, pop_level),
+        level=jnp.where(push, s.level + 1, depth - high),
         corner=vec(lambda a, b: jnp.where(push, a, b), pushed, popped),
         parent=parent,
         stack=stack_set(s.stack, s.level, row, push),
