@@ -63,6 +63,7 @@ from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
+from jaxvox.trace.driver import everywhere, on_each_device
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
 # Shadow rays from a voxel with a smooth shading normal start this many voxel edges
@@ -295,7 +296,7 @@ def camera_path(camera, key, ids, *, width: int, height: int) -> tuple[PathState
     return path, keys
 
 
-@functools.partial(jax.jit, static_argnames=("width", "height", "batch", "max_steps", "lanes"))
+@functools.partial(jax.jit, static_argnames=("width", "height", "batch", "max_steps", "lanes", "shard"))
 def _render_batch(
     tree,
     albedo,
@@ -315,9 +316,40 @@ def _render_batch(
     batch,
     max_steps,
     lanes,
+    shard,
 ):
-    """Traces pixel samples ``start .. start + batch`` (those below `total`) and adds them to `image`."""
+    """Traces pixel samples ``start .. start + batch`` (those below `total`) and adds them
+    to `image`; with `shard`, each JAX device traces its own slice of them (`batch` is a
+    multiple of the device count)."""
     ids = start + jnp.arange(batch, dtype=jnp.int32)
+    paths = functools.partial(
+        _paths,
+        tree,
+        albedo,
+        emission,
+        normals,
+        env,
+        camera,
+        key,
+        total,
+        bounces,
+        width=width,
+        height=height,
+        max_steps=max_steps,
+        lanes=lanes,
+    )
+    radiance, ended = on_each_device(paths, ids) if shard else paths(ids)
+    valid = ids < total
+    pixel = jnp.where(valid, ids % (width * height), width * height)
+    image = image.at[pixel].add(radiance, mode="drop")
+    carried = image, stopped + jnp.sum(ended & valid).astype(jnp.int32)
+    return jax.lax.with_sharding_constraint(carried, everywhere()) if shard else carried
+
+
+def _paths(tree, albedo, emission, normals, env, camera, key, total, bounces, ids, *, width, height, max_steps, lanes):
+    """Radiance [N, 3] and early ends [N] of the paths of pixel samples `ids` [N] (those
+    at or above `total` are not traced)."""
+    batch = ids.shape[0]
     valid = ids < total
     path, keys = camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
     path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
@@ -359,9 +391,7 @@ def _render_batch(
         )
 
     path = jax.lax.fori_loop(0, bounces + 1, segment, path)
-    pixel = jnp.where(valid, ids % (width * height), width * height)
-    image = image.at[pixel].add(path.radiance, mode="drop")
-    return image, stopped + jnp.sum(path.stopped & valid).astype(jnp.int32)
+    return path.radiance, path.stopped
 
 
 @functools.partial(jax.jit, static_argnames=("width", "height", "max_steps", "lanes"))
@@ -429,7 +459,8 @@ def render(
     key=0,
     batch_rays: int = 1 << 18,
     max_steps: int | None = None,
-    lanes: int | None = 16384,
+    lanes: int | None = 2048,
+    shard: bool = True,
     progress: bool | None = None,
 ) -> RenderResult:
     """Path-traces an image of a voxel octree or DAG (see the module docstring).
@@ -457,7 +488,11 @@ def render(
       batch_rays: pixel samples traced per batch (memory grows with it); the last batch
         is padded. Static, as is the image size: changing them recompiles (``spp``,
         ``bounces``, the camera, the key and the lighting's arrays do not).
-      max_steps, lanes: passed to `trace` for every ray.
+      max_steps, lanes: passed to `trace` for every ray (`lanes` per device).
+      shard: split each batch's paths across all JAX devices, each tracing its own
+        (configure one CPU device per core with
+        ``jax.config.update("jax_num_cpu_devices", os.cpu_count())`` before JAX starts;
+        the command line does). The image is the same up to float32 rounding.
       progress: show a progress bar over batches; None shows one on a terminal only.
 
     Returns:
@@ -493,9 +528,12 @@ def render(
         lanes = check_int("render lanes", lanes, minimum=1)
     key = as_key(key)
     total = width * height * spp
-    batch = min(int(batch_rays), total)
+    devices = len(jax.devices()) if shard else 1
+    batch = -(-min(int(batch_rays), total) // devices) * devices
     image = jnp.zeros((width * height, 3), jnp.float32)
     stopped = jnp.zeros((), jnp.int32)
+    if devices > 1:
+        image, stopped = jax.device_put((image, stopped), everywhere())
     n_batches = -(-total // batch)
     with progress_bar(n_batches, progress, "render") as bar:
         for b in range(n_batches):
@@ -517,6 +555,7 @@ def render(
                 batch=batch,
                 max_steps=steps,
                 lanes=lanes,
+                shard=devices > 1,
             )
             bar.update(1)
     depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)

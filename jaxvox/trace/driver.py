@@ -153,6 +153,25 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     )
 
 
+def on_each_device(fn, *arrays):
+    """``fn(*arrays)`` with each JAX device running it on its own equal slice of the
+    arrays' leading axis (a multiple of the device count); the outputs' slices are joined
+    along their leading axis. Whatever `fn` closes over is replicated."""
+    spec = jax.sharding.PartitionSpec("rays")
+    return jax.shard_map(fn, mesh=_mesh(), in_specs=(spec,) * len(arrays), out_specs=spec, check_vma=False)(*arrays)
+
+
+def everywhere() -> jax.sharding.NamedSharding:
+    """The sharding that replicates an array on every JAX device: what `on_each_device`'s
+    callers give the values they carry from call to call, so that every call sees the
+    same shardings and compiles once."""
+    return jax.sharding.NamedSharding(_mesh(), jax.sharding.PartitionSpec())
+
+
+def _mesh():
+    return jax.sharding.Mesh(np.array(jax.devices()), ("rays",))
+
+
 def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=None, index=None):
     """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`.
     With `beam` (a `beam_layout` of the flat rays), the rays start at their group's beam
@@ -178,19 +197,10 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
         # Each device traces its own slice of the rays with its own lanes and queue.
         pad = -n % len(devices)
         grow = lambda x: jnp.concatenate([x, jnp.zeros((pad,) + x.shape[1:], x.dtype)])
-        o, d, t_max = (grow(x) for x in (o, d, t_max))
-        mesh = jax.sharding.Mesh(np.array(devices), ("rays",))
-        spec = jax.sharding.PartitionSpec("rays")
         # Each device groups its own slice for the beam (the slices need not start at a
         # tile: a group of rays from two rows only gets a looser bound).
         local = None if beam is None else slice_layout(beam, (n + pad) // len(devices))
-        hits = jax.shard_map(
-            lambda a, b, c: run(structure, a, b, c, local),
-            mesh=mesh,
-            in_specs=(spec, spec, spec),
-            out_specs=spec,
-            check_vma=False,
-        )(o, d, t_max)
+        hits = on_each_device(lambda a, b, c: run(structure, a, b, c, local), grow(o), grow(d), grow(t_max))
         hits = jax.tree.map(lambda x: x[:n], hits)
     else:
         hits = run(structure, o, d, t_max, beam)
