@@ -294,6 +294,16 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         s = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), shard=False, **view)
         np.testing.assert_allclose(np.asarray(r.radiance), np.asarray(s.radiance), rtol=1e-5, atol=1e-6)
         assert int(r.stopped) == int(s.stopped) and float(np.asarray(r.radiance).max()) > 0
+        # One program serves every batch (each batch's image keeps its sharding).
+        import logging
+        logs = []
+        handler = logging.Handler()
+        handler.emit = lambda record: logs.append(record.getMessage())
+        logging.getLogger("jax").addHandler(handler)
+        jax.config.update("jax_log_compiles", True)
+        view.update(batch_rays=400)  # three batches
+        jax.block_until_ready(jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), **view))
+        assert sum("compilation of jit(_render_batch)" in m for m in logs) == 1, logs
         print("OK", int((np.asarray(a.status) == 0).sum()))
     """)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")

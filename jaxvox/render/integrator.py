@@ -322,23 +322,9 @@ def _render_batch(
     to `image`; with `shard`, each JAX device traces its own slice of them (`batch` is a
     multiple of the device count)."""
     ids = start + jnp.arange(batch, dtype=jnp.int32)
-    paths = functools.partial(
-        _paths,
-        tree,
-        albedo,
-        emission,
-        normals,
-        env,
-        camera,
-        key,
-        total,
-        bounces,
-        width=width,
-        height=height,
-        max_steps=max_steps,
-        lanes=lanes,
-    )
-    radiance, ended = on_each_device(paths, ids) if shard else paths(ids)
+    shared = (tree, albedo, emission, normals, env, camera, key, total, bounces)
+    paths = functools.partial(_paths, width=width, height=height, max_steps=max_steps, lanes=lanes)
+    radiance, ended = on_each_device(paths, shared, ids) if shard else paths(shared, ids)
     valid = ids < total
     pixel = jnp.where(valid, ids % (width * height), width * height)
     image = image.at[pixel].add(radiance, mode="drop")
@@ -346,9 +332,11 @@ def _render_batch(
     return jax.lax.with_sharding_constraint(carried, everywhere()) if shard else carried
 
 
-def _paths(tree, albedo, emission, normals, env, camera, key, total, bounces, ids, *, width, height, max_steps, lanes):
+def _paths(shared, ids, *, width, height, max_steps, lanes):
     """Radiance [N, 3] and early ends [N] of the paths of pixel samples `ids` [N] (those
-    at or above `total` are not traced)."""
+    at or above `total` are not traced); `shared` holds `_render_batch`'s arguments up to
+    `bounces`."""
+    tree, albedo, emission, normals, env, camera, key, total, bounces = shared
     batch = ids.shape[0]
     valid = ids < total
     path, keys = camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
@@ -394,12 +382,12 @@ def _paths(tree, albedo, emission, normals, env, camera, key, total, bounces, id
     return path.radiance, path.stopped
 
 
-@functools.partial(jax.jit, static_argnames=("width", "height", "max_steps", "lanes"))
-def _aovs(tree, camera, *, width, height, max_steps, lanes):
+@functools.partial(jax.jit, static_argnames=("width", "height", "max_steps", "lanes", "shard"))
+def _aovs(tree, camera, *, width, height, max_steps, lanes, shard):
     """Depth [H, W] and normal [H, W, 3] of the first voxel through each pixel centre."""
     j, i = jnp.meshgrid(jnp.arange(width), jnp.arange(height))
     d = camera_rays(camera, j.reshape(-1) + 0.5, i.reshape(-1) + 0.5, width=width, height=height)
-    hit = trace(tree, jnp.broadcast_to(camera[0], d.shape), d, max_steps=max_steps, lanes=lanes, shard=False)
+    hit = trace(tree, jnp.broadcast_to(camera[0], d.shape), d, max_steps=max_steps, lanes=lanes, shard=shard)
     is_hit = (hit.status == HIT)[:, None]
     depth = jnp.where(is_hit[:, 0], hit.t, jnp.inf).reshape(height, width)
     return depth, jnp.where(is_hit, hit.normal, 0.0).reshape(height, width, 3)
@@ -533,7 +521,11 @@ def render(
     image = jnp.zeros((width * height, 3), jnp.float32)
     stopped = jnp.zeros((), jnp.int32)
     if devices > 1:
-        image, stopped = jax.device_put((image, stopped), everywhere())
+        # Every device reads the whole tree and tables: placed on each once per call, not
+        # once per batch (a jit over all devices copies each argument that is not).
+        tree, albedo, emission, normals, env, image, stopped = jax.device_put(
+            (tree, albedo, emission, normals, env, image, stopped), everywhere()
+        )
     n_batches = -(-total // batch)
     with progress_bar(n_batches, progress, "render") as bar:
         for b in range(n_batches):
@@ -558,6 +550,6 @@ def render(
                 shard=devices > 1,
             )
             bar.update(1)
-    depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes)
+    depth, normal = _aovs(tree, camera, width=width, height=height, max_steps=steps, lanes=lanes, shard=devices > 1)
     radiance = jax.device_put(np.asarray(image).reshape(height, width, 3) / np.float32(spp))  # no program per size
     return RenderResult(radiance=radiance, depth=depth, normal=normal, stopped=stopped)

@@ -153,12 +153,13 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     )
 
 
-def on_each_device(fn, *arrays):
-    """``fn(*arrays)`` with each JAX device running it on its own equal slice of the
-    arrays' leading axis (a multiple of the device count); the outputs' slices are joined
-    along their leading axis. Whatever `fn` closes over is replicated."""
-    spec = jax.sharding.PartitionSpec("rays")
-    return jax.shard_map(fn, mesh=_mesh(), in_specs=(spec,) * len(arrays), out_specs=spec, check_vma=False)(*arrays)
+def on_each_device(fn, shared, *arrays):
+    """``fn(shared, *arrays)`` with each JAX device running it on its own equal slice of
+    the arrays' leading axis (a multiple of the device count) and all of `shared` (a
+    pytree); the outputs' slices are joined along their leading axis."""
+    split = jax.sharding.PartitionSpec("rays")
+    specs = (jax.sharding.PartitionSpec(),) + (split,) * len(arrays)
+    return jax.shard_map(fn, mesh=_mesh(), in_specs=specs, out_specs=split, check_vma=False)(shared, *arrays)
 
 
 def everywhere() -> jax.sharding.NamedSharding:
@@ -200,7 +201,7 @@ def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lane
         # Each device groups its own slice for the beam (the slices need not start at a
         # tile: a group of rays from two rows only gets a looser bound).
         local = None if beam is None else slice_layout(beam, (n + pad) // len(devices))
-        hits = on_each_device(lambda a, b, c: run(structure, a, b, c, local), grow(o), grow(d), grow(t_max))
+        hits = on_each_device(lambda s, a, b, c: run(s, a, b, c, local), structure, grow(o), grow(d), grow(t_max))
         hits = jax.tree.map(lambda x: x[:n], hits)
     else:
         hits = run(structure, o, d, t_max, beam)
