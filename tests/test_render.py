@@ -559,6 +559,29 @@ def test_shading_normals_keep_the_furnace_and_leave_every_face(scene):
         jv.render(tree, eye, target, normals=np.full((count, 3), np.nan), **SETTINGS)
 
 
+def test_device_tables_on_the_ladder_are_used_as_they_are(scene):
+    """Per-voxel tables: a host array is checked, padded to the voxel-list ladder and
+    copied once; a float32 device table already on the ladder is taken with no copy
+    (checked on the device), and one that is not valid still gets the host path's error."""
+    from jaxvox._shapes import voxel_bucket
+    from jaxvox.render.materials import normal_table, rgb_table
+
+    tree = scene[0]
+    rows, resolution = int(tree.voxel_count), tree.grid.resolution
+    host = np.random.default_rng(0).uniform(size=(rows, 3)).astype(np.float32)
+    albedo = lambda value: rgb_table("render albedo", value, rows, "voxel", (0.7, 0.7, 0.7), resolution)
+    table = albedo(host)
+    assert table.shape == (voxel_bucket(rows, resolution), 3) and table.shape[0] > rows
+    np.testing.assert_array_equal(np.asarray(table)[:rows], host)
+    assert not np.asarray(table)[rows:].any()
+    assert albedo(table) is table and normal_table("render normals", table, rows, resolution) is table
+    assert albedo(jnp.asarray(host)).shape == table.shape  # off the ladder: padded
+    with pytest.raises(jv.JaxvoxError, match="render albedo: must be finite and non-negative"):
+        albedo(-table)
+    with pytest.raises(jv.JaxvoxError, match="render normals: must be finite"):
+        normal_table("render normals", table.at[3, 1].set(jnp.inf), rows, resolution)
+
+
 def test_smooth_normals_on_a_staircase_see_the_sun():
     """A slab tilted 25 degrees, voxelized into a staircase, with the slab's own normals
     per voxel and a low sun 20 degrees above its top: the whole top is lit. Shadow rays

@@ -9,6 +9,7 @@ checks the renderers and environments share.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 
 import jax
@@ -38,6 +39,8 @@ def rgb_table(what: str, value, rows: int, per: str, default, resolution: int | 
     padded with zero rows to the voxel-list ladder (`voxel_bucket`), so that its length is
     not a new key of a compiled program for every tree."""
     expected = f"must be an RGB triple or a [{per}s, 3] array with at least {rows} rows"
+    if _ready(value, rows, resolution, nonnegative=True):
+        return value
     try:
         a = np.asarray(default if value is None else value, np.float32)
     except (TypeError, ValueError):
@@ -50,9 +53,7 @@ def rgb_table(what: str, value, rows: int, per: str, default, resolution: int | 
     bad = ~(np.isfinite(a) & (a >= 0))
     if bad.any():
         raise refuse(what, "must be finite and non-negative", a[bad][0])
-    if resolution is not None and a.shape[0] > 1:
-        a = np.concatenate([a, np.zeros((voxel_bucket(a.shape[0], resolution) - a.shape[0], 3), np.float32)])
-    return jnp.asarray(a)
+    return _to_device(a, resolution if a.shape[0] > 1 else None)
 
 
 def normal_table(what: str, value, rows: int, resolution: int) -> jax.Array:
@@ -60,6 +61,8 @@ def normal_table(what: str, value, rows: int, resolution: int) -> jax.Array:
     row: no shading normals) or a [V, 3] array of finite values, padded like `rgb_table`."""
     if value is None:
         return jnp.zeros((1, 3), jnp.float32)
+    if _ready(value, rows, resolution, nonnegative=False):
+        return value
     try:
         a = np.asarray(value, np.float32)
     except (TypeError, ValueError):
@@ -68,8 +71,33 @@ def normal_table(what: str, value, rows: int, resolution: int) -> jax.Array:
         raise refuse(what, f"must be a [voxels, 3] array with at least {rows} rows", f"shape {np.shape(value)}")
     if not np.isfinite(a).all():
         raise refuse(what, "must be finite", a[~np.isfinite(a)][0])
-    a = np.concatenate([a, np.zeros((voxel_bucket(a.shape[0], resolution) - a.shape[0], 3), np.float32)])
-    return jnp.asarray(a)
+    return _to_device(a, resolution)
+
+
+def _ready(value, rows: int, resolution: int | None, *, nonnegative: bool) -> bool:
+    """Whether `value` is a table the renderer takes as it is, with no copy: a float32
+    [n, 3] JAX array, n >= `rows` on the voxel-list ladder of `resolution`, all finite
+    (and non-negative). Other values take the host path, which also says what is wrong."""
+    if resolution is None or not isinstance(value, jax.Array) or value.dtype != jnp.float32:
+        return False
+    if value.ndim != 2 or value.shape[1] != 3 or value.shape[0] < max(rows, 2):
+        return False
+    return value.shape[0] == voxel_bucket(value.shape[0], resolution) and bool(_valid(value, nonnegative))
+
+
+@functools.partial(jax.jit, static_argnames="nonnegative")
+def _valid(table, nonnegative):
+    return jnp.all(jnp.isfinite(table) & ((table >= 0) | (not nonnegative)))
+
+
+def _to_device(a: np.ndarray, resolution: int | None) -> jax.Array:
+    """The [n, 3] float32 host table `a` on the device; with a grid `resolution`, padded
+    with zero rows to the voxel-list ladder (one host copy, then one transfer)."""
+    if resolution is None:
+        return jnp.asarray(a)
+    padded = np.zeros((voxel_bucket(a.shape[0], resolution), 3), np.float32)
+    padded[: a.shape[0]] = a
+    return jax.device_put(padded)
 
 
 def box_emission(vox, lo, hi, rgb) -> jax.Array:
