@@ -447,7 +447,7 @@ def render(
     key=0,
     batch_rays: int = 1 << 18,
     max_steps: int | None = None,
-    lanes: int | None = 2048,
+    lanes: int | None = 1024,
     shard: bool = True,
     progress: bool | None = None,
 ) -> RenderResult:
