@@ -474,8 +474,9 @@ def render(
       bounces: diffuse bounces after the first hit (the slides use 8).
       key: an int seed or a `jax.random` key; the same key and settings give the same image.
       batch_rays: pixel samples traced per batch (memory grows with it), rounded up to
-        a multiple of the device count when sharded; the last batch is padded. Static, as is the image size: changing them recompiles (``spp``,
-        ``bounces``, the camera, the key and the lighting's arrays do not).
+        a multiple of the device count when sharded; the last batch is padded. Static,
+        as is the image size: changing them recompiles (``spp``, ``bounces``, the
+        camera, the key and the lighting's arrays do not).
       max_steps, lanes: passed to `trace` for every ray (`lanes` per device).
       shard: split each batch's paths across all JAX devices, each tracing its own
         (configure one CPU device per core with
