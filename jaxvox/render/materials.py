@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._checks import check_type, check_vector, refuse
-from jaxvox._shapes import voxel_bucket
+from jaxvox._shapes import pad_rows, voxel_bucket
 from jaxvox.image import srgb_to_linear
 from jaxvox.voxelize import Voxels
 
@@ -95,9 +95,7 @@ def _to_device(a: np.ndarray, resolution: int | None) -> jax.Array:
     with zero rows to the voxel-list ladder (one host copy, then one transfer)."""
     if resolution is None:
         return jnp.asarray(a)
-    padded = np.zeros((voxel_bucket(a.shape[0], resolution), 3), np.float32)
-    padded[: a.shape[0]] = a
-    return jax.device_put(padded)
+    return jax.device_put(pad_rows(a, voxel_bucket(a.shape[0], resolution)))
 
 
 def box_emission(vox, lo, hi, rgb) -> jax.Array:
