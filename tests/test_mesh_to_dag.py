@@ -170,12 +170,13 @@ np.savez(sys.argv[5], **{f: np.asarray(getattr(dag, f)) for f in sys.argv[6].spl
 """
 
 
-def _run_processes(commands: list[list[str]]) -> None:
-    """Runs the commands at once (local processes); every one must succeed."""
+def _run_processes(commands: list[list[str]], **environ: str) -> None:
+    """Runs the commands at once (local processes, with `environ` added to this one's
+    environment); every one must succeed."""
     import os
     import subprocess
 
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **environ)
     workers = [
         subprocess.Popen(c, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in commands
     ]
@@ -219,7 +220,11 @@ def test_cli_build_with_two_processes_writes_the_same_file(meshes_dir, tmp_path)
     whole, split = tmp_path / "whole.jvx", tmp_path / "split.jvx"
     assert cli.main(["build", mesh_path, "--resolution", "32", "--out", str(whole)]) == 0
     command = [sys.executable, "-m", "jaxvox", "build", mesh_path, "--resolution", "32", "--region", "8"]
-    _run_processes([command + ["--processes", "2", "--out", str(split)]])
+    # One CPU device per process: JAX writes its persistent compilation cache from
+    # process 0 only (and process 1 found none of its entries, JAX_LOG_COMPILES), so
+    # process 1 compiles every program once per local device: 24 s with two devices
+    # against 10 s with one. Two devices per process, split four ways: the test above.
+    _run_processes([command + ["--processes", "2", "--out", str(split)]], JAX_NUM_CPU_DEVICES="1")
     assert split.read_bytes() == whole.read_bytes()
     with pytest.raises(SystemExit):
         cli.main(["build", mesh_path, "--processes", "two"])
