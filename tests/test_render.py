@@ -403,7 +403,9 @@ def test_cli_render_subprocess(tmp_path):
     """`python -m jaxvox render` of the default scene. Its scene, resolution and image are
     notebooks/04_render.py's smoke run (upright default scene with its colours, 32^3, 64x48,
     2 spp, 2 bounces, sky): both processes share the suite's compilation cache
-    ($JAXVOX_CACHE_DIR, set by conftest), so whichever runs second compiles nothing."""
+    ($JAXVOX_CACHE_DIR, set by conftest), so whichever runs second compiles nothing. The
+    command line would configure one CPU device per core (and shard, compiling other
+    programs); it runs on one device here, as the tests do."""
     out = tmp_path / "tiny.exr"
     result = subprocess.run(
         [
@@ -426,6 +428,7 @@ def test_cli_render_subprocess(tmp_path):
         text=True,
         timeout=600,
         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        env=dict(os.environ, JAX_NUM_CPU_DEVICES="1"),
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert out.exists() and (tmp_path / "tiny.png").exists()
