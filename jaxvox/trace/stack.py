@@ -36,7 +36,7 @@ class _Stacked(NamedTuple):
     stack_node: tuple  # D x [] int32 saved ancestors
     stack_child: tuple  # D x [] int32 their next child, -1 if none
     status: jax.Array  # [] int32
-    t_start: jax.Array  # [] float32 where the ray starts: going down enters the child the ray is in at max(entry, t_start)
+    t_start: jax.Array  # [] float32 where the ray starts: going down enters the child at max(entry, t_start)
 
 
 def stacked_init(tree: Octree, ray: Ray, t_start, status) -> _Stacked:
