@@ -64,7 +64,8 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     t_in, axis, push, status, row, high, parent = materialize(
         (t_in, axis, push, status, row, high, parent), opaque(tree)
     )
-    # PUSH: the cell is an occupied node; enter its child the ray is in at entry.
+    # PUSH: the cell is an occupied node; enter its child the ray is in at entry (or at
+    # t_start, when the ray starts inside the cell).
     pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, s.t_start))
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
     moved = tuple(jnp.where(axis == a, c + size, c) for a, c in enumerate(s.corner))

@@ -66,7 +66,8 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
     status = step_status((~popping & (t_in > ray.t_max)) | (popping & (s.level == 0)), live & (s.level == depth - 1))
     row = child_row(tree, s.node, slot)
     t_in, next_child, descend, status, row = jax.lax.optimization_barrier((t_in, next_child, descend, status, row))
-    # save the parent with its next child, go down; or pop one level
+    # save the parent with its next child, go down (to the grandchild the ray is in at
+    # entry, or at t_start when it starts inside the child); or pop one level
     first = slot_bits(first_cell(ray, child_corner, half >> 1, jnp.maximum(t_in, s.t_start)), shift - 1)
     up = jnp.maximum(s.level - 1, 0)
     pop = popping & (s.level > 0)
