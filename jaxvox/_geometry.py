@@ -117,7 +117,9 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     normal = np.cross(ab, ac)
     area2 = dot(normal, normal)
     proper = area2 > 0
-    den = np.where(proper, d00 * d11 - d01 * d01, 1.0)[:, None]
+    # |ab|^2 |ac|^2 - (ab . ac)^2 by Lagrange's identity: the cross product's norm, without
+    # the cancellation that makes the difference 0 for a sliver of nonzero area
+    den = np.where(proper, area2, 1.0)[:, None]
     keep = proper[:, None]
     u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
     v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)

@@ -91,6 +91,32 @@ def test_exact_matches_float64_on_hard_cases():
             assert err.max() <= above and err.min() >= -BOUNDS[method][1], (method, err.min(), err.max())
 
 
+def test_triangle_rows_of_slivers():
+    """`triangle_rows` of slivers (nonzero area, third vertex within 1e-9..1e-6 grid units
+    of the first edge's line): finite, no RuntimeWarning, and `rows_dist2` equals the
+    float64 closest-point distance. The dual basis once divided by |ab|^2 |ac|^2 -
+    (ab . ac)^2, which cancels to 0 for such triangles."""
+    import warnings
+
+    from jaxvox._geometry import rows_dist2, triangle_rows
+    from tests.reference import closest_point_on_triangles
+
+    rng = np.random.default_rng(1)
+    a, ab = rng.uniform(0, 16, (2000, 3)), rng.uniform(-8, 8, (2000, 3))
+    off = rng.uniform(-1, 1, (2000, 3)) * 10.0 ** rng.uniform(-9, -6, (2000, 1))
+    tris = np.stack([a, a + ab, a + ab * rng.uniform(0.05, 0.95, (2000, 1)) + off], 1)
+    assert (np.linalg.norm(np.cross(tris[:, 1] - a, tris[:, 2] - a), axis=1) > 0).all()
+    p = rng.uniform(-2, 18, (2000, 3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rows = triangle_rows(tris)
+    assert np.isfinite(rows).all()
+    zero = (jnp.float32(0),) * 3
+    d2 = jax.jit(rows_dist2)(tuple(jnp.asarray(p[:, k], jnp.float32) for k in range(3)), tuple(rows), zero)
+    ref = np.linalg.norm(p - closest_point_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2]), axis=1)
+    np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
+
+
 @pytest.mark.parametrize("method", list(BOUNDS))
 def test_point_sites_are_the_edt(method):
     """Zero-area triangles at voxel centres: the exact field is scipy's EDT of those voxels."""
