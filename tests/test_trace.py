@@ -287,6 +287,14 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         b = jv.trace(tree, z["o"][:1001], z["d"][:1001], shard=False)
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        # An image with the beam start: each device groups its own rows (12.8 rows each
+        # after the padding, 8 of them in whole bands of tiles): the hits of one device
+        # without the beam.
+        o2, d2 = jv.pinhole_rays((-20.0, -15.0, 40.0), z["ijk"].mean(0), width=40, height=37)
+        beamed, plain = jv.trace(tree, o2, d2, beam=True), jv.trace(tree, o2, d2, shard=False)
+        for x, y in zip(jax.tree.leaves(beamed), jax.tree.leaves(plain)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        assert (np.asarray(plain.status) == 0).sum() > 100
         # The renderer splits each batch's paths over the devices (1001 samples: a
         # batch that is not a multiple of 4): the same image up to float32 rounding.
         view = dict(width=13, height=11, spp=7, bounces=2, batch_rays=1001, lanes=64)
