@@ -26,10 +26,10 @@ class _Dda(NamedTuple):
     status: jax.Array  # [] int32
 
 
-def dda_init(dense: DenseGrid, ray: Ray, t_start, status) -> _Dda:
+def dda_init(dense: DenseGrid, ray: Ray, status) -> _Dda:
     corner, half = (jnp.int32(0),) * 3, dense.grid.resolution // 2
     while half >= 1:  # the voxel the ray is in at t_start, by the octree's tie rules
-        corner = first_cell(ray, corner, half, t_start)
+        corner = first_cell(ray, corner, half, ray.t_start)
         half //= 2
     return _Dda(corner, status)
 

@@ -27,23 +27,23 @@ _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
 }
 
 
-def _vmapped(structure, rays: Ray, t_start, status, method: str, max_steps: int):
+def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
     """One lane per ray: a vmapped while loop. Returns (status [N], voxel [N, 3])."""
     init, step, voxel = _METHODS[method]
 
-    def one(ray, t0, st):
+    def one(ray, st):
         def cond(c):
             return (c[0].status == RUNNING) & (c[1] < max_steps)
 
         s, _ = jax.lax.while_loop(
-            cond, lambda c: (step(structure, ray, c[0]), c[1] + 1), (init(structure, ray, t0, st), jnp.int32(0))
+            cond, lambda c: (step(structure, ray, c[0]), c[1] + 1), (init(structure, ray, st), jnp.int32(0))
         )
         return jnp.where(s.status == RUNNING, STEP_CAP, s.status), jnp.stack(voxel(structure, s))
 
-    return jax.vmap(one)(rays, t_start, status)
+    return jax.vmap(one)(rays, status)
 
 
-def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 4):
+def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 4):
     """Persistent lanes fed from a queue of the rays that enter the grid box.
 
     Returns (status [N], voxel [N, 3] mirrored).
@@ -57,13 +57,13 @@ def _lanes(structure, rays: Ray, t_start, status, method: str, max_steps: int, l
         .set(jnp.arange(n, dtype=jnp.int32))[:n]
     )
     queued = jnp.sum(running)
-    lane_init = jax.vmap(lambda ray, t0, st: init(structure, ray, t0, st))
+    lane_init = jax.vmap(lambda ray, st: init(structure, ray, st))
     lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
-    take = lambda ids: jax.tree.map(lambda a: a[ids], (rays, t_start, status))
+    take = lambda ids: jax.tree.map(lambda a: a[ids], (rays, status))
 
     def fetch(ids, valid):
-        ray, t0, st = take(jnp.where(valid, ids, 0))
-        return ray, lane_init(ray, t0, jnp.where(valid, st, MISS))
+        ray, st = take(jnp.where(valid, ids, 0))
+        return ray, lane_init(ray, jnp.where(valid, st, MISS))
 
     class Carry(NamedTuple):
         ids: jax.Array  # [W] int32 ray of each lane, n when idle
@@ -128,15 +128,15 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With a beam
     `layout` (or None), the rays start at their group's beam distance."""
     res = structure.grid.resolution
-    rays, t_start, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
+    rays, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
     if layout is not None and o.shape[0] > 0:
         t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
-        t_start = jnp.maximum(t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam))
+        rays = rays._replace(t_start=jnp.maximum(rays.t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam)))
     if lanes is None or o.shape[0] == 0:
-        status, cell = _vmapped(structure, rays, t_start, status, method, max_steps)
+        status, cell = _vmapped(structure, rays, status, method, max_steps)
     else:
-        status, cell = _lanes(structure, rays, t_start, status, method, max_steps, min(lanes, o.shape[0]))
+        status, cell = _lanes(structure, rays, status, method, max_steps, min(lanes, o.shape[0]))
     hit = status == HIT
     t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
     t_in = max3(t0)

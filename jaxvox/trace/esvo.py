@@ -36,13 +36,12 @@ class _Esvo(NamedTuple):
     parent: jax.Array  # [] int32 row of the node the cell belongs to
     stack: tuple  # D x [] int32 stack[l]: row of the level-l node on the current path
     status: jax.Array  # [] int32
-    t_start: jax.Array  # [] float32 where the ray starts: a PUSH enters the child the ray is in at max(entry, t_start)
 
 
-def esvo_init(tree: Octree, ray: Ray, t_start, status) -> _Esvo:
+def esvo_init(tree: Octree, ray: Ray, status) -> _Esvo:
     res = tree.grid.resolution
-    corner = first_cell(ray, (jnp.int32(0),) * 3, res // 2, t_start)
-    return _Esvo(jnp.int32(1), corner, root_row(tree), (root_row(tree),) * tree.depth, status, t_start)
+    corner = first_cell(ray, (jnp.int32(0),) * 3, res // 2, ray.t_start)
+    return _Esvo(jnp.int32(1), corner, root_row(tree), (root_row(tree),) * tree.depth, status)
 
 
 def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
@@ -66,7 +65,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     )
     # PUSH: the cell is an occupied node; enter its child the ray is in at entry (or at
     # t_start, when the ray starts inside the cell).
-    pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, s.t_start))
+    pushed = first_cell(ray, s.corner, size >> 1, jnp.maximum(t_in, ray.t_start))
     # ADVANCE across the nearest exit plane; POP to the cell of the highest changed bit.
     moved = tuple(jnp.where(axis == a, c + size, c) for a, c in enumerate(s.corner))
     popped = vec(lambda c: c & -jnp.left_shift(1, high), moved)
@@ -76,7 +75,6 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
         parent=parent,
         stack=stack_set(s.stack, s.level, row, push),
         status=status,
-        t_start=s.t_start,
     )
     return settle(s, stepped, status)
 

@@ -23,6 +23,7 @@ class Ray(NamedTuple):
     inv: tuple  # 3 x [] float32 1 / |d|, at most 2^100
     flip: jax.Array  # [] int32 bit a set when direction a is negative
     t_max: jax.Array  # [] float32
+    t_start: jax.Array  # [] float32 where the traversal starts (the grid entry, or a beam start)
 
 
 def vec(f, *vectors):
@@ -49,7 +50,8 @@ def argmin3(v):
 
 
 def setup_ray(o, d, t_max, res: int):
-    """Mirrors one ray ([3] origin and direction); returns (ray, entry t, initial status).
+    """Mirrors one ray ([3] origin and direction); returns (ray, initial status), the ray
+    starting where it enters the grid.
 
     Works per axis: batched over rays, XLA's CPU code for [N, 3] arrays reduced over the
     last axis is several times slower than the same maths on three [N] arrays.
@@ -65,7 +67,7 @@ def setup_ray(o, d, t_max, res: int):
     enters = (t_in < t_out) & (t_out > 0) & (t_in <= t_max) & ~bad
     status = jnp.where(enters, RUNNING, jnp.where(bad, INVALID, MISS)).astype(jnp.int32)
     flip = neg[0].astype(jnp.int32) | neg[1].astype(jnp.int32) << 1 | neg[2].astype(jnp.int32) << 2
-    return Ray(o, inv, flip, t_max), jnp.maximum(t_in, 0.0), status
+    return Ray(o, inv, flip, t_max, jnp.maximum(t_in, 0.0)), status
 
 
 def times(ray: Ray, planes):

@@ -36,15 +36,14 @@ class _Stacked(NamedTuple):
     stack_node: tuple  # D x [] int32 saved ancestors
     stack_child: tuple  # D x [] int32 their next child, -1 if none
     status: jax.Array  # [] int32
-    t_start: jax.Array  # [] float32 where the ray starts: going down enters the child at max(entry, t_start)
 
 
-def stacked_init(tree: Octree, ray: Ray, t_start, status) -> _Stacked:
+def stacked_init(tree: Octree, ray: Ray, status) -> _Stacked:
     res, depth = tree.grid.resolution, tree.depth
     zero = (jnp.int32(0),) * 3
-    child = slot_bits(first_cell(ray, zero, res // 2, t_start), depth - 1)
+    child = slot_bits(first_cell(ray, zero, res // 2, ray.t_start), depth - 1)
     zeros = (jnp.int32(0),) * depth
-    return _Stacked(jnp.int32(0), root_row(tree), zero, child, zeros, zeros, status, t_start)
+    return _Stacked(jnp.int32(0), root_row(tree), zero, child, zeros, zeros, status)
 
 
 def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
@@ -68,7 +67,7 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
     t_in, next_child, descend, status, row = jax.lax.optimization_barrier((t_in, next_child, descend, status, row))
     # save the parent with its next child, go down (to the grandchild the ray is in at
     # entry, or at t_start when it starts inside the child); or pop one level
-    first = slot_bits(first_cell(ray, child_corner, half >> 1, jnp.maximum(t_in, s.t_start)), shift - 1)
+    first = slot_bits(first_cell(ray, child_corner, half >> 1, jnp.maximum(t_in, ray.t_start)), shift - 1)
     up = jnp.maximum(s.level - 1, 0)
     pop = popping & (s.level > 0)
     up_mask = -jnp.left_shift(1, depth - up)
@@ -80,7 +79,6 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
         stack_node=stack_set(s.stack_node, s.level, s.node, descend),
         stack_child=stack_set(s.stack_child, s.level, next_child, descend),
         status=status,
-        t_start=s.t_start,
     )
     return settle(s, stepped, status)
 
