@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
+from jaxvox._shapes import voxel_bucket
 from jaxvox.octree.host import unique_rows as _unique_rows
+from jaxvox.render.materials import normal_table
 
 MESHES = ["stanford-bunny", "spot", "teapot", "suzanne", "fandisk", "cow", "woody", "beetle"]
 FIELDS = ("mask", "child", "prefix", "level_count", "voxel_count", "overflow", "level_capacity")
@@ -234,7 +236,9 @@ def test_cli_build_with_two_processes_writes_the_same_file(meshes_dir, tmp_path)
 def test_attributes_go_to_files_region_by_region(meshes_dir, tmp_path):
     """``mesh_to_dag(..., attributes=folder)``: the same DAG, and attributes written region
     by region as read-only memmaps equal to `voxel_attributes` of the whole voxel list
-    (spot has colours); `voxel_index` addresses them; a missing or used folder is refused."""
+    (spot has colours); `voxel_index` addresses them; each file holds zero rows up to the
+    voxel-list ladder, which the renderer's tables take without a copy (a plain array of
+    the same rows is copied); a missing or used folder is refused."""
     mesh = jv.load_mesh(meshes_dir / "spot.obj")
     grid = jv.Grid.fit(mesh, 64)
     vox = jv.voxelize(mesh, grid, triangle_ids=True)
@@ -247,6 +251,14 @@ def test_attributes_go_to_files_region_by_region(meshes_dir, tmp_path):
         assert isinstance(value, np.memmap) and not value.flags.writeable
         np.testing.assert_array_equal(value, np.asarray(want[key])[: int(vox.count)], err_msg=key)
         np.testing.assert_array_equal(value[index], np.asarray(want[key])[: int(vox.count)], err_msg=key)
+        capacity = voxel_bucket(int(vox.count), grid.resolution)
+        whole = np.fromfile(tmp_path / key, value.dtype).reshape((-1,) + value.shape[1:])
+        assert len(whole) == capacity > len(value) and not whole[len(value) :].any(), key
+    table = normal_table("normals", attributes["normal"], int(vox.count), grid.resolution)
+    assert table.shape == (capacity, 3) and np.shares_memory(table, attributes["normal"])
+    copied = normal_table("normals", np.array(attributes["normal"]), int(vox.count), grid.resolution)
+    np.testing.assert_array_equal(copied, table)
+    assert not np.shares_memory(copied, attributes["normal"])
     with pytest.raises(jv.JaxvoxError, match="already holds"):
         jv.mesh_to_dag(mesh, grid, attributes=tmp_path)
     with pytest.raises(jv.JaxvoxError, match="existing folder"):

@@ -563,9 +563,11 @@ def test_shading_normals_keep_the_furnace_and_leave_every_face(scene):
 
 
 def test_device_tables_on_the_ladder_are_used_as_they_are(scene):
-    """Per-voxel tables: a host array is checked, padded to the voxel-list ladder and
-    copied once; a float32 device table already on the ladder is taken with no copy
-    (checked on the device), and one that is not valid still gets the host path's error."""
+    """Per-voxel tables: a host array is checked and padded to the voxel-list ladder on
+    the host, for `render` to place (a memmap whose file holds the ladder's rows is not
+    copied: tests/test_mesh_to_dag.py); a float32 device table already on the ladder is
+    taken with no copy (checked on the device), and one that is not valid still gets the
+    host path's error."""
     from jaxvox._shapes import voxel_bucket
     from jaxvox.render.materials import normal_table, rgb_table
 
@@ -574,15 +576,17 @@ def test_device_tables_on_the_ladder_are_used_as_they_are(scene):
     host = np.random.default_rng(0).uniform(size=(rows, 3)).astype(np.float32)
     albedo = lambda value: rgb_table("render albedo", value, rows, "voxel", (0.7, 0.7, 0.7), resolution)
     table = albedo(host)
-    assert table.shape == (voxel_bucket(rows, resolution), 3) and table.shape[0] > rows
-    np.testing.assert_array_equal(np.asarray(table)[:rows], host)
-    assert not np.asarray(table)[rows:].any()
-    assert albedo(table) is table and normal_table("render normals", table, rows, resolution) is table
+    assert isinstance(table, np.ndarray) and table.shape == (voxel_bucket(rows, resolution), 3)
+    assert table.shape[0] > rows and not np.shares_memory(table, host)
+    np.testing.assert_array_equal(table[:rows], host)
+    assert not table[rows:].any()
+    device = jnp.asarray(table)
+    assert albedo(device) is device and normal_table("render normals", device, rows, resolution) is device
     assert albedo(jnp.asarray(host)).shape == table.shape  # off the ladder: padded
     with pytest.raises(jv.JaxvoxError, match="render albedo: must be finite and non-negative"):
-        albedo(-table)
+        albedo(-device)
     with pytest.raises(jv.JaxvoxError, match="render normals: must be finite"):
-        normal_table("render normals", table.at[3, 1].set(jnp.inf), rows, resolution)
+        normal_table("render normals", device.at[3, 1].set(jnp.inf), rows, resolution)
 
 
 def test_smooth_normals_on_a_staircase_see_the_sun():

@@ -280,8 +280,9 @@ class _Spool:
     """Per-voxel attribute arrays appended region by region to raw files in `folder`, so
     that they never need to fit in memory; `arrays` maps them back (read-only memmaps)."""
 
-    def __init__(self, folder: str):
+    def __init__(self, folder: str, resolution: int):
         self.folder = folder
+        self.resolution = resolution
         self.layout: dict[str, tuple[np.dtype, tuple[int, ...]]] = {}  # dtype and row shape per name
         self.rows = 0
 
@@ -293,12 +294,20 @@ class _Spool:
         self.rows += len(next(iter(attributes.values())))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        return {
-            key: np.memmap(os.path.join(self.folder, key), dtype, "r", shape=(self.rows, *shape))
-            if self.rows
-            else np.zeros((0, *shape), dtype)
-            for key, (dtype, shape) in self.layout.items()
-        }
+        """The files as [V, ...] read-only memmaps. Each file is first extended with zero
+        rows (a sparse tail: no disk written) to the voxel-list ladder, and the memmap is
+        the leading V rows of a map of all of them: `render` takes such a table on the
+        ladder as it is, with no copy (`jaxvox.render.materials`)."""
+        capacity = voxel_bucket(self.rows, self.resolution)
+        arrays = {}
+        for key, (dtype, shape) in self.layout.items():
+            if not self.rows:
+                arrays[key] = np.zeros((0, *shape), dtype)
+                continue
+            path = os.path.join(self.folder, key)
+            os.truncate(path, capacity * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize)
+            arrays[key] = np.memmap(path, dtype, "r", shape=(capacity, *shape))[: self.rows]
+        return arrays
 
 
 def dag_with_attributes(
@@ -323,7 +332,7 @@ def dag_with_attributes(
     for name in ("triangle", "normal", "color"):
         if os.path.exists(os.path.join(folder, name)):
             raise refuse(f"{caller} attributes", f"already holds a file {name!r}", folder)
-    spool = _Spool(folder)
+    spool = _Spool(folder, grid.resolution)
     parts: list[tuple[int, dict[str, np.ndarray]]] = []  # (region position, attributes), distributed
 
     def attributes_of(vox: Voxels) -> dict[str, np.ndarray]:
@@ -419,7 +428,9 @@ def mesh_to_dag(
         Morton order, to one raw file per attribute there, so that they need not fit in
         memory; the call then returns ``(dag, attributes)``, the attributes as read-only
         `numpy.memmap` arrays [voxel_count, ...] of those files, which `voxel_index`
-        addresses and `save` writes without loading them. With `distributed` each
+        addresses and `save` writes without loading them. Each file ends in zero rows up
+        to the voxel-list ladder, so that `render` takes the normals (or an albedo) as
+        its table with no copy. With `distributed` each
         process gathers them in memory and writes its own folder.
 
     Returns:

@@ -468,6 +468,9 @@ def render(
         of `voxel_attributes` (the face normal of the triangle that set the voxel);
         rows of zeros fall back to the face normal, and a normal is turned to the side
         the ray came from. Bounces still leave through the entered face (see `shade`).
+        Host tables are checked and placed on the devices on every call; the memmaps of
+        `mesh_to_dag`'s ``attributes`` are placed without a copy (their files hold the
+        rows of the voxel-list ladder), other host arrays are copied once per call.
       width, height: image size in pixels.
       fov: vertical field of view in degrees; up: approximate up direction [3].
       spp: samples (paths) per pixel.
@@ -523,10 +526,14 @@ def render(
     stopped = jnp.zeros((), jnp.int32)
     if devices > 1:
         # Every device reads the whole tree and tables: placed on each once per call, not
-        # once per batch (a jit over all devices copies each argument that is not).
+        # once per batch (a jit over all devices copies each argument that is not). A host
+        # table goes on all of them at once: on CPU that aliases it instead of copying it
+        # (a table first placed on one device would be copied to the others).
         tree, albedo, emission, normals, env, image, stopped = jax.device_put(
             (tree, albedo, emission, normals, env, image, stopped), everywhere()
         )
+    else:
+        albedo, emission, normals = jax.device_put((albedo, emission, normals))
     n_batches = -(-total // batch)
     with progress_bar(n_batches, progress, "render") as bar:
         for b in range(n_batches):
