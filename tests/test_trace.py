@@ -381,3 +381,27 @@ def test_beam_groups_round_trip():
         else:
             first = np.arange(n - 7) // BEAM_RAYS * BEAM_RAYS
         np.testing.assert_array_equal(np.asarray(firsts)[: n - 7], first + 1)
+
+
+@pytest.mark.parametrize("n, chunk, share", [(0, 4, 0.5), (1, 4, 1.0), (37, 8, 0.0), (37, 8, 0.3), (37, 8, 1.0), (64, 16, 0.5)])
+def test_on_marked_runs_the_marked_rows_only(n, chunk, share):
+    """`on_marked` gives ``fn(rows)`` on the marked rows and the fill elsewhere, for no,
+    some and all rows marked and chunks that do or do not divide the rows, and never
+    calls `fn` on more chunks than the marked rows fill."""
+    import jax.numpy as jnp
+
+    from jaxvox.trace.hit import on_marked
+
+    rng = np.random.default_rng(n + chunk)
+    rows = rng.integers(-50, 50, (n, 3)).astype(np.int32)
+    marked = rng.uniform(size=n) < share
+    calls = []
+
+    def fn(r):
+        calls.append(r.shape)
+        return r[:, 0] * 7 + r[:, 2]
+
+    run = jax.jit(lambda m, r: on_marked(fn, m, r, jnp.int32(-99), chunk))
+    got = np.asarray(run(marked, rows))
+    np.testing.assert_array_equal(got, np.where(marked, rows[:, 0] * 7 + rows[:, 2], -99))
+    assert got.dtype == np.int32 and calls == ([(chunk, 3)] if n else [])  # traced once, inside the loop

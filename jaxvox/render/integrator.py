@@ -63,9 +63,12 @@ from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
-from jaxvox.trace.driver import everywhere, on_each_device
+from jaxvox.trace.api import hit_indices
+from jaxvox.trace.driver import everywhere, on_each_device, trace_rays
+from jaxvox.trace.hit import on_marked
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
+_CORNER_CHUNK = 4096  # hits on a voxel edge or corner checked per walk of `occupied` (see `_voxel_surface`)
 # Shadow rays from a voxel with a smooth shading normal start this many voxel edges
 # above the hit along it: from the face itself, a ray toward a light low over a smooth
 # surface meets the surface's own staircase of voxels (shadow acne). Bunny, 1024^3,
@@ -166,7 +169,12 @@ def _voxel_surface(tree: Octree | CompactDag, origin, direction, hit, normals) -
     incoming = jnp.where(direction > 0, v, v + 1)
     touching = (n != 0) | (jnp.abs(p - incoming) <= _OFFSET)
     diagonal = jnp.where(touching, v + 0.5 - jnp.sign(direction) * (0.5 + _OFFSET), inside)
-    blocked = occupied(tree, jnp.floor(across).astype(jnp.int32))
+    # A ray through the interior of the entered face came from the voxel across it, so
+    # only hits on an edge or corner of the voxel can find that voxel occupied: the
+    # lookups (a walk down the tree each) run on those alone.
+    corner = is_hit & (jnp.sum(touching, axis=-1) >= 2)
+    cells = jnp.floor(across).astype(jnp.int32)
+    blocked = on_marked(lambda c: occupied(tree, c), corner, cells, jnp.bool_(False), _CORNER_CHUNK)
     p = jnp.where(blocked[:, None], diagonal, across)
     point = grid.origin + p * grid.voxel_size
     live = valid_rays(origin, direction)
@@ -341,14 +349,22 @@ def _paths(shared, ids, *, width, height, max_steps, lanes):
     valid = ids < total
     path, keys = camera_path(camera, key, jnp.where(valid, ids, 0), width=width, height=height)
     path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
-    go = functools.partial(trace, tree, method="esvo", max_steps=max_steps, lanes=lanes, shard=False, beam=False)
+    # Morton indices of the hits only where a table has a row per voxel (shadow rays
+    # never need them): each is a walk down the tree.
+    indexed = max(albedo.shape[0], emission.shape[0], normals.shape[0]) > 1
+
+    def go(origin, direction, indexed):
+        index = hit_indices if indexed else None
+        return trace_rays(
+            tree, origin, direction, jnp.inf, method="esvo", max_steps=max_steps, lanes=lanes, shard=False, index=index
+        )
 
     # One segment program for every vertex (the first one too: `first` is traced) and one
     # traversal for all its shadow rays: each traversal written into the program costs
     # its compile time again.
     def segment(k, path):
         first, last = k == 0, k >= bounces
-        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction), normals)
+        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction, indexed), normals)
         shadow = shadow_origins(tree, surf) if env.sun or env.sampled else surf.point
         towards = []  # shadow ray directions: to the sun, to the environment sample
         if env.sun:
@@ -359,7 +375,7 @@ def _paths(shared, ids, *, width, height, max_steps, lanes):
             towards.append(d)
         visible, light = jnp.zeros(batch, jnp.float32), None
         if towards:
-            hits = go(jnp.concatenate([shadow] * len(towards)), jnp.concatenate(towards)).status
+            hits = go(jnp.concatenate([shadow] * len(towards)), jnp.concatenate(towards), False).status
             escaped = jnp.split((hits != HIT).astype(jnp.float32), len(towards))
             if env.sun:
                 visible = escaped[0]

@@ -18,7 +18,7 @@ from jaxvox.octree.queries import check_indexed
 from jaxvox.trace.beam import beam_layout
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
-from jaxvox.trace.hit import HIT, Hit, default_max_steps
+from jaxvox.trace.hit import HIT, Hit, default_max_steps, on_marked
 
 TRACE_METHODS = ("esvo", "stack")  # `trace` methods
 
@@ -91,38 +91,19 @@ def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard,
         lanes=lanes,
         shard=shard,
         beam=beam,
-        index=_hit_indices if indexed else lambda tree, hit: jnp.full_like(hit.status, MISSING),
+        index=hit_indices if indexed else lambda tree, hit: jnp.full_like(hit.status, MISSING),
     )
 
 
 _INDEX_CHUNK = 16384
 
 
-def _hit_indices(tree, hit: Hit):
-    """`voxel_index` of the hit voxels only ([...] int32, `MISSING` elsewhere): the hits
-    are compacted and looked up in chunks of `_INDEX_CHUNK`, so the walks cost what the
-    hits cost, not what the rays cost (an image of the bunny: 14% of its rays hit)."""
-    shape = hit.status.shape
+def hit_indices(tree, hit: Hit):
+    """`voxel_index` of the hit voxels only ([...] int32, `MISSING` elsewhere), looked up
+    `on_marked` in chunks of `_INDEX_CHUNK`."""
     hits, voxel = hit.status.reshape(-1) == HIT, hit.voxel.reshape(-1, 3)
-    n = hits.shape[0]
-    size = n + -n % _INDEX_CHUNK
-    order = (
-        jnp.zeros(size, jnp.int32)
-        .at[jnp.where(hits, jnp.cumsum(hits) - 1, size)]
-        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
-    )
-    count = jnp.sum(hits)
-
-    def chunk(carry):
-        k, index = carry
-        ids = jax.lax.dynamic_slice(order, (k * _INDEX_CHUNK,), (_INDEX_CHUNK,))
-        live = k * _INDEX_CHUNK + jnp.arange(_INDEX_CHUNK) < count
-        found = voxel_index(tree, jnp.maximum(voxel[ids], 0))
-        return k + 1, index.at[jnp.where(live, ids, n)].set(found, mode="drop")
-
-    index = jnp.full(n, MISSING, jnp.int32)
-    _, index = jax.lax.while_loop(lambda c: c[0] * _INDEX_CHUNK < count, chunk, (jnp.int32(0), index))
-    return index.reshape(shape)
+    lookup = lambda v: voxel_index(tree, jnp.maximum(v, 0))
+    return on_marked(lookup, hits, voxel, jnp.int32(MISSING), _INDEX_CHUNK).reshape(hit.status.shape)
 
 
 def trace(

@@ -1,5 +1,6 @@
-"""The `Hit` result of the traversals, its statuses (`HIT`, `MISS`, `STEP_CAP`, `INVALID`)
-and the ray checks and step cap shared with the renderer."""
+"""The `Hit` result of the traversals, its statuses (`HIT`, `MISS`, `STEP_CAP`, `INVALID`),
+the ray checks and step cap shared with the renderer, and `on_marked` (a per-ray lookup
+run on the marked rays only)."""
 
 from __future__ import annotations
 
@@ -75,3 +76,39 @@ def default_max_steps(tree: Octree | CompactDag) -> int:
     """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
     ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
     return 6 * tree.grid.resolution + 16 * tree.depth
+
+
+def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: int) -> jax.Array:
+    """``fn(rows[i])`` where ``marked[i]``, `fill` elsewhere: [N] of `fill`'s dtype.
+
+    `fn` maps [chunk, ...] rows to [chunk] values (a walk down a tree, say). The marked
+    rows are compacted and `fn` runs on `chunk` of them at a time inside a `while_loop`
+    that runs as many chunks as there are marked rows, so the lookups cost what the
+    marked rows cost, not what all N cost (an image of the bunny: 14% of the rays hit).
+
+    Args:
+      fn: jittable [chunk, ...] -> [chunk].
+      marked: [N] bool.
+      rows: [N, ...] the per-ray inputs of `fn`.
+      fill: [] the value of the unmarked rays (its dtype is the result's).
+      chunk: rows per call of `fn` (static).
+    """
+    n = marked.shape[0]
+    if n == 0:
+        return jnp.full(0, fill)
+    size = n + -n % chunk
+    order = (
+        jnp.zeros(size, jnp.int32)
+        .at[jnp.where(marked, jnp.cumsum(marked) - 1, size)]
+        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+    )
+    count = jnp.sum(marked)
+
+    def body(carry):
+        k, out = carry
+        ids = jax.lax.dynamic_slice(order, (k * chunk,), (chunk,))
+        live = k * chunk + jnp.arange(chunk) < count
+        return k + 1, out.at[jnp.where(live, ids, n)].set(fn(rows[ids]), mode="drop")
+
+    out = jnp.full(n, fill)
+    return jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.int32(0), out))[1]
