@@ -27,6 +27,13 @@ from typing import Any
 # measures device counts sets its own (bench_trace ``--devices``, distributed_build).
 os.environ.setdefault("JAX_NUM_CPU_DEVICES", str(os.cpu_count() or 1))
 
+# Every experiment (and its workers, which inherit the environment) runs with glibc's
+# malloc asking for transparent huge pages, as the `jaxvox` command does: see
+# `jaxvox.cli.ask_for_huge_pages` (the script starts again once, before any work).
+from jaxvox.cli import ask_for_huge_pages  # noqa: E402
+
+ask_for_huge_pages()
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
 RESULTS_DIR = REPO_ROOT / "experiments" / "results"

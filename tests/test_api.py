@@ -262,3 +262,23 @@ def test_cli_errors_are_one_line(capsys):
     assert len(err) == 1 and "not found" in err[0]
     assert main(["voxelize", "--resolution", "100"]) == 2
     assert "power of two" in capsys.readouterr().err
+
+
+def test_the_command_runs_itself_again_with_huge_pages():
+    """`jaxvox.cli.ask_for_huge_pages` starts the same command line again with glibc's
+    huge-page tunable added to the ones already set, once (on glibc; elsewhere it does
+    nothing)."""
+    import os
+    import platform
+    import subprocess
+    import sys
+
+    from jaxvox.cli import HUGE_PAGES
+
+    script = "from jaxvox.cli import ask_for_huge_pages as a; print('start', flush=True); a(); import os; print(os.environ['GLIBC_TUNABLES'])"
+    env = dict(os.environ, GLIBC_TUNABLES="glibc.malloc.check=0")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True).stdout
+    if platform.libc_ver()[0] != "glibc":
+        assert out.split() == ["start", "glibc.malloc.check=0"]
+    else:
+        assert out.split() == ["start", "start", f"glibc.malloc.check=0:{HUGE_PAGES}"]
