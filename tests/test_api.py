@@ -275,7 +275,10 @@ def test_the_command_runs_itself_again_with_huge_pages():
 
     from jaxvox.cli import HUGE_PAGES
 
-    script = "from jaxvox.cli import ask_for_huge_pages as a; print('start', flush=True); a(); import os; print(os.environ['GLIBC_TUNABLES'])"
+    script = (
+        "from jaxvox.cli import ask_for_huge_pages as a; print('start', flush=True); a(); "
+        "import os; print(os.environ['GLIBC_TUNABLES'])"
+    )
     env = dict(os.environ, GLIBC_TUNABLES="glibc.malloc.check=0")
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True).stdout
     if platform.libc_ver()[0] != "glibc":

@@ -383,7 +383,9 @@ def test_beam_groups_round_trip():
         np.testing.assert_array_equal(np.asarray(firsts)[: n - 7], first + 1)
 
 
-@pytest.mark.parametrize("n, chunk, share", [(0, 4, 0.5), (1, 4, 1.0), (37, 8, 0.0), (37, 8, 0.3), (37, 8, 1.0), (64, 16, 0.5)])
+@pytest.mark.parametrize(
+    "n, chunk, share", [(0, 4, 0.5), (1, 4, 1.0), (37, 8, 0.0), (37, 8, 0.3), (37, 8, 1.0), (64, 16, 0.5)]
+)
 def test_on_marked_runs_the_marked_rows_only(n, chunk, share):
     """`on_marked` gives ``fn(rows)`` on the marked rows and the fill elsewhere, for no,
     some and all rows marked and chunks that do or do not divide the rows, and never
