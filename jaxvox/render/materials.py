@@ -104,7 +104,7 @@ def _on_ladder(a: np.ndarray, resolution: int | None) -> np.ndarray:
     if resolution is None:
         return a
     rows = voxel_bucket(a.shape[0], resolution)
-    base = a
+    base: object = a
     while isinstance(base, np.ndarray) and a.flags.c_contiguous:
         if (
             base.dtype == a.dtype
