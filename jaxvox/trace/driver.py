@@ -43,8 +43,9 @@ def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
     return jax.vmap(one)(rays, status)
 
 
-def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 4):
-    """Persistent lanes fed from a queue of the rays that enter the grid box.
+def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 8):
+    """Persistent lanes fed from a queue of the rays that enter the grid box; each round of
+    the loop runs `steps_per_refill` steps, then refills the lanes if enough have ended.
 
     Returns (status [N], voxel [N, 3] mirrored).
     """
