@@ -26,7 +26,7 @@ docs: $(STAMP)  ## the documentation site (mkdocs, API reference from the docstr
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 test: $(STAMP)  ## the whole test suite (slow checks run at a small size unless JAXVOX_SLOW_SCALE=full)
-	$(PY) -m pytest -q
+	GLIBC_TUNABLES=glibc.malloc.hugetlb=1 $(PY) -m pytest -q  # huge pages, as the jaxvox command (jaxvox.cli)
 
 $(VENV)/.bench-installed: $(STAMP)
 	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \

@@ -283,8 +283,10 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         z = np.load({str(tmp_path / "rays.npz")!r})
         grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=32)
         tree = jv.build_dag(jv.Voxels.from_coords(z["ijk"], grid))
-        a = jv.trace(tree, z["o"][:1001], z["d"][:1001])
-        b = jv.trace(tree, z["o"][:1001], z["d"][:1001], shard=False)
+        # 1201 rays: the shape-ladder bucket of the image below, so that the two
+        # one-device traces share a program (compiling is most of this test's time).
+        a = jv.trace(tree, z["o"][:1201], z["d"][:1201])
+        b = jv.trace(tree, z["o"][:1201], z["d"][:1201], shard=False)
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         # An image with the beam start: each device groups its own rows (12.8 rows each
@@ -295,23 +297,22 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         for x, y in zip(jax.tree.leaves(beamed), jax.tree.leaves(plain)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         assert (np.asarray(plain.status) == 0).sum() > 100
-        # The renderer splits each batch's paths over the devices (1001 samples: a
-        # batch that is not a multiple of 4): the same image up to float32 rounding.
-        view = dict(width=13, height=11, spp=7, bounces=2, batch_rays=1001, lanes=64)
-        r = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), **view)
-        s = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), shard=False, **view)
-        np.testing.assert_allclose(np.asarray(r.radiance), np.asarray(s.radiance), rtol=1e-5, atol=1e-6)
-        assert int(r.stopped) == int(s.stopped) and float(np.asarray(r.radiance).max()) > 0
-        # One program serves every batch (each batch's image keeps its sharding).
+        # The renderer splits each batch's paths over the devices (1001 samples in
+        # three batches of 400, the last one partly padding): the same image up to
+        # float32 rounding, and one program for every batch (each batch's image keeps
+        # its sharding).
         import logging
         logs = []
         handler = logging.Handler()
         handler.emit = lambda record: logs.append(record.getMessage())
         logging.getLogger("jax").addHandler(handler)
         jax.config.update("jax_log_compiles", True)
-        view.update(batch_rays=400)  # three batches
-        jax.block_until_ready(jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), **view))
+        view = dict(width=13, height=11, spp=7, bounces=2, batch_rays=400, lanes=64)
+        r = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), **view)
         assert sum("compilation of jit(_render_batch)" in m for m in logs) == 1, logs
+        s = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), shard=False, **view)
+        np.testing.assert_allclose(np.asarray(r.radiance), np.asarray(s.radiance), rtol=1e-5, atol=1e-6)
+        assert int(r.stopped) == int(s.stopped) and float(np.asarray(r.radiance).max()) > 0
         print("OK", int((np.asarray(a.status) == 0).sum()))
     """)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")
