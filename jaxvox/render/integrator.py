@@ -63,8 +63,8 @@ from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
-from jaxvox.trace.api import hit_indices
-from jaxvox.trace.driver import everywhere, on_each_device, trace_rays
+from jaxvox.trace.api import jit_trace
+from jaxvox.trace.driver import everywhere, on_each_device
 from jaxvox.trace.hit import on_marked
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
@@ -354,9 +354,17 @@ def _paths(shared, ids, *, width, height, max_steps, lanes):
     indexed = max(albedo.shape[0], emission.shape[0], normals.shape[0]) > 1
 
     def go(origin, direction, indexed):
-        index = hit_indices if indexed else None
-        return trace_rays(
-            tree, origin, direction, jnp.inf, method="esvo", max_steps=max_steps, lanes=lanes, shard=False, index=index
+        return jit_trace(
+            tree,
+            origin,
+            direction,
+            jnp.float32(jnp.inf),
+            method="esvo",
+            max_steps=max_steps,
+            lanes=lanes,
+            shard=False,
+            beam=None,
+            indexed=indexed,
         )
 
     # One segment program for every vertex (the first one too: `first` is traced) and one

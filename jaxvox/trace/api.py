@@ -78,9 +78,16 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
         check_int(f"{caller} lanes", lanes, minimum=1)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard", "beam"))
-def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard, beam):
-    indexed = not (isinstance(tree, CompactDag) and not tree.prefix)  # no prefix sums: no Morton index
+@functools.partial(jax.jit, static_argnames=("method", "max_steps", "lanes", "shard", "beam", "indexed"))
+def jit_trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard, beam, indexed=True):
+    """The jitted body of `trace` (rays as given, no checks), shared with the renderer so
+    that its traces of equal shapes are traced to a jaxpr once. ``indexed=False`` leaves
+    every ``Hit.index`` 0 (no Morton-index walks: the renderer's shadow rays); a
+    `CompactDag` without prefix sums gives `MISSING`."""
+    if isinstance(tree, CompactDag) and not tree.prefix:  # no prefix sums: no Morton index
+        index = lambda tree, hit: jnp.full_like(hit.status, MISSING)
+    else:
+        index = hit_indices if indexed else None
     return trace_rays(
         tree,
         origins,
@@ -91,7 +98,7 @@ def _trace(tree, origins, directions, t_max, *, method, max_steps, lanes, shard,
         lanes=lanes,
         shard=shard,
         beam=beam,
-        index=hit_indices if indexed else lambda tree, hit: jnp.full_like(hit.status, MISSING),
+        index=index,
     )
 
 
@@ -167,7 +174,7 @@ def trace(
     _check_rays("trace", origins, directions, t_max, lanes)
     steps = check_int("trace max_steps", max_steps, minimum=1) if max_steps is not None else default_max_steps(tree)
     return _rays_on_ladder(
-        functools.partial(_trace, tree, method=method, max_steps=steps, lanes=lanes),
+        functools.partial(jit_trace, tree, method=method, max_steps=steps, lanes=lanes),
         origins,
         directions,
         t_max,
