@@ -305,7 +305,7 @@ class _Spool:
                 arrays[key] = np.zeros((0, *shape), dtype)
                 continue
             path = os.path.join(self.folder, key)
-            os.truncate(path, capacity * int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize)
+            os.truncate(path, capacity * np.dtype((dtype, shape)).itemsize)
             arrays[key] = np.memmap(path, dtype, "r", shape=(capacity, *shape))[: self.rows]
         return arrays
 

@@ -351,7 +351,7 @@ def _paths(shared, ids, *, width, height, max_steps, lanes):
     path = path._replace(direction=jnp.where(valid[:, None], path.direction, 0.0))
     # Morton indices of the hits only where a table has a row per voxel (shadow rays
     # never need them): each is a walk down the tree.
-    indexed = max(albedo.shape[0], emission.shape[0], normals.shape[0]) > 1
+    per_voxel = max(albedo.shape[0], emission.shape[0], normals.shape[0]) > 1
 
     def go(origin, direction, indexed):
         return jit_trace(
@@ -372,7 +372,7 @@ def _paths(shared, ids, *, width, height, max_steps, lanes):
     # its compile time again.
     def segment(k, path):
         first, last = k == 0, k >= bounces
-        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction, indexed), normals)
+        surf = _voxel_surface(tree, path.origin, path.direction, go(path.origin, path.direction, per_voxel), normals)
         shadow = shadow_origins(tree, surf) if env.sun or env.sampled else surf.point
         towards = []  # shadow ray directions: to the sun, to the environment sample
         if env.sun:

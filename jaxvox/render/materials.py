@@ -100,12 +100,13 @@ def _on_ladder(a: np.ndarray, resolution: int | None) -> np.ndarray:
     with zero rows), the buffer's rows are taken as they are; else zero rows are appended
     in a copy. Rows past `a`'s are never read (voxel indices stay below n). Placed on a CPU
     device (on all of them at once, see `render`), such a host table is not copied: a
-    57 M-row table went on two devices in under 0.01 s, against 0.75-2.7 s copied."""
+    57 M-row table went on two devices in under 0.01 s, against 2.6-2.7 s padded, checked
+    and copied to each."""
     if resolution is None:
         return a
     rows = voxel_bucket(a.shape[0], resolution)
-    base: object = a
-    while isinstance(base, np.ndarray) and a.flags.c_contiguous:
+    base: object = a if a.flags.c_contiguous else None
+    while isinstance(base, np.ndarray):
         if (
             base.dtype == a.dtype
             and base.shape[1:] == a.shape[1:]
