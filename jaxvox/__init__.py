@@ -72,7 +72,7 @@ from jaxvox.render import (
 )
 from jaxvox.scene import default_scene
 from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
-from jaxvox.solid import open_edges, solid_voxelize
+from jaxvox.solid import open_edges, solid_boundary, solid_voxelize
 from jaxvox.sparse_field import SparseField, sample, sparse_distance_field, sparse_field_regions
 from jaxvox.sphere_tracing import sphere_trace
 from jaxvox.trace import (
@@ -180,6 +180,7 @@ __all__ = [
     "save_voxels",
     "sdf",
     "sky_environment",
+    "solid_boundary",
     "solid_voxelize",
     "sparse_distance_field",
     "sparse_field_regions",

@@ -45,7 +45,7 @@ from jaxvox._files import read_bytes
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.octree import EMPTY, Octree, compact, padded, stored_sizes
 from jaxvox.overflow import check_overflow
-from jaxvox.voxelize import MODES
+from jaxvox.voxelize import SET_MODES
 
 MAGIC = b"\x89JVX\r\n\x1a\n"
 FORMAT_VERSION = 1
@@ -220,7 +220,7 @@ def _check_tree(what: str, path, header, arrays) -> None:
         or min(sizes) < 0
         or sizes[0] > 1
         or kind not in ("octree", "dag")
-        or mode not in MODES
+        or mode not in SET_MODES
         or len(origin) != 3
         or not np.isfinite(origin + [voxel_size]).all()
         or not voxel_size > 0

@@ -359,7 +359,7 @@ def sparse_distance_field(
     stack: list = []
     build = lambda keys, region_lo: push_region(stack, keys, region_lo, size)  # in region order (one worker)
     pushed = []  # waited for at the end: each region is finished while the next is found
-    for ijk, dist, tri, done in _band_regions(mesh, grid, band, signed, size, progress, build, out):
+    for ijk, dist, tri, done in band_regions(mesh, grid, band, signed, size, progress, build, out):
         pushed.append(done)
         coords.append(ijk)
         values.append(dist)
@@ -405,7 +405,7 @@ def sparse_field_regions(
         push_region(stack, keys, region_lo, size)
         return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
 
-    for ijk, dist, tri, tree in _band_regions(mesh, grid, band, signed, size, progress, build):
+    for ijk, dist, tri, tree in band_regions(mesh, grid, band, signed, size, progress, build):
         yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result())
 
 
@@ -422,7 +422,7 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
 
 def _field_rows(resolution: int, size: int) -> tuple | None:
     """Buffers for a whole field's rows (ijk int32 [m, 3], values float32 [m], triangles
-    int32 [m]) written region after region (`_band_regions`' ``out``), so that they become
+    int32 [m]) written region after region (`band_regions`' ``out``), so that they become
     the field's own without a join (4096^3: 228 M rows, 8.4 s to join on 2026-12-03). m bounds both
     the rows (every cell, in whole tiles, of the regions of edge `size` that cover the
     grid) and the field's capacity (`bucket` of R^3): address space only
@@ -435,7 +435,7 @@ def _field_rows(resolution: int, size: int) -> tuple | None:
     return None if any(a is None for a in out) else out
 
 
-def _band_regions(
+def band_regions(
     mesh: Mesh, grid: Grid, band: int, signed: bool, size: int, progress: bool | None, build, out: tuple | None = None
 ):
     """The band voxels of each aligned region of edge `size` that holds some, in Morton

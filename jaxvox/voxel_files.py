@@ -37,7 +37,7 @@ from jaxvox._files import read_bytes
 from jaxvox.grid import MAX_RESOLUTION, Grid
 from jaxvox.mesh import file_format, save_mesh
 from jaxvox.voxel_surface import voxels_to_mesh
-from jaxvox.voxelize import CONSERVATIVE, MODES, Voxels
+from jaxvox.voxelize import CONSERVATIVE, SET_MODES, Voxels
 
 SAVE_FORMATS = (".binvox", ".npz", ".ply", ".obj")
 LOAD_FORMATS = (".binvox", ".npz")
@@ -198,7 +198,7 @@ def load_binvox(path: str | os.PathLike, *, mode: str = CONSERVATIVE) -> Voxels:
         longer than ``R^3``.
     """
     path = os.fspath(path)
-    check_choice("load_binvox mode", mode, MODES)
+    check_choice("load_binvox mode", mode, SET_MODES)
     data = _read("load_binvox path", path)
     r, translate, scale, offset = _binvox_header(data, path)
     runs = np.frombuffer(data, np.uint8, offset=offset)
@@ -249,8 +249,8 @@ def _load_npz(path: str) -> Voxels:
     if missing:
         raise refuse("load_voxels path", f"lacks the arrays {', '.join(missing)} of a jaxvox .npz voxel file", path)
     mode, resolution = arrays["mode"], arrays["resolution"]
-    if mode.shape != () or str(mode) not in MODES:
-        raise refuse("load_voxels path", f"holds mode {mode!r}, expected one of {', '.join(MODES)}", path)
+    if mode.shape != () or str(mode) not in SET_MODES:
+        raise refuse("load_voxels path", f"holds mode {mode!r}, expected one of {', '.join(SET_MODES)}", path)
     if resolution.shape != () or resolution.dtype.kind not in "iu":
         raise refuse("load_voxels path", f"holds resolution {resolution!r}, expected one integer", path)
     return _voxels(

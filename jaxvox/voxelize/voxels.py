@@ -1,5 +1,6 @@
 """Voxel sets (`Voxels`), the work-buffer sizes of `voxelize_fixed` (`Capacities`) and
-the voxelizer's constants: modes, overflow bits and the `UNUSED` padding value."""
+the voxelizer's constants: modes (and the mode `jaxvox.solid_boundary` records), overflow
+bits and the `UNUSED` padding value."""
 
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ from jaxvox.overflow import Overflow, check_overflow
 
 CONSERVATIVE: Final = "conservative"
 SIX_SEPARATING: Final = "6-separating"
-MODES = (CONSERVATIVE, SIX_SEPARATING)
+SOLID_BOUNDARY: Final = "solid-boundary"
+MODES = (CONSERVATIVE, SIX_SEPARATING)  # the voxelizer's rules (`voxelize`'s ``mode``)
+SET_MODES = (*MODES, SOLID_BOUNDARY)  # what a `Voxels` may record: also `jaxvox.solid_boundary`'s sets
 Mode = Literal["conservative", "6-separating"]
 
 # Overflow bits of `Voxels.overflow` (names kept for `jaxvox.overflow.Overflow`'s members).
@@ -84,7 +87,8 @@ class Voxels:
       triangle: [capacity] int32 id of the triangle closest to each voxel's centre
         among those that set it (ties to the lower id), or None if not requested.
       grid: the `Grid` the indices refer to.
-      mode: "conservative" or "6-separating".
+      mode: "conservative" or "6-separating" (`voxelize`'s rules), or "solid-boundary"
+        (`jaxvox.solid_boundary`).
     """
 
     coords: Int32[Array, "*batch capacity 3"]  # [capacity, 3] int32
@@ -114,7 +118,7 @@ class Voxels:
             indices outside the grid.
         """
         check_type("Voxels.from_coords grid", grid, Grid)
-        check_choice("Voxels.from_coords mode", mode, MODES)
+        check_choice("Voxels.from_coords mode", mode, SET_MODES)
         try:
             a = np.asarray(ijk)
         except ValueError:  # ragged nested sequences
