@@ -273,16 +273,14 @@ def solid_boundary(mesh: Mesh, grid: Grid, *, triangle_ids: bool = False, progre
         raise refuse("solid_boundary triangle_ids", "must be True or False", triangle_ids)
     r = grid.resolution
     size = min(REGION_SIZE, r)
-    ijk, inside, tri = [], [], []
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = [
+        (np.zeros((0, 3), np.int32), np.zeros(0, bool), np.zeros(0, np.int32))
+    ]
     for coords, dist, closest, done in band_regions(mesh, grid, BOUNDARY_BAND, True, size, progress, _no_build):
         done.result()  # the region's values are final
-        ijk.append(coords)
-        inside.append(dist < 0)
-        tri.append(closest)
-    if not ijk:  # no band voxels (a mesh without faces, or none in the grid)
-        ijk, inside, tri = [np.zeros((0, 3), np.int32)], [np.zeros(0, bool)], [np.zeros(0, np.int32)]
-    ijk = np.concatenate(ijk)
-    rows = np.flatnonzero(_exposed(ijk, np.concatenate(inside), r))
+        parts.append((coords, dist < 0, closest))
+    ijk, inside, tri = (np.concatenate(column) for column in zip(*parts))
+    rows = np.flatnonzero(_exposed(ijk, inside, r))
     n = len(rows)
     if n > 2**31 - 1:  # `Voxels.count` is int32
         raise JaxvoxError(f"solid_boundary: {n:,} voxels at {r}^3, more than an int32 count holds")
@@ -291,13 +289,13 @@ def solid_boundary(mesh: Mesh, grid: Grid, *, triangle_ids: bool = False, progre
     coords = aligned_empty((capacity, 3), np.int32)
     coords[:n] = ijk[rows]
     coords[n:] = UNUSED
-    ids = None
-    if triangle_ids:
-        ids = aligned_empty((capacity,), np.int32)
-        ids[:n] = np.concatenate(tri)[rows]
+    ids = aligned_empty((capacity,), np.int32) if triangle_ids else None
+    if ids is not None:
+        ids[:n] = tri[rows]
         ids[n:] = UNUSED
-        ids = to_device(ids)
-    return Voxels(to_device(coords), jnp.int32(n), jnp.int32(0), ids, grid, SOLID_BOUNDARY)
+    return Voxels(
+        to_device(coords), jnp.int32(n), jnp.int32(0), None if ids is None else to_device(ids), grid, SOLID_BOUNDARY
+    )
 
 
 def _no_build(keys, region_lo) -> None:
