@@ -8,9 +8,12 @@ For each mesh (default: the Stanford bunny, spot and the cow):
 * the mesh's DAG at each resolution, rendered by `jaxvox.render` with the same settings,
   shaded with the normal of the voxel face each ray enters (``dag``) and with per-voxel
   shading normals, the face normal of the triangle that set each voxel (``dag-normals``:
-  `jaxvox.mesh_to_dag` with ``attributes=``, so that 8192^3 fits), and the same with the
+  `jaxvox.mesh_to_dag` with ``attributes=``, so that 8192^3 fits), the same with the
   thin 6-separating voxelization instead of the conservative one (``dag-thin``: a
-  conservative silhouette stands out by most of a voxel).
+  conservative silhouette stands out by most of a voxel), and with the boundary of the
+  solid voxelization (``dag-solid``: `jaxvox.solid_boundary`, voxels whose centres are
+  inside, so that silhouettes straddle the surface instead of enclosing it; normals of
+  each voxel's closest triangle; built in one piece, up to 4096^3 here).
 
 The lighting is the procedural sky with its sun, 8 bounces, grey albedo 0.7. Every case
 runs in a fresh subprocess (peak memory is its own). Time per sample is the median of
@@ -36,6 +39,7 @@ import _common
 import numpy as np
 
 DEFAULT_MESHES = ("stanford-bunny", "spot", "cow")
+SOLID_MAX = 4096  # largest R of the dag-solid case (its voxels are found in one piece)
 
 
 def _metrics(image: np.ndarray, reference: np.ndarray) -> dict:
@@ -73,7 +77,12 @@ def worker(spec: dict) -> dict:
         R = spec["resolution"]
         start = time.perf_counter()
         grid = jv.Grid.fit(mesh, resolution=R)
-        if spec["case"] in ("dag-normals", "dag-thin"):
+        if spec["case"] == "dag-solid":
+            vox = jv.solid_boundary(mesh, grid, triangle_ids=True)
+            settings["normals"] = attributes = jv.voxel_attributes(mesh, vox)["normal"]
+            tree = jv.build_dag(vox)
+            del vox
+        elif spec["case"] in ("dag-normals", "dag-thin"):
             import tempfile
 
             folder = tempfile.mkdtemp(dir=out)
@@ -110,7 +119,7 @@ def worker(spec: dict) -> dict:
         row.update(_metrics(image, iio.imread(out / f"{spec['mesh']}_reference.png")))
     row["image"] = f"{name}.png"
     row["backend"] = jax.default_backend()
-    if "normals" in settings:
+    if spec["case"] in ("dag-normals", "dag-thin"):
         import shutil
 
         del settings["normals"], attributes
@@ -126,6 +135,7 @@ def chart(rows: list[dict], path: Path) -> None:
             ("dag", "o-", "DAG, face normals"),
             ("dag-normals", "s--", "DAG, voxel normals"),
             ("dag-thin", "^:", "6-separating DAG, voxel normals"),
+            ("dag-solid", "d-.", "solid-boundary DAG, voxel normals"),
         ):
             dags = sorted((r for r in rows if r["mesh"] == mesh and r["case"] == case), key=lambda r: r["resolution"])
             if not dags:
@@ -189,6 +199,7 @@ def strip(rows: list[dict], folder: Path, path: Path) -> None:
             + sorted((r for r in mine if r["case"] == "dag"), key=lambda r: r["resolution"])
             + sorted((r for r in mine if r["case"] == "dag-normals"), key=lambda r: r["resolution"])
             + sorted((r for r in mine if r["case"] == "dag-thin"), key=lambda r: r["resolution"])
+            + sorted((r for r in mine if r["case"] == "dag-solid"), key=lambda r: r["resolution"])
         )
         tiles = [iio.imread(folder / r["image"]) for r in order if (folder / r["image"]).exists()]
         gap = np.full((tiles[0].shape[0], 6, 3), 255, np.uint8)
@@ -208,7 +219,10 @@ def main():
     parser.add_argument("--bounces", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument(
-        "--cases", nargs="+", default=["dag", "dag-normals", "dag-thin"], choices=["dag", "dag-normals", "dag-thin"]
+        "--cases",
+        nargs="+",
+        default=["dag", "dag-normals", "dag-thin", "dag-solid"],
+        choices=["dag", "dag-normals", "dag-thin", "dag-solid"],
     )
     parser.add_argument("--device", default=None, help="cpu or gpu (JAX_PLATFORMS for every case); default: JAX's")
     parser.add_argument("--smoke", action="store_true")
@@ -237,7 +251,12 @@ def main():
             azimuth=35.0 if mesh != "spot" else 145.0,
         )
         cases = [dict(case="reference", spp=args.reference_spp, seed=12345), dict(case="mesh", spp=args.spp, seed=0)]
-        cases += [dict(case=c, resolution=R, spp=args.spp, seed=0) for R in args.resolutions for c in args.cases]
+        cases += [
+            dict(case=c, resolution=R, spp=args.spp, seed=0)
+            for R in args.resolutions
+            for c in args.cases
+            if c != "dag-solid" or R <= SOLID_MAX  # built in one piece
+        ]
         for case in cases:
             row = _common.run_worker(__file__, dict(base, **case), timeout=7200)
             if "error" in row:
