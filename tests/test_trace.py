@@ -274,7 +274,8 @@ def test_random_sets_and_lattice_rays(seed, resolution):
 
 
 def test_sharded_over_four_host_devices(scene, tmp_path):
-    """`trace` and `render` on four host devices give what they give on one."""
+    """`trace` and `render` on four host devices give what they give on one; what the
+    renderer places on every device shares one buffer."""
     vox, ijk, o, d = scene
     np.savez(tmp_path / "rays.npz", ijk=ijk, o=o, d=d)
     script = textwrap.dedent(f"""
@@ -313,6 +314,13 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         s = jv.render(tree, (-20.0, -15.0, 40.0), z["ijk"].mean(0), shard=False, **view)
         np.testing.assert_allclose(np.asarray(r.radiance), np.asarray(s.radiance), rtol=1e-5, atol=1e-6)
         assert int(r.stopped) == int(s.stopped) and float(np.asarray(r.radiance).max()) > 0
+        # The tree and tables the renderer places on every device are aliased, not copied.
+        from jaxvox.trace.driver import on_all_devices
+        table = jax.numpy.arange(12.0).reshape(4, 3)
+        shared = on_all_devices(table)
+        pointers = {{x.data.unsafe_buffer_pointer() for x in shared.addressable_shards}}
+        assert pointers == {{table.unsafe_buffer_pointer()}}
+        assert len(shared.addressable_shards) == 4 and np.array_equal(np.asarray(shared), np.asarray(table))
         print("OK", int((np.asarray(a.status) == 0).sum()))
     """)
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu")

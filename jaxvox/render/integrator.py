@@ -64,7 +64,7 @@ from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
 from jaxvox.trace.api import jit_trace
-from jaxvox.trace.driver import everywhere, on_each_device
+from jaxvox.trace.driver import everywhere, on_all_devices, on_each_device
 from jaxvox.trace.hit import on_marked
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
@@ -550,12 +550,11 @@ def render(
     stopped = jnp.zeros((), jnp.int32)
     if devices > 1:
         # Every device reads the whole tree and tables: placed on each once per call, not
-        # once per batch (a jit over all devices copies each argument that is not). A host
-        # table goes on all of them at once: on CPU that aliases it instead of copying it
-        # (a table first placed on one device would be copied to the others).
-        tree, albedo, emission, normals, env, image, stopped = jax.device_put(
-            (tree, albedo, emission, normals, env, image, stopped), everywhere()
-        )
+        # once per batch (a jit over all devices copies each argument that is not). On CPU
+        # they are aliased, not copied (`on_all_devices`); the image is written, so each
+        # device gets its own.
+        tree, albedo, emission, normals, env = on_all_devices((tree, albedo, emission, normals, env))
+        image, stopped = jax.device_put((image, stopped), everywhere())
     else:
         albedo, emission, normals = jax.device_put((albedo, emission, normals))
     n_batches = -(-total // batch)
