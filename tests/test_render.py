@@ -392,6 +392,17 @@ def test_cli_info_and_errors(scene, tmp_path, capsys):
         assert main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and match in err[0], (argv, err)
+    # A mesh rendered from the boundary of its solid voxelization: the voxels it reports
+    # are `solid_boundary`'s, and the image sees them.
+    sphere = tmp_path / "sphere.obj"
+    trimesh.creation.icosphere(subdivisions=2).export(sphere)
+    solid_exr = tmp_path / "solid.exr"
+    view = ["--size", f"{W}x{H}", "--spp", "1", "--bounces", "0", "--resolution", "16", "--out", str(solid_exr)]
+    assert main(["render", str(sphere), "--voxels", "solid-boundary", *view]) == 0
+    mesh = jv.load_mesh(sphere)
+    count = int(jv.solid_boundary(mesh, jv.Grid.fit(mesh, resolution=16)).count)
+    assert f"-> {count:,} solid-boundary voxels at 16^3" in capsys.readouterr().out
+    assert _interior(np.isfinite(jv.read_exr(solid_exr)["Z"])).sum() > 20
     with pytest.raises(SystemExit) as exit_info:
         main(["render", "--no-such-option"])
     assert exit_info.value.code == 2
