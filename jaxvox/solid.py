@@ -39,7 +39,7 @@ from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.sparse_field import band_regions
 from jaxvox.topology import welded_faces
 from jaxvox.voxelize import REGION_SIZE, SOLID_BOUNDARY, UNUSED, Voxels
-from jaxvox.voxelize.host import aligned_empty
+from jaxvox.voxelize.host import join_rows
 from jaxvox.winding import box_winding_numbers
 
 SIGN_METHODS = ("auto", "parity", "winding")
@@ -242,11 +242,13 @@ def solid_boundary(mesh: Mesh, grid: Grid, *, triangle_ids: bool = False, progre
     voxel of every centre and runs through or beside the set's outer faces, so silhouettes
     and shading positions are not biased outward by half a voxel.
 
+    Host-side, like `jaxvox.voxelize` (counting passes size everything; not jittable).
     Inside is the generalized winding number above 1/2, as in `sparse_distance_field`'s
     sign; the voxels come from its signed band of half width `BOUNDARY_BAND` (centres
-    within one voxel of the mesh, float32 grid units), region by region, so memory follows
-    one region plus that band. Around a watertight mesh every boundary voxel and the
-    neighbour that exposes it lie in the band, so the set is exactly the solid's boundary.
+    within one voxel of the mesh, float32 grid units), region by region: memory holds that
+    band's voxels (2-3 per boundary voxel) and one region's work, no R^3 array.
+    Around a watertight mesh every boundary voxel and the neighbour that exposes it lie in
+    the band, so the set is exactly the solid's boundary.
     Across the holes of an open mesh (the Stanford bunny's base) the inside ends where the
     winding number crosses 1/2, away from the mesh: that part of the boundary is kept
     within one voxel of the hole's rim and the rest of the hole stays open, as it is in
@@ -286,16 +288,9 @@ def solid_boundary(mesh: Mesh, grid: Grid, *, triangle_ids: bool = False, progre
         raise JaxvoxError(f"solid_boundary: {n:,} voxels at {r}^3, more than an int32 count holds")
     capacity = voxel_bucket(n, r)
     to_device = functools.partial(jax.device_put, may_alias=True)  # aligned buffers: no copy
-    coords = aligned_empty((capacity, 3), np.int32)
-    coords[:n] = ijk[rows]
-    coords[n:] = UNUSED
-    ids = aligned_empty((capacity,), np.int32) if triangle_ids else None
-    if ids is not None:
-        ids[:n] = tri[rows]
-        ids[n:] = UNUSED
-    return Voxels(
-        to_device(coords), jnp.int32(n), jnp.int32(0), None if ids is None else to_device(ids), grid, SOLID_BOUNDARY
-    )
+    coords = to_device(join_rows([ijk[rows]], (capacity, 3), UNUSED, np.int32))
+    ids = to_device(join_rows([tri[rows]], (capacity,), UNUSED, np.int32)) if triangle_ids else None
+    return Voxels(coords, jnp.int32(n), jnp.int32(0), ids, grid, SOLID_BOUNDARY)
 
 
 def _no_build(keys, region_lo) -> None:
