@@ -79,7 +79,7 @@ def worker(spec: dict) -> dict:
         grid = jv.Grid.fit(mesh, resolution=R)
         if spec["case"] == "dag-solid":
             vox = jv.solid_boundary(mesh, grid, triangle_ids=True)
-            settings["normals"] = attributes = jv.voxel_attributes(mesh, vox)["normal"]
+            settings["normals"] = jv.voxel_attributes(mesh, vox)["normal"]
             tree = jv.build_dag(vox)
             del vox
         elif spec["case"] in ("dag-normals", "dag-thin"):

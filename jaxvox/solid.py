@@ -246,7 +246,8 @@ def solid_boundary(mesh: Mesh, grid: Grid, *, triangle_ids: bool = False, progre
     Inside is the generalized winding number above 1/2, as in `sparse_distance_field`'s
     sign; the voxels come from its signed band of half width `BOUNDARY_BAND` (centres
     within one voxel of the mesh, float32 grid units), region by region: memory holds that
-    band's voxels (2-3 per boundary voxel) and one region's work, no R^3 array.
+    band's voxels (2.3 per boundary voxel on spot at 2048^3) and one region's work, no
+    R^3 array.
     Around a watertight mesh every boundary voxel and the neighbour that exposes it lie in
     the band, so the set is exactly the solid's boundary.
     Across the holes of an open mesh (the Stanford bunny's base) the inside ends where the
