@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxvox._scan import cumsum
 from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
@@ -54,7 +55,7 @@ def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int
     running = status == RUNNING
     queue = (
         jnp.zeros(n + 1, jnp.int32)
-        .at[jnp.where(running, jnp.cumsum(running) - 1, n)]
+        .at[jnp.where(running, cumsum(running) - 1, n)]
         .set(jnp.arange(n, dtype=jnp.int32))[:n]
     )
     queued = jnp.sum(running)

@@ -12,6 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float32, Int32
 
 from jaxvox._pytree import pytree_dataclass
+from jaxvox._scan import cumsum
 from jaxvox.octree import CompactDag, Octree
 
 # `Hit.status` values.
@@ -99,7 +100,7 @@ def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: in
     size = n + -n % chunk
     order = (
         jnp.zeros(size, jnp.int32)
-        .at[jnp.where(marked, jnp.cumsum(marked) - 1, size)]
+        .at[jnp.where(marked, cumsum(marked) - 1, size)]
         .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
     )
     count = jnp.sum(marked)
