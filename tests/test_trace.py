@@ -290,13 +290,15 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         b = jv.trace(tree, z["o"][:1201], z["d"][:1201], shard=False)
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-        # An image with the beam start: each device groups its own rows (12.8 rows each
-        # after the padding, 8 of them in whole bands of tiles): the hits of one device
-        # without the beam.
-        o2, d2 = jv.pinhole_rays((-20.0, -15.0, 40.0), z["ijk"].mean(0), width=40, height=37)
+        # An image with the beam start, unpadded: 1443 rays, one more added on the
+        # devices to split them evenly; each device groups its own rows (9.25 rows each,
+        # 8 of them in whole bands of tiles): the hits of one device without the beam,
+        # left sharded over the four devices.
+        o2, d2 = jv.pinhole_rays((-20.0, -15.0, 40.0), z["ijk"].mean(0), width=39, height=37)
         beamed, plain = jv.trace(tree, o2, d2, beam=True), jv.trace(tree, o2, d2, shard=False)
         for x, y in zip(jax.tree.leaves(beamed), jax.tree.leaves(plain)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+        assert beamed.t.shape == (37, 39) and len(beamed.t.sharding.device_set) == 4
         assert (np.asarray(plain.status) == 0).sum() > 100
         # The renderer splits each batch's paths over the devices (1001 samples in
         # three batches of 400, the last one partly padding): the same image up to

@@ -30,6 +30,10 @@ def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None, beam: 
     `jax.jit` they pass unpadded. Padding rays have a zero direction (status `INVALID`, no
     work) and are sliced off. ``beam`` passes the `beam_layout` of the batch (None when
     off). ``shard=None`` shards concrete rays only.
+
+    With the beam, whose program is keyed by the batch shape anyway, concrete rays go in
+    at their batch shape, unpadded, and the hits are the program's own arrays (sharded
+    over the devices when the rays are): no host copies (docs/ray-traversal.md).
     """
     traced = any(isinstance(x, jax.core.Tracer) for x in (origins, directions, t_max))
     shard = (not traced) if shard is None else shard
@@ -37,12 +41,16 @@ def _rays_on_ladder(call, origins, directions, t_max, shard: bool | None, beam: 
     o, d, t = (xp.asarray(x, xp.float32) for x in (origins, directions, t_max))
     shape = np.broadcast_shapes(o.shape[:-1], d.shape[:-1], t.shape)
     m = int(np.prod(shape, dtype=np.int64))
+    layout = beam_layout(shape, m) if beam else None
+    if beam and not traced:
+        grow = lambda a, tail: a if a.shape == shape + tail else np.broadcast_to(a, shape + tail)
+        return call(grow(o, (3,)), grow(d, (3,)), grow(t, ()), shard=shard, beam=layout)
     flat = lambda a, tail: xp.broadcast_to(a, shape + tail).reshape((m,) + tail)
     o, d, t = flat(o, (3,)), flat(d, (3,)), flat(t, ())
     if not traced:
         pad = lambda a: np.concatenate([a, np.zeros((bucket(m) - m,) + a.shape[1:], np.float32)])
         o, d, t = pad(o), pad(d), pad(t)
-    hit = call(o, d, t, shard=shard, beam=beam_layout(shape, m) if beam else None)
+    hit = call(o, d, t, shard=shard, beam=layout)
     unflat = lambda x: x[:m].reshape(shape + x.shape[1:])
     if traced:
         return jax.tree.map(unflat, hit)
@@ -128,8 +136,9 @@ def trace(
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
     Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
-    `shard` are static. Called on concrete rays, it pads the flattened rays to the shape
-    ladder first, so that similar ray counts (image sizes) share one compiled program.
+    `shard` are static. Called on concrete rays without the beam, it pads the flattened
+    rays to the shape ladder first, so that similar ray counts (image sizes) share one
+    compiled program.
 
     Args:
       tree: an `Octree` from `build_octree` or `build_dag`, or a `CompactDag`
@@ -160,7 +169,10 @@ def trace(
         shape (a new image size compiles, even with a ray count in a familiar bucket).
 
     Returns:
-      A `Hit` with the batch shape of the rays.
+      A `Hit` with the batch shape of the rays. With ``beam=True`` on concrete rays and
+      several devices, its arrays are the sharded arrays the program leaves on the
+      devices (no host copies); combining them with an array
+      committed to one device needs ``jax.device_put(hit, device)`` first.
 
     Raises:
       JaxvoxError: not a tree, a bad method, rays or lane count, or a concrete tree of
