@@ -291,7 +291,7 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
         # An image with the beam start, unpadded: 1443 rays, one more added on the
-        # devices to split them evenly; each device groups its own rows (9.25 rows each,
+        # devices to split them evenly; each device groups its own rows (9.3 rows each,
         # 8 of them in whole bands of tiles): the hits of one device without the beam,
         # left sharded over the four devices.
         o2, d2 = jv.pinhole_rays((-20.0, -15.0, 40.0), z["ijk"].mean(0), width=39, height=37)
