@@ -1,8 +1,8 @@
 """Prefix sums of long one-dimensional arrays in jitted code.
 
 `jnp.cumsum` lowers to a tree of reduce-windows that XLA:CPU runs slowly on long arrays
-(1M int32: 5.3 ms), and `jax.lax.associative_scan`, fast to run (1.2 ms), adds about
-0.4 s to a program's compilation (20 levels of slices and pads). `cumsum` here lays the
+(1M int32: 5.3 ms), and `jax.lax.associative_scan`, fast to run (1.2 ms), adds 0.3-0.5
+s to a program's compilation (20 levels of slices and pads). `cumsum` here lays the
 array out as [L, K] columns, runs one `lax.scan` over the L rows adding whole [K]
 vectors, and adds the columns' offsets: 2 ms for 1M, one small loop to compile.
 """
