@@ -76,7 +76,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
         stack=stack_set(s.stack, s.level, row, push),
         status=status,
     )
-    return settle(s, stepped, status)
+    return settle(s, stepped, status, held=("corner",))
 
 
 def esvo_voxel(tree: Octree, s: _Esvo):

@@ -154,12 +154,15 @@ def select(keep, new, old):
     return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
 
 
-def settle(s, stepped, status):
+def settle(s, stepped, status, held):
     """The state after a step: `stepped` while the ray runs on; a ray that ended, in this
     step (`status`) or before (``s.status``, e.g. `STEP_CAP` set by the driver), keeps
-    its state and first status."""
+    its first status and the fields named in `held` (those its voxel is read from). Its
+    other fields run on unread: they only feed gathers, which clamp their indices, and
+    selecting them back cost a select per field per step."""
     go = (s.status == RUNNING) & (status == RUNNING)
-    return select(go, stepped, s._replace(status=jnp.where(s.status == RUNNING, status, s.status)))
+    kept = {name: select(go, getattr(stepped, name), getattr(s, name)) for name in held}
+    return stepped._replace(status=jnp.where(s.status == RUNNING, status, s.status), **kept)
 
 
 def step_status(miss, hit):

@@ -80,7 +80,7 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
         stack_child=stack_set(s.stack_child, s.level, next_child, descend),
         status=status,
     )
-    return settle(s, stepped, status)
+    return settle(s, stepped, status, held=("corner", "child"))
 
 
 def stacked_voxel(tree: Octree, s: _Stacked):
