@@ -375,15 +375,16 @@ def test_beam_start_changes_no_hit(scene, trees):
 def test_beam_groups_round_trip():
     import jax.numpy as jnp
 
-    from jaxvox.trace.beam import BEAM_RAYS, beam_layout, group_values, ungroup_values
+    from jaxvox.trace.beam import BEAM_RAYS, beam_layout, per_group, tiles, ungroup_values
 
     for batch in [(5,), (3, 8, 8), (2, 9, 17), (1, 1), (130,)]:
         n = int(np.prod(batch)) + 7  # padding rays past the batch
         layout = beam_layout(batch, n - 7)
         x = jnp.arange(n, dtype=jnp.float32) + 1
-        groups = group_values(x, layout)
-        assert groups.shape[1] == BEAM_RAYS
-        firsts = ungroup_values(groups[:, 0], layout, n)  # each ray gets its group's first value
+        tiled = tiles(x, layout)
+        assert tiled.shape[2] * tiled.shape[4] == BEAM_RAYS
+        # each ray gets its group's least value: the first ray of its tile (x grows in row order)
+        firsts = ungroup_values(per_group(jnp.min, jnp.where(tiled > 0, tiled, jnp.inf)), layout, n)
         assert (np.asarray(firsts)[n - 7 :] == 0).all()
         if len(batch) >= 2:  # the corner of each ray's tile
             index = np.indices(batch)

@@ -3,11 +3,12 @@ every ray of the group a safe distance at which to start its traversal.
 
 Groups are 8 x 8 tiles of the last two batch axes of the rays (an image's [H, W, 3] rays:
 a group is a tile), or runs of `BEAM_RAYS` rays of a one-axis batch (`beam_layout`); the
-rays stay in row order, only the group statistics are taken over tiles. A group's rays are bounded by a
-thick segment around one axis ray: with ``o_0`` the first ray's origin, ``a`` the unit
-mean direction, ``e`` the largest distance of an origin from ``o_0`` and ``delta`` the
-largest distance of a unit direction from ``a``, the point at distance ``s`` along any
-ray of the group lies within ``e + s * delta`` of ``o_0 + s a``. The pass marches ``s``
+rays stay in row order, and the group statistics are reductions over the tiles in place
+(`tiles`, `per_group`). A group's rays are bounded by a thick segment around one axis
+ray: with ``c`` the centre of the box of the group's origins, ``e`` half its diagonal,
+``a`` the unit mean direction and ``delta`` the largest distance of a unit direction
+from ``a``, the point at distance ``s`` along any ray of the group lies within
+``e + s * delta`` of ``c + s a``. The pass marches ``s``
 along the axis with steps that double while the box around the swept segment holds no
 occupied coarse cell and halve when it does; the box test is exact on the coarse cells
 (a summed-volume table of their occupancy, 8 lookups). So every voxel a ray of the group
@@ -73,20 +74,33 @@ def _box_counts(table, lo, hi):
     return total
 
 
-def group_values(x, layout):
-    """[N] values of rays in row order -> [G, a b], the groups of `layout` (padded with zeros)."""
+def tiles(x, layout):
+    """[N] values of rays in row order -> [images, rows, a, cols, b], the groups of
+    `layout` as tiles of the rows they stand in (padded with zeros; no copy when the rows
+    fill whole tiles). Reductions over axes 2 and 4 give one value per group without
+    moving the rays into groups: on CPU a copy into groups cost more than the statistics."""
     count, height, width, a, b = layout
     img = x[: count * height * width].reshape(count, height, width)
     img = jnp.pad(img, ((0, 0), (0, -height % a), (0, -width % b)))
-    rows, cols = img.shape[1] // a, img.shape[2] // b
-    return img.reshape(count, rows, a, cols, b).transpose(0, 1, 3, 2, 4).reshape(-1, a * b)
+    return img.reshape(count, img.shape[1] // a, a, img.shape[2] // b, b)
+
+
+def per_group(reduce, t):
+    """One value per group ([images, rows, cols]) of a `tiles` array, by `reduce` over a
+    row of a tile, then over the tile's rows."""
+    return reduce(reduce(t, axis=4), axis=2)
+
+
+def to_tiles(g):
+    """A per-group value [images, rows, cols] broadcastable against `tiles` arrays."""
+    return g[:, :, None, :, None]
 
 
 def ungroup_values(g, layout, n):
-    """The inverse of `group_values` for one value per group ([G]) -> [n] per ray (0 past the layout)."""
+    """One value per group ([images, rows, cols]) -> [n] per ray in row order (0 past the layout)."""
     count, height, width, a, b = layout
-    rows, cols = -(-height // a), -(-width // b)
-    x = jnp.broadcast_to(g.reshape(count, rows, 1, cols, 1), (count, rows, a, cols, b))
+    rows, cols = g.shape[1], g.shape[2]
+    x = jnp.broadcast_to(to_tiles(g), (count, rows, a, cols, b))
     x = x.reshape(count, rows * a, cols * b)[:, :height, :width].reshape(-1)
     return jnp.pad(x, (0, n - x.shape[0]))
 
@@ -118,8 +132,8 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
 
     Args:
       tree: the traced tree.
-      o, d: [N, 3] float32 ray origins and directions in grid units (not mirrored), in
-        row order.
+      o, d: 3 x [N] float32 ray origins and directions in grid units (not mirrored),
+        per axis, in row order.
       entering: [N] bool, the rays that enter the grid box (the others are ignored).
       layout: the groups, from `beam_layout`.
 
@@ -134,25 +148,32 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     counts = coarse_occupancy(tree, levels).astype(jnp.int32)
     table = jnp.pad(counts.cumsum(0).cumsum(1).cumsum(2), ((1, 0), (1, 0), (1, 0)))
 
-    # per axis: XLA's CPU code is slow on [..., 3] arrays reduced over the last axis
-    norm = lambda v: jnp.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    length = jnp.where(entering, norm(tuple(d[:, a] for a in range(3))), 1.0)
-    o, d = (tuple(group_values(x[:, a], layout) for a in range(3)) for x in (o, d))
-    on = group_values(entering, layout)
-    unit = tuple(c / jnp.where(on, norm(d), 1.0) for c in d)
+    # Per axis (XLA's CPU code is slow on [..., 3] arrays reduced over the last axis),
+    # per ray in row order, reduced over the tiles in place.
+    square = lambda v: v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    length = jnp.where(entering, jnp.sqrt(square(d)), 1.0)
+    on = tiles(entering, layout)
+    o, d, size = (tuple(tiles(c, layout) for c in x) for x in (o, d, (length,)))
+    size = size[0]
+    unit = tuple(c / size for c in d)
     inv = tuple(1.0 / jnp.where(c == 0, 2.0**-100, c) for c in d)
     exit_t = functools.reduce(jnp.minimum, (jnp.maximum(-p * i, (res - p) * i) for p, i in zip(o, inv)))
-    far = jnp.max(jnp.where(on, exit_t * norm(d), 0.0), axis=1)
-    anyone = jnp.any(on, axis=1)
-    first = jnp.argmax(on, axis=1)[:, None]
-    origin = tuple(jnp.take_along_axis(p, first, axis=1) for p in o)  # [G, 1] each
-    mean = tuple(jnp.sum(jnp.where(on, u, 0.0), axis=1, keepdims=True) for u in unit)
-    scale = jnp.maximum(norm(mean), 1e-30)
+    far = per_group(jnp.max, jnp.where(on, exit_t * size, 0.0))
+    anyone = per_group(jnp.any, on)
+    # the origins' box: its centre is the reference point, half its diagonal `e`
+    lo = tuple(per_group(jnp.min, jnp.where(on, p, jnp.inf)) for p in o)
+    hi = tuple(per_group(jnp.max, jnp.where(on, p, -jnp.inf)) for p in o)
+    origin = tuple(jnp.where(anyone, (l + h) * 0.5, 0.0) for l, h in zip(lo, hi))
+    e = jnp.where(anyone, 0.5 * jnp.sqrt(square(tuple(h - l for l, h in zip(lo, hi)))), 0.0)
+    mean = tuple(per_group(jnp.sum, jnp.where(on, u, 0.0)) for u in unit)
+    scale = jnp.maximum(jnp.sqrt(square(mean)), 1e-30)
     axis = tuple(m / scale for m in mean)
-    spread = lambda v: jnp.max(jnp.where(on, norm(v), 0.0), axis=1)
-    e = spread(tuple(p - q for p, q in zip(o, origin)))
-    delta = spread(tuple(u - a for u, a in zip(unit, axis)))
-    origin, axis = tuple(x[:, 0] for x in origin), tuple(x[:, 0] for x in axis)
+    # the largest distance of a unit direction from the axis: the root of the largest square
+    gap = square(tuple(u - to_tiles(c) for u, c in zip(unit, axis)))
+    delta = jnp.sqrt(per_group(jnp.max, jnp.where(on, gap, 0.0)))
+    groups = far.shape  # [images, rows, cols]
+    far, anyone, e, delta = (x.reshape(-1) for x in (far, anyone, e, delta))
+    origin, axis = (tuple(c.reshape(-1) for c in x) for x in (origin, axis))
 
     def empty_box(s, step):
         """Whether no coarse cell is occupied in the box around the group's segment [s, s + step]."""
@@ -174,4 +195,4 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     g = anyone.shape[0]
     s, _ = jax.lax.fori_loop(0, _MARCH_STEPS, march, (jnp.zeros(g, jnp.float32), jnp.full(g, float(cell))))
     s = jnp.where(~anyone, 0.0, jnp.where(s >= far, jnp.inf, s))
-    return ungroup_values(s, layout, entering.shape[0]) / length
+    return ungroup_values(s.reshape(groups), layout, entering.shape[0]) / length

@@ -18,7 +18,7 @@ from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
 from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
-from jaxvox.trace.ray import Ray, argmax3, max3, setup_ray
+from jaxvox.trace.ray import Ray, argmax3, materialize, max3, opaque, setup_ray
 from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
 
 _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
@@ -130,26 +130,29 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With a beam
     `layout` (or None), the rays start at their group's beam distance."""
     res = structure.grid.resolution
+    # per axis, each axis read out of the [N, 3] rows once (XLA's fusions would read the
+    # strided columns in each of their many consumers)
+    o, d = materialize(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), opaque(structure))
     rays, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
-    if layout is not None and o.shape[0] > 0:
+    if layout is not None and o[0].shape[0] > 0:
         t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
         rays = rays._replace(t_start=jnp.maximum(rays.t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam)))
-    if lanes is None or o.shape[0] == 0:
+    if lanes is None or o[0].shape[0] == 0:
         status, cell = _vmapped(structure, rays, status, method, max_steps)
     else:
-        status, cell = _lanes(structure, rays, status, method, max_steps, min(lanes, o.shape[0]))
+        status, cell = _lanes(structure, rays, status, method, max_steps, min(lanes, o[0].shape[0]))
     hit = status == HIT
     t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
     t_in = max3(t0)
-    entry = jnp.where(t_in > 0, argmax3(t0), -1)
-    flip = [((rays.flip >> a) & 1) == 1 for a in range(3)]
-    normal = [jnp.where(entry == a, jnp.where(flip[a], 1.0, -1.0), 0.0) for a in range(3)]
-    voxel = [jnp.where(flip[a], res - 1 - cell[:, a], cell[:, a]) for a in range(3)]
+    # computed once: the [N, 3] results below would recompute them for each of their columns
+    t_in, entry = materialize((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), opaque(structure))
+    axes = jnp.arange(3, dtype=jnp.int32)
+    flip = ((rays.flip[:, None] >> axes) & 1) == 1  # [N, 3]
     return Hit(
         t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
-        voxel=jnp.where(hit[:, None], jnp.stack(voxel, -1), -1),
-        normal=jnp.where(hit[:, None], jnp.stack(normal, -1), 0.0).astype(jnp.float32),
+        voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
+        normal=jnp.where(entry[:, None] == axes, jnp.where(flip, 1.0, -1.0), 0.0).astype(jnp.float32),
         index=jnp.zeros_like(status),
         status=status,
     )

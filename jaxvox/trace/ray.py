@@ -122,8 +122,11 @@ def stack_set(stack, level, value, when):
 
 
 def opaque(tree) -> jax.Array:
-    """A [] int32 0 or 1 that XLA cannot fold: the token of `materialize`."""
-    return (tree.voxel_count == 0).astype(jnp.int32)
+    """A [] int32 0 or 1 that XLA cannot fold: the token of `materialize`. `tree` is an
+    `Octree`, a `CompactDag` or a dense grid (its first cell's occupancy)."""
+    if hasattr(tree, "voxel_count"):
+        return (tree.voxel_count == 0).astype(jnp.int32)
+    return (tree.occupancy[:1].astype(jnp.int32).sum() > 1).astype(jnp.int32)  # a dense grid: 0
 
 
 def materialize(values, token):
