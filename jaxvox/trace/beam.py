@@ -153,8 +153,8 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     square = lambda v: v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
     length = jnp.where(entering, jnp.sqrt(square(d)), 1.0)
     on = tiles(entering, layout)
-    o, d, size = (tuple(tiles(c, layout) for c in x) for x in (o, d, (length,)))
-    size = size[0]
+    o, d = (tuple(tiles(c, layout) for c in x) for x in (o, d))
+    size = tiles(length, layout)
     unit = tuple(c / size for c in d)
     inv = tuple(1.0 / jnp.where(c == 0, 2.0**-100, c) for c in d)
     exit_t = functools.reduce(jnp.minimum, (jnp.maximum(-p * i, (res - p) * i) for p, i in zip(o, inv)))
