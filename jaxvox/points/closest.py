@@ -1,0 +1,174 @@
+"""Closest points on a mesh: the search (`closest_slots`) and the point on the triangle.
+
+The search keeps, level by level, the nodes that may hold a block's closest triangle:
+every point of a block is within ``U`` of the surface, ``U`` the smallest distance from
+the block's farthest corner to a node's surface point (``rep``), so a node whose box is
+farther than ``U`` from the block's box holds no block point's closest triangle. The
+leaves kept are evaluated exactly per point (`jaxvox._geometry.rows_dist2`, 8 triangles a
+leaf). Ties between triangles at the same float32 distance go to the smallest face id.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxvox._geometry import rows_dist2
+from jaxvox.points import search
+from jaxvox.points.index import FAN_OUT, MeshIndex
+
+_NO_FACE = jnp.iinfo(jnp.int32).max
+
+
+class Found(NamedTuple):
+    """The search's result per sorted point."""
+
+    dist2: jax.Array  # [nb, BLOCK] float32 squared distance (float32 kernel)
+    slot: jax.Array  # [nb, BLOCK] int32 tree slot of the closest triangle
+    lost: jax.Array  # [nb] bool: a capacity was too small for the block (answer unreliable)
+
+
+def closest_slots(index: MeshIndex, blocks: search.Blocks, pairs_per_block: int | None) -> Found:
+    """The closest triangle of every sorted point (module docstring). With
+    `pairs_per_block` None, capacities are sized on the host (concrete inputs only)."""
+    nb = blocks.p.shape[1]
+    caps, row_cap = search.capacities(nb, pairs_per_block, index.levels) if pairs_per_block else (None, None)
+    state = {"bound": jnp.full(nb, jnp.inf, jnp.float32), "seed": None}
+
+    def select(pairs, depth):
+        offset = jnp.int32(index.levels[depth][0])
+        u = None if state["seed"] is None else state["seed"][0]
+        keep, state["bound"], seed = _select(index, blocks, pairs, state["bound"], offset, u, seed=depth == 1)
+        state["seed"] = seed if seed is not None else state["seed"]
+        return keep
+
+    def open_level(pairs, keep, size, cap):
+        return _open(blocks, pairs, keep, jnp.int32(size), capacity=cap)
+
+    def finish(pairs, keep, cap, lost):
+        return _finish(index, blocks, pairs, keep, state["seed"], lost, row_capacity=cap)
+
+    return search.descend(select, open_level, nb, index.levels, caps, row_cap, finish)
+
+
+@functools.partial(jax.jit, static_argnames="seed")
+def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, offset, u, *, seed: bool):
+    """The pairs of a level that may hold a block point's closest triangle ([capacity]
+    bool), the blocks' tightened bounds [nb] (squared), and with `seed` the `_seed` values.
+    With `u` ([nb, BLOCK] squared distances each point has already found) or `seed`, a
+    pair is kept only if it may be closer than that to one of the block's points."""
+    nb = blocks.p.shape[1]
+    node = index.nodes[offset + pairs.node]  # [capacity, 24]
+    used = pairs.block < nb
+    b = jnp.minimum(pairs.block, nb - 1)
+    box = blocks.bounds[b]  # [capacity, 6]
+    ub = jnp.where(used, search.far_corner2(box, node[:, 6:9]), jnp.inf)
+    bound = jnp.minimum(bound, jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True))
+    found = None
+    if seed:  # exact distances to the leaves of each block's most promising node
+        found = _seed(index, blocks, pairs, ub)
+        bound = jnp.minimum(bound, found[0].max(1))
+        u = found[0]
+    oriented = jnp.maximum(search.frame_gap(box, node[:, 9:]), 0.0)
+    lb = jnp.maximum(search.box_gap2(box, node), oriented * oriented * (1.0 - 1e-5))
+    keep = used & (lb <= bound[b] * search.SLACK)
+    if u is not None:
+        p = tuple(blocks.p[k][b] for k in range(3))  # [capacity, BLOCK]
+        keep &= jnp.any(search.point_gap2(p, node) <= u[b] * search.SLACK, axis=1)
+    return keep, bound, found
+
+
+@functools.partial(jax.jit, static_argnames="capacity")
+def _open(blocks: search.Blocks, pairs: search.Pairs, keep, size, *, capacity: int):
+    return search.open_pairs(pairs, keep, size, capacity, blocks.p.shape[1])
+
+
+@functools.partial(jax.jit, static_argnames="row_capacity")
+def _finish(index: MeshIndex, blocks: search.Blocks, pairs, keep, seed, lost, *, row_capacity: int) -> Found:
+    """Evaluates the leaves kept, merges the seed's values, picks each point's triangle."""
+    nb = blocks.p.shape[1]
+    rows, dropped = search.make_rows(pairs, keep, row_capacity, nb)
+    d2, face = search.eval_rows(rows, blocks, lambda p, leaves: _leaf_minima(index, p, leaves), (jnp.inf, _NO_FACE))
+    owner = rows.block
+    if seed is not None:
+        d2 = jnp.concatenate([d2, seed[0]])
+        face = jnp.concatenate([face, seed[1]])
+        owner = jnp.concatenate([owner, jnp.arange(nb, dtype=jnp.int32)])
+    best = jax.ops.segment_min(d2, owner, nb)
+    tie = jnp.where(d2 == best[jnp.minimum(owner, nb - 1)], face, _NO_FACE)
+    face = jax.ops.segment_min(tie, owner, nb)
+    slot_of = jnp.zeros(index.capacity, jnp.int32).at[index.order].set(jnp.arange(index.capacity, dtype=jnp.int32))
+    return Found(best, slot_of[jnp.clip(face, 0, index.capacity - 1)], lost | dropped)
+
+
+def _seed(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, ub):
+    """Exact (squared distance, face) [nb, BLOCK] of each block's points to the leaves of
+    its pair of smallest ``ub`` [capacity] (a level-1 node): a tight bound for the rest."""
+    nb = blocks.p.shape[1]
+    best = jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True)
+    b = jnp.minimum(pairs.block, nb - 1)
+    first = jnp.where((ub == best[b]) & (pairs.block < nb), jnp.arange(ub.shape[0]), ub.shape[0])
+    pick = jax.ops.segment_min(first, pairs.block, nb, indices_are_sorted=True)
+    node = pairs.node[jnp.clip(pick, 0, ub.shape[0] - 1)]
+    leaves = node[:, None] * FAN_OUT + jnp.arange(FAN_OUT)
+    leaves = jnp.where((leaves < index.levels[0][1]) & (pick < ub.shape[0])[:, None], leaves, -1)
+    rows = search.Rows(leaves, jnp.arange(nb, dtype=jnp.int32), jnp.int32(nb))
+    return search.eval_rows(rows, blocks, lambda p, ids: _leaf_minima(index, p, ids), (jnp.inf, _NO_FACE))
+
+
+def _leaf_minima(index: MeshIndex, p, leaves):
+    """Per point of each row: the smallest squared distance to the triangles of its leaves
+    and the smallest face id at that distance ([c, BLOCK] each)."""
+    safe = jnp.maximum(leaves, 0)
+    rows = index.leaf_rows[safe]  # [c, ROW, 28, 8]: one contiguous gather per leaf
+    faces = jnp.where(leaves[..., None] >= 0, index.leaf_faces[safe], _NO_FACE)  # [c, ROW, 8]
+    zero = jnp.zeros((), jnp.float32)
+    q = tuple(x[:, None, None, :] for x in p)  # [c, 1, 1, BLOCK]
+    d2 = rows_dist2(q, tuple(rows[:, :, i, :, None] for i in range(28)), (zero, zero, zero))  # [c, ROW, 8, BLOCK]
+    d2 = jnp.where(faces[..., None] < _NO_FACE, d2, jnp.inf)
+    best = d2.min((1, 2))
+    face = jnp.where(d2 == best[:, None, None, :], faces[..., None], _NO_FACE).min((1, 2))
+    return best, face
+
+
+class Feature(NamedTuple):
+    """The closest point of a triangle to a point, in float32."""
+
+    point: jax.Array  # [n, 3] the closest point (relative to the index's centre)
+    barycentric: jax.Array  # [n, 3] its barycentric coordinates on the triangle (a, b, c)
+    region: jax.Array  # [n] int32 0 face, 1-3 edges ab, bc, ca, 4-6 vertices a, b, c
+
+
+def closest_on_triangles(p, a, b, c) -> Feature:
+    """Closest points on triangles (a, b, c) [n, 3] to points p [n, 3] (Ericson's regions,
+    a degenerate triangle's closest point on its longest edge's segments)."""
+    dot = lambda x, y: jnp.sum(x * y, -1)
+    ab, ac, ap = b - a, c - a, p - a
+    bp, cp = p - b, p - c
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    den = va + vb + vc
+    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (den > 0)
+    safe = jnp.where(den > 0, den, 1.0)
+    face_bary = jnp.stack([va, vb, vc], -1) / safe[..., None]
+
+    def segment(x0, x1, i, j):
+        e = x1 - x0
+        ee = dot(e, e)
+        s = jnp.clip(dot(p - x0, e) / jnp.where(ee > 0, ee, 1.0), 0.0, 1.0)
+        bary = jnp.zeros(p.shape).at[..., i].set(1.0 - s).at[..., j].add(s)
+        q = x0 + s[..., None] * e
+        return dot(p - q, p - q), bary, s
+
+    edges = [segment(a, b, 0, 1), segment(b, c, 1, 2), segment(c, a, 2, 0)]
+    best = jnp.argmin(jnp.stack([e[0] for e in edges], -1), -1)
+    bary_e = jnp.where((best == 0)[..., None], edges[0][1], jnp.where((best == 1)[..., None], edges[1][1], edges[2][1]))
+    s_e = jnp.where(best == 0, edges[0][2], jnp.where(best == 1, edges[1][2], edges[2][2]))
+    corner = jnp.where(s_e <= 0.0, 4 + best, jnp.where(s_e >= 1.0, 4 + (best + 1) % 3, 1 + best))
+    bary = jnp.where(inside[..., None], face_bary, bary_e)
+    region = jnp.where(inside, 0, corner).astype(jnp.int32)
+    point = bary[..., :1] * a + bary[..., 1:2] * b + bary[..., 2:] * c
+    return Feature(point, bary, region)

@@ -1,0 +1,418 @@
+"""Point queries against a mesh: closest points, winding numbers, occupancy, signed distance.
+
+Every function takes a `Mesh` (indexed on the host for that call) or a `MeshIndex`
+(built once with `mesh_index`, reused for any number of batches) and points
+``[*batch, 3]``. On concrete inputs the search sizes its capacities on the host and
+nothing is ever dropped; inside `jax.jit`, `jax.vmap` or `jax.grad` it runs with the
+static ``capacity`` (pairs per block of `jaxvox.points.search.BLOCK` points) and reports
+a block that did not fit as `PointStatus.LOST` per point.
+
+Signs (``sign=``):
+
+* ``"winding"`` (default): inside where the generalized winding number exceeds 1/2;
+  right on open, self-intersecting and non-manifold meshes. On concrete inputs the fast
+  sum is checked: points within `REFINE` of 1/2 are summed again with ``beta = 8`` and,
+  where its error bound does not settle the side, exactly (float64 near 1/2). Inside jit
+  the fast value decides.
+* ``"pseudonormal"``: the side of the angle-weighted pseudo-normal of the closest feature
+  (Baerentzen & Aanaes 2005): exact on closed, consistently oriented manifolds without
+  self-intersections, and no extra cost.
+
+Statuses per point (`PointStatus`): ``UNCERTAIN`` where the winding number lies within
+``margin`` of 1/2 (the mesh itself leaves the side open there: holes, overlaps),
+``INVALID`` for non-finite points (their results are NaN), ``LOST`` as above.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float32, Int32
+
+from jaxvox._checks import check_choice, check_int, check_number, check_type, is_concrete, refuse
+from jaxvox._pytree import pytree_dataclass
+from jaxvox.mesh import Mesh
+from jaxvox.points import closest, search, winding
+from jaxvox.points.index import MeshIndex, mesh_index
+
+Sign = Literal["winding", "pseudonormal"]
+SIGNS = ("winding", "pseudonormal")
+CAPACITY = 512  # default pairs per block inside jit
+REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
+WINDING_BLOCK = 32  # points per block of the winding-number search
+
+
+class PointStatus(enum.IntEnum):
+    """Per-point status of a query (int32 arrays hold these values)."""
+
+    OK = 0
+    UNCERTAIN = 1  # winding number within `margin` of 1/2: the side is not certain
+    INVALID = 2  # a non-finite point: results are NaN
+    LOST = 3  # inside jit: a search capacity was too small for the point's block
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class ClosestPoints:
+    """Closest points on a mesh (`closest_points`). Leading axes are the points' batch axes.
+
+    Attributes:
+      distance: [*b] float32 unsigned distance, world units.
+      point: [*b, 3] float32 closest point on the mesh.
+      triangle: [*b] int32 face id of the closest triangle (ties: the smallest id).
+      barycentric: [*b, 3] float32 barycentric coordinates of ``point`` on that face.
+      status: [*b] int32 `PointStatus` (OK, INVALID or LOST).
+    """
+
+    distance: Float32[Array, "*b"]
+    point: Float32[Array, "*b 3"]
+    triangle: Int32[Array, "*b"]
+    barycentric: Float32[Array, "*b 3"]
+    status: Int32[Array, "*b"]
+
+
+@pytree_dataclass
+@dataclasses.dataclass(frozen=True)
+class PointQuery:
+    """Everything `query_points` knows about each point ([*b] leading axes).
+
+    Attributes:
+      closest: `ClosestPoints`.
+      signed_distance: [*b] float32, negative inside.
+      inside: [*b] bool.
+      winding: [*b] float32 generalized winding number (NaN with ``sign="pseudonormal"``).
+      status: [*b] int32 `PointStatus`.
+    """
+
+    closest: ClosestPoints
+    signed_distance: Float32[Array, "*b"]
+    inside: Bool[Array, "*b"]
+    winding: Float32[Array, "*b"]
+    status: Int32[Array, "*b"]
+
+
+def _as_index(what: str, mesh) -> MeshIndex:
+    if isinstance(mesh, MeshIndex):
+        return mesh
+    check_type(what, mesh, (Mesh, MeshIndex))
+    return mesh_index(mesh)
+
+
+def _points(what: str, points) -> jax.Array:
+    """Points as float32 [*b, 3] (refused when the last axis is not 3)."""
+    if is_concrete(points):
+        a = np.asarray(points)
+        if a.dtype.kind not in "biuf":
+            raise refuse(what, "must be numbers", a.dtype)
+    p = jnp.asarray(points, jnp.float32)
+    if p.ndim < 1 or p.shape[-1] != 3:
+        raise refuse(what, "must have shape [..., 3]", p.shape)
+    return p
+
+
+def _capacity(capacity) -> int | None:
+    return None if capacity is None else check_int("capacity", capacity, minimum=1)
+
+
+def _host(index: MeshIndex, points: jax.Array) -> bool:
+    """Whether capacities can be sized on the host (everything concrete)."""
+    return all(is_concrete(x) for x in jax.tree_util.tree_leaves((index, points)))
+
+
+@functools.partial(jax.jit, static_argnames="size")
+def _prepare(index: MeshIndex, points, *, size: int):
+    """Flattened points with non-finite ones replaced by the centre, their finiteness, blocks."""
+    finite = jnp.all(jnp.isfinite(points), -1)
+    safe = jnp.where(finite[:, None], points, index.centre)
+    return safe, finite, search.make_blocks(index, safe, size)
+
+
+@jax.jit
+def _feature(index: MeshIndex, p, slot):
+    """The closest feature of points p [n, 3] (world) on the triangles at tree slots [n]:
+    (`closest.Feature` relative to the centre, face ids [n], corners a, b, c [n, 3] each)."""
+    face = index.order[slot]
+    tri = index.vertices[index.faces[face]] - index.centre  # [n, 3, 3]
+    q = p - index.centre
+    return closest.closest_on_triangles(q, tri[:, 0], tri[:, 1], tri[:, 2]), face
+
+
+def _closest(index: MeshIndex, flat, capacity: int | None):
+    """(ClosestPoints [n], slot [n], finite [n]) for flattened points [n, 3]."""
+    safe, finite, blocks = _prepare(index, jax.lax.stop_gradient(flat), size=search.BLOCK)
+    found = closest.closest_slots(index, blocks, None if _host(index, flat) else (capacity or CAPACITY))
+    slot = search.per_point(blocks, found.slot)
+    lost = search.per_point(blocks, jnp.repeat(found.lost[:, None], search.BLOCK, 1))
+    feature, face = _feature(index, flat, slot)
+    normal = jax.lax.stop_gradient(_unit(_pseudo_normal(index, slot, feature.region)))
+    ones = jnp.ones(flat.shape[0], jnp.float32)
+    dist = _signed_norm(flat - index.centre - feature.point, ones, normal)
+    status = jnp.where(finite, jnp.where(lost, PointStatus.LOST, PointStatus.OK), PointStatus.INVALID)
+    nan = lambda x: jnp.where(finite.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
+    result = ClosestPoints(
+        distance=nan(dist),
+        point=nan(feature.point + index.centre),
+        triangle=jnp.where(finite, face, -1),
+        barycentric=nan(feature.barycentric),
+        status=status.astype(jnp.int32),
+    )
+    return result, slot, feature
+
+
+def _unflatten(x, batch):
+    return jax.tree_util.tree_map(lambda a: a.reshape(batch + a.shape[1:]), x)
+
+
+def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"], *, capacity: int | None = None):
+    """The closest point on `mesh` to each of `points`, exact in float32.
+
+    Args:
+      mesh: `Mesh` (indexed for this call) or `MeshIndex` (`mesh_index`, reused).
+      points: [*b, 3] world positions.
+      capacity: search pairs per block inside jit (default `CAPACITY`); on concrete
+        inputs capacities are sized on the host and this is ignored.
+
+    Returns:
+      `ClosestPoints` with leading axes ``*b``.
+
+    Raises:
+      JaxvoxError: not a mesh or index, a mesh without faces, points not [..., 3].
+    """
+    index = _as_index("closest_points mesh", mesh)
+    p = _points("closest_points points", points)
+    batch = p.shape[:-1]
+    flat = p.reshape(-1, 3)
+    if flat.shape[0] == 0:
+        return _empty_closest(batch)
+    result, _, _ = _closest(index, flat, _capacity(capacity))
+    return _unflatten(result, batch)
+
+
+def _empty_closest(batch) -> ClosestPoints:
+    z = lambda *s, dtype=jnp.float32: jnp.zeros(batch + s, dtype)
+    return ClosestPoints(z(), z(3), z(dtype=jnp.int32), z(3), z(dtype=jnp.int32))
+
+
+def _fast_winding(index: MeshIndex, flat, beta: float, capacity: int | None):
+    """(w, bound, lost) [n] fast winding numbers of flattened finite points."""
+    safe, _, blocks = _prepare(index, flat, size=WINDING_BLOCK)
+    w, err, lost = winding.winding_sums(index, blocks, beta, None if _host(index, flat) else (capacity or CAPACITY))
+    lost = jnp.repeat(lost[:, None], WINDING_BLOCK, 1)
+    return search.per_point(blocks, w), search.per_point(blocks, err), search.per_point(blocks, lost)
+
+
+def _exact_winding(index: MeshIndex, flat) -> np.ndarray:
+    """Exact winding numbers [n] float64 (host) of points [n, 3] (float64 near 1/2)."""
+    from jaxvox.winding import exact_winding_numbers
+
+    return exact_winding_numbers(winding.tree_triangles(index), np.asarray(flat, np.float64))
+
+
+def _settled_winding(index: MeshIndex, flat, beta: float, capacity: int | None):
+    """Winding numbers [n] and lost [n]: fast, then on concrete inputs refined near 1/2."""
+    w, err, lost = _fast_winding(index, flat, beta, capacity)
+    if not _host(index, flat):
+        return w, lost
+    w = np.array(w, np.float64)
+    again = np.flatnonzero(np.abs(w - 0.5) < REFINE)
+    if len(again):
+        sub = jnp.asarray(np.asarray(flat)[again])
+        w8, err8, _ = _fast_winding(index, sub, 8.0, None)
+        w8, err8 = np.asarray(w8, np.float64), np.asarray(err8)
+        w[again] = w8
+        open_ = again[np.abs(w8 - 0.5) <= err8]
+        if len(open_):
+            w[open_] = _exact_winding(index, np.asarray(flat)[open_])
+    return jnp.asarray(w, jnp.float32), lost
+
+
+def winding_number(
+    mesh: Mesh | MeshIndex,
+    points: Float32[ArrayLike, "*b 3"],
+    *,
+    mode: Literal["fast", "exact"] = "fast",
+    beta: float = 2.0,
+    capacity: int | None = None,
+    return_bound: bool = False,
+):
+    """Generalized winding number of `mesh` at each of `points` (1 inside a closed,
+    outward-oriented mesh, 0 outside, in between across holes).
+
+    Args:
+      mesh: `Mesh` or `MeshIndex`.
+      points: [*b, 3] world positions.
+      mode: ``"fast"`` (tree of dipoles, `jaxvox.points.winding`) or ``"exact"`` (every
+        triangle, O(points x faces), host-side; float64 near 1/2).
+      beta: far-field acceptance ratio of the fast mode, > 1 (larger: more exact,
+        slower). The error bound returned with ``return_bound`` holds for any beta.
+      capacity: search pairs per block inside jit (see `closest_points`).
+      return_bound: also return the fast mode's per-point bound on ``|w - w_exact|``.
+
+    Returns:
+      [*b] float32 winding numbers (NaN for non-finite points), and with ``return_bound``
+      a [*b] float32 error bound (0 in exact mode).
+
+    Raises:
+      JaxvoxError: bad mesh, points, mode or beta; exact mode on traced points.
+    """
+    index = _as_index("winding_number mesh", mesh)
+    p = _points("winding_number points", points)
+    check_choice("winding_number mode", mode, ("fast", "exact"))
+    beta = check_number("winding_number beta", beta, above=1.0)
+    batch = p.shape[:-1]
+    flat = p.reshape(-1, 3)
+    if flat.shape[0] == 0:
+        z = jnp.zeros(batch, jnp.float32)
+        return (z, z) if return_bound else z
+    finite = jnp.all(jnp.isfinite(flat), -1)
+    if mode == "exact":
+        if not _host(index, flat):
+            raise refuse("winding_number mode", "'exact' runs on the host: not inside jit", mode)
+        safe = np.where(np.asarray(finite)[:, None], np.asarray(flat), 0.0)
+        w = jnp.asarray(_exact_winding(index, safe), jnp.float32)
+        bound = jnp.zeros_like(w)
+    else:
+        w, bound, _ = _fast_winding(index, flat, beta, _capacity(capacity))
+    w = jnp.where(finite, w, jnp.nan).reshape(batch)
+    return (w, bound.reshape(batch)) if return_bound else w
+
+
+def query_points(
+    mesh: Mesh | MeshIndex,
+    points: Float32[ArrayLike, "*b 3"],
+    *,
+    sign: Sign = "winding",
+    margin: float = 0.01,
+    capacity: int | None = None,
+) -> PointQuery:
+    """Closest points, signed distance, occupancy and winding number at each point.
+
+    Args:
+      mesh: `Mesh` or `MeshIndex`.
+      points: [*b, 3] world positions.
+      sign: ``"winding"`` or ``"pseudonormal"`` (module docstring).
+      margin: winding numbers within this of 1/2 are flagged `PointStatus.UNCERTAIN`.
+      capacity: search pairs per block inside jit (see `closest_points`).
+
+    Returns:
+      `PointQuery`. The signed distance is differentiable with respect to the points and
+      the index's vertices (`signed_distance`).
+    """
+    index = _as_index("query_points mesh", mesh)
+    p = _points("query_points points", points)
+    check_choice("query_points sign", sign, SIGNS)
+    margin = check_number("query_points margin", margin, minimum=0.0)
+    batch = p.shape[:-1]
+    flat = p.reshape(-1, 3)
+    if flat.shape[0] == 0:
+        z = jnp.zeros(batch, jnp.float32)
+        return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
+    result, slot, feature = _closest(index, flat, _capacity(capacity))
+    finite = result.status != PointStatus.INVALID
+    normal = _pseudo_normal(index, slot, feature.region)
+    q = flat - index.centre
+    side = jnp.sum(normal * (jax.lax.stop_gradient(q) - feature.point), -1)
+    if sign == "winding":
+        w, lost = _settled_winding(index, flat, 2.0, _capacity(capacity))
+        inside = w > 0.5
+        uncertain = jnp.abs(w - 0.5) < margin
+        status = jnp.where((result.status == PointStatus.OK) & lost, PointStatus.LOST, result.status)
+        status = jnp.where((status == PointStatus.OK) & uncertain, PointStatus.UNCERTAIN, status)
+    else:
+        w = jnp.full(flat.shape[0], jnp.nan, jnp.float32)
+        inside = side <= 0
+        status = result.status
+    s = jnp.where(inside, -1.0, 1.0)
+    sd = _signed_norm(q - feature.point, jax.lax.stop_gradient(s), jax.lax.stop_gradient(_unit(normal) * s[:, None]))
+    sd = jnp.where(finite, sd, jnp.nan)
+    out = PointQuery(result, sd, inside & finite, jnp.where(finite, w, jnp.nan), status.astype(jnp.int32))
+    return _unflatten(out, batch)
+
+
+def _pseudo_normal(index: MeshIndex, slot, region):
+    """[n, 3] pseudo-normal of each point's closest feature (region as `closest.Feature`)."""
+    rows = index.normals[:, slot].T.reshape(-1, 7, 3)
+    return jnp.take_along_axis(rows, region[:, None, None], 1)[:, 0]
+
+
+def _unit(v):
+    n = jnp.sqrt(jnp.sum(v * v, -1, keepdims=True))
+    return v / jnp.where(n > 0, n, 1.0)
+
+
+@jax.custom_jvp
+def _signed_norm(v, s, n):
+    """``s |v|`` for offsets v [n, 3] and signs s [n]; its gradient is ``s v / |v|``, and
+    ``n`` [n, 3] (the unit pseudo-normal times s) where v = 0 (a point on the surface)."""
+    return s * jnp.sqrt(jnp.sum(v * v, -1))
+
+
+@_signed_norm.defjvp
+def _signed_norm_jvp(primals, tangents):
+    v, s, n = primals
+    dv = tangents[0]
+    length2 = jnp.sum(v * v, -1, keepdims=True)
+    safe = jnp.where(length2 > 0, length2, 1.0)
+    direction = jnp.where(length2 > 0, s[:, None] * v * jax.lax.rsqrt(safe), n)
+    return _signed_norm(v, s, n), jnp.sum(direction * dv, -1)
+
+
+def signed_distance(
+    mesh: Mesh | MeshIndex,
+    points: Float32[ArrayLike, "*b 3"],
+    *,
+    sign: Sign = "winding",
+    capacity: int | None = None,
+) -> Float32[Array, "*b"]:
+    """Signed distance from each point to `mesh`, negative inside.
+
+    Differentiable: with respect to the points the gradient is the unit vector from the
+    closest point, times the sign (the unit pseudo-normal on the surface itself: never
+    NaN); with respect to `MeshIndex.vertices` it moves the closest point with its
+    triangle (pass an index, e.g. ``dataclasses.replace(index, vertices=v)``; the search
+    uses the index's tree, so rebuild it when the vertices have moved far).
+
+    Args:
+      mesh: `Mesh` or `MeshIndex`.
+      points: [*b, 3] world positions.
+      sign: ``"winding"`` (default) or ``"pseudonormal"`` (module docstring).
+      capacity: search pairs per block inside jit.
+
+    Returns:
+      [*b] float32 (NaN for non-finite points). `query_points` also gives statuses.
+    """
+    return query_points(mesh, points, sign=sign, capacity=capacity).signed_distance
+
+
+def occupancy(
+    mesh: Mesh | MeshIndex,
+    points: Float32[ArrayLike, "*b 3"],
+    *,
+    sign: Sign = "winding",
+    capacity: int | None = None,
+) -> Bool[Array, "*b"]:
+    """Whether each point is inside `mesh` (``sign`` as in `signed_distance`).
+
+    With ``sign="winding"`` only the winding number is computed (no closest points).
+
+    Returns:
+      [*b] bool (False for non-finite points).
+    """
+    index = _as_index("occupancy mesh", mesh)
+    p = _points("occupancy points", points)
+    check_choice("occupancy sign", sign, SIGNS)
+    if sign == "pseudonormal":
+        return query_points(index, p, sign=sign, capacity=capacity).inside
+    batch = p.shape[:-1]
+    flat = p.reshape(-1, 3)
+    if flat.shape[0] == 0:
+        return jnp.zeros(batch, bool)
+    finite = jnp.all(jnp.isfinite(flat), -1)
+    w, _ = _settled_winding(index, jnp.where(finite[:, None], flat, index.centre), 2.0, _capacity(capacity))
+    return ((w > 0.5) & finite).reshape(batch)
