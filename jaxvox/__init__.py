@@ -11,7 +11,7 @@ voxel DAGs (textured or vertex-coloured, emissive) under an importance-sampled
 environment light to EXR and PNG files.
 """
 
-from jaxvox import morton, sdf
+from jaxvox import morton, points, sdf
 from jaxvox._errors import JaxvoxError
 from jaxvox.batch import (
     BatchResult,
@@ -59,6 +59,20 @@ from jaxvox.octree import (
     voxel_index,
 )
 from jaxvox.overflow import Overflow
+from jaxvox.points import (
+    ClosestPoints,
+    MeshIndex,
+    PointQuery,
+    PointStatus,
+    closest_points,
+    mesh_index,
+    occupancy,
+    query_points,
+    signed_distance,
+    stack_indices,
+    winding_number,
+)
+from jaxvox.points.sample import SdfSamples, sample_meshes, sample_sdf
 from jaxvox.render import (
     Environment,
     RenderResult,
@@ -111,6 +125,7 @@ __all__ = [
     "CONSERVATIVE",
     "Capacities",
     "Clipmap",
+    "ClosestPoints",
     "CompactDag",
     "EMPTY",
     "Environment",
@@ -122,6 +137,7 @@ __all__ = [
     "MISS",
     "MISSING",
     "Mesh",
+    "MeshIndex",
     "OVERFLOW_CANDIDATES",
     "OVERFLOW_COLUMNS",
     "OVERFLOW_NODES",
@@ -129,11 +145,14 @@ __all__ = [
     "OVERFLOW_VOXELS",
     "Octree",
     "Overflow",
+    "PointQuery",
+    "PointStatus",
     "QuantizedField",
     "RenderResult",
     "SIX_SEPARATING",
     "SOLID_BOUNDARY",
     "STEP_CAP",
+    "SdfSamples",
     "SparseField",
     "TRACE_METHODS",
     "UNUSED",
@@ -145,6 +164,7 @@ __all__ = [
     "build_octree",
     "build_octree_from_sdf",
     "clipmap_corners",
+    "closest_points",
     "compact",
     "compact_dag",
     "default_scene",
@@ -160,13 +180,17 @@ __all__ = [
     "load_mesh",
     "load_voxels",
     "look_at_view",
+    "mesh_index",
     "mesh_to_dag",
     "morton",
+    "occupancy",
     "octree_capacities",
     "open_edges",
     "pad_mesh",
     "pinhole_rays",
+    "points",
     "quantize_field",
+    "query_points",
     "read_exr",
     "read_hdr",
     "render",
@@ -174,6 +198,8 @@ __all__ = [
     "run_batch",
     "sample",
     "sample_gradient",
+    "sample_meshes",
+    "sample_sdf",
     "sample_texture",
     "save",
     "save_binvox",
@@ -181,6 +207,7 @@ __all__ = [
     "save_render",
     "save_voxels",
     "sdf",
+    "signed_distance",
     "sky_environment",
     "solid_boundary",
     "solid_voxelize",
@@ -190,6 +217,7 @@ __all__ = [
     "sphere_trace_field",
     "sphere_trace_octree",
     "stack_grids",
+    "stack_indices",
     "stack_meshes",
     "time_sliced_cascades",
     "tonemap",
@@ -208,6 +236,7 @@ __all__ = [
     "voxelize_fixed",
     "voxelize_sdf",
     "voxels_to_mesh",
+    "winding_number",
     "winding_numbers",
     "write_exr",
     "write_png",

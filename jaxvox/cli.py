@@ -405,6 +405,30 @@ def cmd_render(args) -> int:
     return 0
 
 
+MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
+
+
+def cmd_sample(args) -> int:
+    """Writes `jaxvox.sample_sdf` samples of each mesh to ``--out``; exit status 1 when a
+    mesh was skipped (the others are written)."""
+    from jaxvox.points.sample import sample_meshes
+
+    paths = []
+    for item in args.meshes:
+        if os.path.isdir(item):
+            paths += sorted(os.path.join(item, f) for f in os.listdir(item) if f.lower().endswith(MESH_SUFFIXES))
+        else:
+            paths.append(item)
+    near = (1.0 - args.uniform) / 2
+    report = sample_meshes(
+        paths, args.out, n=args.samples, seed=args.seed, fractions=(near, near, args.uniform), sigmas=tuple(args.sigmas)
+    )
+    errors = sum(status.startswith("error") for status in report.values())
+    done = sum(status == "done" for status in report.values())
+    print(f"{len(report) - errors - done} written, {done} done before, {errors} skipped: {args.out}")
+    return 1 if errors else 0
+
+
 def cmd_info(args) -> int:
     """Prints the levels, nodes, bytes and bits per voxel of a saved tree file."""
     import jaxvox as jv
@@ -541,6 +565,19 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     render.add_argument("--batch-rays", type=int, default=1 << 18, help="paths traced per batch (memory)")
+    sample = sub.add_parser(
+        "sample",
+        help="signed-distance training samples of mesh files: one .npz each in --out (resumable; bad meshes skipped)",
+    )
+    sample.add_argument("meshes", nargs="+", help="mesh files, or folders (their .obj .ply .off .stl .glb files)")
+    sample.add_argument("--out", required=True, help="output folder")
+    sample.add_argument("--samples", type=int, default=250_000, help="samples per mesh (default 250000)")
+    sample.add_argument("--seed", type=int, default=0, help="base seed (each mesh mixes in its file name)")
+    sample.add_argument("--uniform", type=float, default=0.2, help="share of points uniform in the padded box")
+    sample.add_argument(
+        "--sigmas", type=float, nargs=2, default=(0.005, 0.05), help="near-surface offsets, fractions of the diagonal"
+    )
+    sample.set_defaults(func=cmd_sample)
     info = sub.add_parser("info", help="levels, nodes, bytes and bits per voxel of a saved tree file")
     info.add_argument("file", help="a .jvx file written by jaxvox build or run")
     info.set_defaults(func=cmd_info)

@@ -10,7 +10,6 @@ leaf). Ties between triangles at the same float32 distance go to the smallest fa
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -29,49 +28,61 @@ class Found(NamedTuple):
     dist2: jax.Array  # [nb, BLOCK] float32 squared distance (float32 kernel)
     slot: jax.Array  # [nb, BLOCK] int32 tree slot of the closest triangle
     lost: jax.Array  # [nb] bool: a capacity was too small for the block (answer unreliable)
+    needs: jax.Array  # [len(caps)] int32 what each capacity needed
 
 
-def closest_slots(index: MeshIndex, blocks: search.Blocks, pairs_per_block: int | None) -> Found:
-    """The closest triangle of every sorted point (module docstring). With
-    `pairs_per_block` None, capacities are sized on the host (concrete inputs only)."""
+def closest_slots(index: MeshIndex, blocks: search.Blocks, caps: tuple[int, ...]) -> Found:
+    """The closest triangle of every sorted point (module docstring), traced.
+
+    `caps`: static capacities, the pairs at each depth below the root (leaves first) and
+    then the leaf rows (`capacity_count` entries). ``Found.needs`` says what each needed.
+    """
     nb = blocks.p.shape[1]
-    caps, row_cap = search.capacities(nb, pairs_per_block, index.levels) if pairs_per_block else (None, None)
     state = {"bound": jnp.full(nb, jnp.inf, jnp.float32), "seed": None}
 
     def select(pairs, depth):
-        offset = jnp.int32(index.levels[depth][0])
-        u = None if state["seed"] is None else state["seed"][0]
-        keep, state["bound"], seed = _select(index, blocks, pairs, state["bound"], offset, u, seed=depth == 1)
+        u = None if state["seed"] is None else state["seed"][1]
+        keep, state["bound"], seed = _select(index, blocks, pairs, state["bound"], depth, u)
         state["seed"] = seed if seed is not None else state["seed"]
         return keep
 
-    def open_level(pairs, keep, size, cap):
-        return _open(blocks, pairs, keep, jnp.int32(size), capacity=cap)
+    pairs, keep, lost, needs = search.descend(select, nb, index.levels, caps[:-1])
+    rows, dropped = search.make_rows(pairs, keep, caps[-1], nb)
+    seed = state["seed"]
+    if seed is not None:  # the seed's leaves are evaluated again with the rest: one kernel
+        rows = search.join_rows([seed[0], rows], nb)
+    d2, face = search.eval_rows(rows, blocks, lambda p, leaves: _leaf_minima(index, p, leaves), (jnp.inf, _NO_FACE))
+    owner = rows.block
+    best = jax.ops.segment_min(d2, owner, nb)
+    tie = jnp.where(d2 == best[jnp.minimum(owner, nb - 1)], face, _NO_FACE)
+    face = jax.ops.segment_min(tie, owner, nb)
+    slot_of = jnp.zeros(index.capacity, jnp.int32).at[index.order].set(jnp.arange(index.capacity, dtype=jnp.int32))
+    slot = slot_of[jnp.clip(face, 0, index.capacity - 1)]
+    return Found(best, slot, lost | dropped, jnp.concatenate([needs, rows.needed[None]]))
 
-    def finish(pairs, keep, cap, lost):
-        return _finish(index, blocks, pairs, keep, state["seed"], lost, row_capacity=cap)
 
-    return search.descend(select, open_level, nb, index.levels, caps, row_cap, finish)
+def capacity_count(index: MeshIndex) -> int:
+    """How many capacities `closest_slots` takes: one per depth below the root, and the rows."""
+    return len(index.levels)
 
 
-@functools.partial(jax.jit, static_argnames="seed")
-def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, offset, u, *, seed: bool):
+def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, depth: int, u):
     """The pairs of a level that may hold a block point's closest triangle ([capacity]
-    bool), the blocks' tightened bounds [nb] (squared), and with `seed` the `_seed` values.
-    With `u` ([nb, BLOCK] squared distances each point has already found) or `seed`, a
-    pair is kept only if it may be closer than that to one of the block's points."""
+    bool), the blocks' tightened bounds [nb] (squared), and at depth 1 the `_seed`
+    values. With `u` ([nb, BLOCK] squared distances each point has already found, or the
+    seed's), a pair is kept only if it may be closer than that to one of the block's points."""
     nb = blocks.p.shape[1]
-    node = index.nodes[offset + pairs.node]  # [capacity, 24]
+    node = index.nodes[index.levels[depth][0] + pairs.node]  # [capacity, 24]
     used = pairs.block < nb
     b = jnp.minimum(pairs.block, nb - 1)
     box = blocks.bounds[b]  # [capacity, 6]
     ub = jnp.where(used, search.far_corner2(box, node[:, 6:9]), jnp.inf)
     bound = jnp.minimum(bound, jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True))
     found = None
-    if seed:  # exact distances to the leaves of each block's most promising node
+    if depth == 1:  # exact distances to the leaves of each block's most promising node
         found = _seed(index, blocks, pairs, ub)
-        bound = jnp.minimum(bound, found[0].max(1))
-        u = found[0]
+        bound = jnp.minimum(bound, found[1].max(1))
+        u = found[1]
     oriented = jnp.maximum(search.frame_gap(box, node[:, 9:]), 0.0)
     lb = jnp.maximum(search.box_gap2(box, node), oriented * oriented * (1.0 - 1e-5))
     keep = used & (lb <= bound[b] * search.SLACK)
@@ -81,42 +92,21 @@ def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound,
     return keep, bound, found
 
 
-@functools.partial(jax.jit, static_argnames="capacity")
-def _open(blocks: search.Blocks, pairs: search.Pairs, keep, size, *, capacity: int):
-    return search.open_pairs(pairs, keep, size, capacity, blocks.p.shape[1])
-
-
-@functools.partial(jax.jit, static_argnames="row_capacity")
-def _finish(index: MeshIndex, blocks: search.Blocks, pairs, keep, seed, lost, *, row_capacity: int) -> Found:
-    """Evaluates the leaves kept, merges the seed's values, picks each point's triangle."""
-    nb = blocks.p.shape[1]
-    rows, dropped = search.make_rows(pairs, keep, row_capacity, nb)
-    d2, face = search.eval_rows(rows, blocks, lambda p, leaves: _leaf_minima(index, p, leaves), (jnp.inf, _NO_FACE))
-    owner = rows.block
-    if seed is not None:
-        d2 = jnp.concatenate([d2, seed[0]])
-        face = jnp.concatenate([face, seed[1]])
-        owner = jnp.concatenate([owner, jnp.arange(nb, dtype=jnp.int32)])
-    best = jax.ops.segment_min(d2, owner, nb)
-    tie = jnp.where(d2 == best[jnp.minimum(owner, nb - 1)], face, _NO_FACE)
-    face = jax.ops.segment_min(tie, owner, nb)
-    slot_of = jnp.zeros(index.capacity, jnp.int32).at[index.order].set(jnp.arange(index.capacity, dtype=jnp.int32))
-    return Found(best, slot_of[jnp.clip(face, 0, index.capacity - 1)], lost | dropped)
-
-
 def _seed(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, ub):
-    """Exact (squared distance, face) [nb, BLOCK] of each block's points to the leaves of
-    its pair of smallest ``ub`` [capacity] (a level-1 node): a tight bound for the rest."""
+    """Rows [nb, ROW] of the leaves of each block's pair of smallest ``ub`` [capacity] (a
+    level-1 node) and the exact squared distances [nb, BLOCK] of the block's points to
+    them: a tight bound for the rest of the search."""
     nb = blocks.p.shape[1]
     best = jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True)
     b = jnp.minimum(pairs.block, nb - 1)
     first = jnp.where((ub == best[b]) & (pairs.block < nb), jnp.arange(ub.shape[0]), ub.shape[0])
     pick = jax.ops.segment_min(first, pairs.block, nb, indices_are_sorted=True)
     node = pairs.node[jnp.clip(pick, 0, ub.shape[0] - 1)]
-    leaves = node[:, None] * FAN_OUT + jnp.arange(FAN_OUT)
-    leaves = jnp.where((leaves < index.levels[0][1]) & (pick < ub.shape[0])[:, None], leaves, -1)
-    rows = search.Rows(leaves, jnp.arange(nb, dtype=jnp.int32), jnp.int32(nb))
-    return search.eval_rows(rows, blocks, lambda p, ids: _leaf_minima(index, p, ids), (jnp.inf, _NO_FACE))
+    leaves = node[:, None] * FAN_OUT + jnp.arange(search.ROW) % FAN_OUT
+    ok = (jnp.arange(search.ROW) < FAN_OUT) & (leaves < index.levels[0][1]) & (pick < ub.shape[0])[:, None]
+    rows = search.Rows(jnp.where(ok, leaves, -1), jnp.arange(nb, dtype=jnp.int32), jnp.int32(nb), jnp.int32(nb))
+    minima = lambda p, leaves: _leaf_minima(index, p, leaves)
+    return rows, search.eval_rows(rows, blocks, minima, (jnp.inf, _NO_FACE))[0]
 
 
 def _leaf_minima(index: MeshIndex, p, leaves):

@@ -52,7 +52,8 @@ class MeshIndex:
     static (it depends on F only): a mesh whose face capacity differs recompiles.
 
     Attributes:
-      vertices: [V, 3] float32 the mesh's vertices, world units (for vertex gradients).
+      vertices: [V, 3] float32 the mesh's vertices, world units (for vertex gradients),
+        padded with zeros to the ladder bucket of the vertex count.
       faces: [F, 3] int32 the mesh's faces in their own order, padded with ``(0, 0, 0)``.
       order: [F] int32 the face id at each tree slot (padding slots: ids >= face count).
       valid: [F] bool whether a tree slot holds a real face.
@@ -236,8 +237,10 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     frames = _oriented_boxes(padded_tris, valid, len(levels))
     faces = np.zeros((cap, 3), np.int32)
     faces[: len(f)] = f
+    vertices = np.zeros((bucket(len(v)), 3))
+    vertices[: len(v)] = v  # padded to the ladder too: a program per vertex count would recompile
     return MeshIndex(
-        vertices=jnp.asarray(v, jnp.float32),
+        vertices=jnp.asarray(vertices, jnp.float32),
         faces=jnp.asarray(faces),
         order=jnp.asarray(slots, jnp.int32),
         valid=jnp.asarray(valid),

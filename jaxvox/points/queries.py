@@ -2,18 +2,22 @@
 
 Every function takes a `Mesh` (indexed on the host for that call) or a `MeshIndex`
 (built once with `mesh_index`, reused for any number of batches) and points
-``[*batch, 3]``. On concrete inputs the search sizes its capacities on the host and
-nothing is ever dropped; inside `jax.jit`, `jax.vmap` or `jax.grad` it runs with the
-static ``capacity`` (pairs per block of `jaxvox.points.search.BLOCK` points) and reports
-a block that did not fit as `PointStatus.LOST` per point.
+``[*batch, 3]``. Each search is one compiled program with static capacities (pairs and
+rows of the tree walk, `jaxvox.points.search`), planned per (face capacity, point count):
+on concrete inputs a search that ran out is run again with the capacities it reported
+needing (one more compile, then remembered for that shape), so nothing is dropped; inside
+`jax.jit`, `jax.vmap` or `jax.grad` the plan is used as it stands and a block that did
+not fit is reported as `PointStatus.LOST` per point (call once on concrete points of
+that shape first to grow the plan).
 
 Signs (``sign=``):
 
 * ``"winding"`` (default): inside where the generalized winding number exceeds 1/2;
   right on open, self-intersecting and non-manifold meshes. On concrete inputs the fast
-  sum is checked: points within `REFINE` of 1/2 are summed again with ``beta = 8`` and,
-  where its error bound does not settle the side, exactly (float64 near 1/2). Inside jit
-  the fast value decides.
+  sum (``beta = 2``) is checked: points within `REFINE` of 1/2 are summed again over
+  every triangle (float64 near 1/2), so a side is wrong only where the fast sum erred by
+  more than `REFINE` (its largest error on the test meshes is about a fifth of that).
+  Inside jit the fast value decides.
 * ``"pseudonormal"``: the side of the angle-weighted pseudo-normal of the closest feature
   (Baerentzen & Aanaes 2005): exact on closed, consistently oriented manifolds without
   self-intersections, and no extra cost.
@@ -35,15 +39,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float32, Int32
 
-from jaxvox._checks import check_choice, check_int, check_number, check_type, is_concrete, refuse
+from jaxvox._checks import check_choice, check_number, check_type, is_concrete, refuse
 from jaxvox._pytree import pytree_dataclass
+from jaxvox._shapes import bucket
 from jaxvox.mesh import Mesh
 from jaxvox.points import closest, search, winding
 from jaxvox.points.index import MeshIndex, mesh_index
 
 Sign = Literal["winding", "pseudonormal"]
 SIGNS = ("winding", "pseudonormal")
-CAPACITY = 512  # default pairs per block inside jit
+DEFAULT_PAIRS = {"closest": 256, "winding": 512}  # first plan: pairs per block
+DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
 
@@ -116,70 +122,112 @@ def _points(what: str, points) -> jax.Array:
     return p
 
 
-def _capacity(capacity) -> int | None:
-    return None if capacity is None else check_int("capacity", capacity, minimum=1)
+def _host(*trees) -> bool:
+    """Whether every leaf is concrete (the host API can read counts and retry)."""
+    return all(is_concrete(x) for x in jax.tree_util.tree_leaves(trees))
 
 
-def _host(index: MeshIndex, points: jax.Array) -> bool:
-    """Whether capacities can be sized on the host (everything concrete)."""
-    return all(is_concrete(x) for x in jax.tree_util.tree_leaves((index, points)))
+_PLANS: dict[tuple, tuple[int, ...]] = {}  # (what, face capacity, blocks) -> capacities that sufficed
 
 
-@functools.partial(jax.jit, static_argnames="size")
-def _prepare(index: MeshIndex, points, *, size: int):
-    """Flattened points with non-finite ones replaced by the centre, their finiteness, blocks."""
+def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
+    """The capacities of a search: the largest any earlier call of this shape needed, or the
+    defaults (pairs per block by depth, `DEFAULT_PAIRS`; rows per block, `DEFAULT_ROWS`)."""
+    key = (what, index.capacity, nb)  # (beta changes the program, not its capacities)
+    if key not in _PLANS:
+        depths = len(index.levels)
+        pairs = tuple(bucket(nb * min(size, DEFAULT_PAIRS[what])) for _, size in index.levels[:-1])
+        rows = bucket(nb * DEFAULT_ROWS[what])
+        _PLANS[key] = pairs + (rows,) * (1 if what == "closest" else depths + 1)
+    return _PLANS[key]
+
+
+def _searched(what: str, run, index: MeshIndex, nb: int):
+    """Runs ``run(caps) -> (result, lost, needs)``; on concrete inputs, again with grown
+    capacities while a block was lost (nothing is dropped), remembering what sufficed."""
+    caps = _plan(what, index, nb)
+    while True:
+        result, lost, needs = run(caps)
+        if not _host(lost) or not bool(jnp.any(lost)):
+            return result, lost
+        caps = _PLANS[(what, index.capacity, nb)] = search.grown(caps, np.asarray(needs))
+
+
+@functools.partial(jax.jit, static_argnames="caps")
+def _closest_run(index: MeshIndex, points, *, caps):
     finite = jnp.all(jnp.isfinite(points), -1)
-    safe = jnp.where(finite[:, None], points, index.centre)
-    return safe, finite, search.make_blocks(index, safe, size)
+    blocks = search.make_blocks(index, jnp.where(finite[:, None], points, index.centre))
+    found = closest.closest_slots(index, blocks, caps)
+    lost = search.per_point(blocks, jnp.repeat(found.lost[:, None], search.BLOCK, 1))
+    return (search.per_point(blocks, found.slot), finite), lost, found.needs
 
 
-@jax.jit
-def _feature(index: MeshIndex, p, slot):
-    """The closest feature of points p [n, 3] (world) on the triangles at tree slots [n]:
-    (`closest.Feature` relative to the centre, face ids [n], corners a, b, c [n, 3] each)."""
+@functools.partial(jax.jit, static_argnames=("beta", "caps"))
+def _winding_run(index: MeshIndex, points, *, beta: float, caps):
+    finite = jnp.all(jnp.isfinite(points), -1)
+    blocks = search.make_blocks(index, jnp.where(finite[:, None], points, index.centre), WINDING_BLOCK)
+    w, err, lost, needs = winding.winding_sums(index, blocks, beta, caps)
+    lost = search.per_point(blocks, jnp.repeat(lost[:, None], WINDING_BLOCK, 1))
+    return (search.per_point(blocks, w), search.per_point(blocks, err)), lost, needs
+
+
+def _blocks_of(n: int, size: int) -> int:
+    return -(-n // size)
+
+
+def _closest(index: MeshIndex, flat):
+    """(slot [n], finite [n], lost [n]) of the closest triangles of flattened points [n, 3]."""
+    nb = _blocks_of(flat.shape[0], search.BLOCK)
+    run = lambda caps: _closest_run(index, jax.lax.stop_gradient(flat), caps=caps)
+    (slot, finite), lost = _searched("closest", run, index, nb)
+    return slot, finite, lost
+
+
+@functools.partial(jax.jit, static_argnames=("sign", "margin"))
+def _answer(index: MeshIndex, flat, slot, finite, lost, w, *, sign: str | None, margin: float) -> PointQuery:
+    """Everything about flattened points [n, 3] from their closest triangles' tree slots and
+    (with ``sign="winding"``) winding numbers [n]; differentiable in flat and the vertices."""
     face = index.order[slot]
     tri = index.vertices[index.faces[face]] - index.centre  # [n, 3, 3]
-    q = p - index.centre
-    return closest.closest_on_triangles(q, tri[:, 0], tri[:, 1], tri[:, 2]), face
-
-
-def _closest(index: MeshIndex, flat, capacity: int | None):
-    """(ClosestPoints [n], slot [n], finite [n]) for flattened points [n, 3]."""
-    safe, finite, blocks = _prepare(index, jax.lax.stop_gradient(flat), size=search.BLOCK)
-    found = closest.closest_slots(index, blocks, None if _host(index, flat) else (capacity or CAPACITY))
-    slot = search.per_point(blocks, found.slot)
-    lost = search.per_point(blocks, jnp.repeat(found.lost[:, None], search.BLOCK, 1))
-    feature, face = _feature(index, flat, slot)
-    normal = jax.lax.stop_gradient(_unit(_pseudo_normal(index, slot, feature.region)))
-    ones = jnp.ones(flat.shape[0], jnp.float32)
-    dist = _signed_norm(flat - index.centre - feature.point, ones, normal)
+    q = flat - index.centre
+    feature = closest.closest_on_triangles(jax.lax.stop_gradient(q), tri[:, 0], tri[:, 1], tri[:, 2])
+    normal = jax.lax.stop_gradient(_pseudo_normal(index, slot, feature.region))
+    offset = q - feature.point
     status = jnp.where(finite, jnp.where(lost, PointStatus.LOST, PointStatus.OK), PointStatus.INVALID)
+    if sign == "winding":
+        inside = w > 0.5
+        status = jnp.where((status == PointStatus.OK) & (jnp.abs(w - 0.5) < margin), PointStatus.UNCERTAIN, status)
+    else:
+        inside = jnp.sum(normal * jax.lax.stop_gradient(offset), -1) <= 0
+        w = jnp.full(flat.shape[0], jnp.nan, jnp.float32)
+    s = jnp.where(inside, -1.0, 1.0)
+    n = _unit(normal)
     nan = lambda x: jnp.where(finite.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
-    result = ClosestPoints(
-        distance=nan(dist),
+    closest_ = ClosestPoints(
+        distance=nan(_signed_norm(offset, jnp.ones_like(s), n)),
         point=nan(feature.point + index.centre),
         triangle=jnp.where(finite, face, -1),
         barycentric=nan(feature.barycentric),
-        status=status.astype(jnp.int32),
+        status=jnp.minimum(status, PointStatus.INVALID if sign is None else status).astype(jnp.int32),
     )
-    return result, slot, feature
+    sd = nan(_signed_norm(offset, s, n * s[:, None]))
+    return PointQuery(closest_, sd, inside & finite, nan(w), status.astype(jnp.int32))
 
 
 def _unflatten(x, batch):
     return jax.tree_util.tree_map(lambda a: a.reshape(batch + a.shape[1:]), x)
 
 
-def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"], *, capacity: int | None = None):
+def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"]) -> ClosestPoints:
     """The closest point on `mesh` to each of `points`, exact in float32.
 
     Args:
       mesh: `Mesh` (indexed for this call) or `MeshIndex` (`mesh_index`, reused).
       points: [*b, 3] world positions.
-      capacity: search pairs per block inside jit (default `CAPACITY`); on concrete
-        inputs capacities are sized on the host and this is ignored.
 
     Returns:
-      `ClosestPoints` with leading axes ``*b``.
+      `ClosestPoints` with leading axes ``*b``. ``distance`` is differentiable with
+      respect to the points and the index's vertices.
 
     Raises:
       JaxvoxError: not a mesh or index, a mesh without faces, points not [..., 3].
@@ -190,8 +238,9 @@ def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"], *
     flat = p.reshape(-1, 3)
     if flat.shape[0] == 0:
         return _empty_closest(batch)
-    result, _, _ = _closest(index, flat, _capacity(capacity))
-    return _unflatten(result, batch)
+    slot, finite, lost = _closest(index, flat)
+    zeros = jnp.zeros(flat.shape[0], jnp.float32)
+    return _unflatten(_answer(index, flat, slot, finite, lost, zeros, sign=None, margin=0.0).closest, batch)
 
 
 def _empty_closest(batch) -> ClosestPoints:
@@ -199,12 +248,11 @@ def _empty_closest(batch) -> ClosestPoints:
     return ClosestPoints(z(), z(3), z(dtype=jnp.int32), z(3), z(dtype=jnp.int32))
 
 
-def _fast_winding(index: MeshIndex, flat, beta: float, capacity: int | None):
-    """(w, bound, lost) [n] fast winding numbers of flattened finite points."""
-    safe, _, blocks = _prepare(index, flat, size=WINDING_BLOCK)
-    w, err, lost = winding.winding_sums(index, blocks, beta, None if _host(index, flat) else (capacity or CAPACITY))
-    lost = jnp.repeat(lost[:, None], WINDING_BLOCK, 1)
-    return search.per_point(blocks, w), search.per_point(blocks, err), search.per_point(blocks, lost)
+def _fast_winding(index: MeshIndex, flat, beta: float):
+    """((w, bound), lost) [n] fast winding numbers of flattened points (non-finite: any)."""
+    nb = _blocks_of(flat.shape[0], WINDING_BLOCK)
+    run = lambda caps: _winding_run(index, jax.lax.stop_gradient(flat), beta=beta, caps=caps)
+    return _searched("winding", run, index, nb)
 
 
 def _exact_winding(index: MeshIndex, flat) -> np.ndarray:
@@ -214,21 +262,15 @@ def _exact_winding(index: MeshIndex, flat) -> np.ndarray:
     return exact_winding_numbers(winding.tree_triangles(index), np.asarray(flat, np.float64))
 
 
-def _settled_winding(index: MeshIndex, flat, beta: float, capacity: int | None):
+def _settled_winding(index: MeshIndex, flat):
     """Winding numbers [n] and lost [n]: fast, then on concrete inputs refined near 1/2."""
-    w, err, lost = _fast_winding(index, flat, beta, capacity)
+    (w, _), lost = _fast_winding(index, flat, 2.0)
     if not _host(index, flat):
         return w, lost
     w = np.array(w, np.float64)
     again = np.flatnonzero(np.abs(w - 0.5) < REFINE)
     if len(again):
-        sub = jnp.asarray(np.asarray(flat)[again])
-        w8, err8, _ = _fast_winding(index, sub, 8.0, None)
-        w8, err8 = np.asarray(w8, np.float64), np.asarray(err8)
-        w[again] = w8
-        open_ = again[np.abs(w8 - 0.5) <= err8]
-        if len(open_):
-            w[open_] = _exact_winding(index, np.asarray(flat)[open_])
+        w[again] = _exact_winding(index, np.asarray(flat)[again])
     return jnp.asarray(w, jnp.float32), lost
 
 
@@ -238,7 +280,6 @@ def winding_number(
     *,
     mode: Literal["fast", "exact"] = "fast",
     beta: float = 2.0,
-    capacity: int | None = None,
     return_bound: bool = False,
 ):
     """Generalized winding number of `mesh` at each of `points` (1 inside a closed,
@@ -251,7 +292,6 @@ def winding_number(
         triangle, O(points x faces), host-side; float64 near 1/2).
       beta: far-field acceptance ratio of the fast mode, > 1 (larger: more exact,
         slower). The error bound returned with ``return_bound`` holds for any beta.
-      capacity: search pairs per block inside jit (see `closest_points`).
       return_bound: also return the fast mode's per-point bound on ``|w - w_exact|``.
 
     Returns:
@@ -278,7 +318,7 @@ def winding_number(
         w = jnp.asarray(_exact_winding(index, safe), jnp.float32)
         bound = jnp.zeros_like(w)
     else:
-        w, bound, _ = _fast_winding(index, flat, beta, _capacity(capacity))
+        (w, bound), _ = _fast_winding(index, flat, beta)
     w = jnp.where(finite, w, jnp.nan).reshape(batch)
     return (w, bound.reshape(batch)) if return_bound else w
 
@@ -289,7 +329,6 @@ def query_points(
     *,
     sign: Sign = "winding",
     margin: float = 0.01,
-    capacity: int | None = None,
 ) -> PointQuery:
     """Closest points, signed distance, occupancy and winding number at each point.
 
@@ -298,7 +337,6 @@ def query_points(
       points: [*b, 3] world positions.
       sign: ``"winding"`` or ``"pseudonormal"`` (module docstring).
       margin: winding numbers within this of 1/2 are flagged `PointStatus.UNCERTAIN`.
-      capacity: search pairs per block inside jit (see `closest_points`).
 
     Returns:
       `PointQuery`. The signed distance is differentiable with respect to the points and
@@ -313,26 +351,12 @@ def query_points(
     if flat.shape[0] == 0:
         z = jnp.zeros(batch, jnp.float32)
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
-    result, slot, feature = _closest(index, flat, _capacity(capacity))
-    finite = result.status != PointStatus.INVALID
-    normal = _pseudo_normal(index, slot, feature.region)
-    q = flat - index.centre
-    side = jnp.sum(normal * (jax.lax.stop_gradient(q) - feature.point), -1)
+    slot, finite, lost = _closest(index, flat)
+    w = jnp.zeros(flat.shape[0], jnp.float32)
     if sign == "winding":
-        w, lost = _settled_winding(index, flat, 2.0, _capacity(capacity))
-        inside = w > 0.5
-        uncertain = jnp.abs(w - 0.5) < margin
-        status = jnp.where((result.status == PointStatus.OK) & lost, PointStatus.LOST, result.status)
-        status = jnp.where((status == PointStatus.OK) & uncertain, PointStatus.UNCERTAIN, status)
-    else:
-        w = jnp.full(flat.shape[0], jnp.nan, jnp.float32)
-        inside = side <= 0
-        status = result.status
-    s = jnp.where(inside, -1.0, 1.0)
-    sd = _signed_norm(q - feature.point, jax.lax.stop_gradient(s), jax.lax.stop_gradient(_unit(normal) * s[:, None]))
-    sd = jnp.where(finite, sd, jnp.nan)
-    out = PointQuery(result, sd, inside & finite, jnp.where(finite, w, jnp.nan), status.astype(jnp.int32))
-    return _unflatten(out, batch)
+        w, lost_w = _settled_winding(index, flat)
+        lost = lost | lost_w
+    return _unflatten(_answer(index, flat, slot, finite, lost, w, sign=sign, margin=margin), batch)
 
 
 def _pseudo_normal(index: MeshIndex, slot, region):
@@ -368,7 +392,6 @@ def signed_distance(
     points: Float32[ArrayLike, "*b 3"],
     *,
     sign: Sign = "winding",
-    capacity: int | None = None,
 ) -> Float32[Array, "*b"]:
     """Signed distance from each point to `mesh`, negative inside.
 
@@ -382,12 +405,11 @@ def signed_distance(
       mesh: `Mesh` or `MeshIndex`.
       points: [*b, 3] world positions.
       sign: ``"winding"`` (default) or ``"pseudonormal"`` (module docstring).
-      capacity: search pairs per block inside jit.
 
     Returns:
       [*b] float32 (NaN for non-finite points). `query_points` also gives statuses.
     """
-    return query_points(mesh, points, sign=sign, capacity=capacity).signed_distance
+    return query_points(mesh, points, sign=sign).signed_distance
 
 
 def occupancy(
@@ -395,7 +417,6 @@ def occupancy(
     points: Float32[ArrayLike, "*b 3"],
     *,
     sign: Sign = "winding",
-    capacity: int | None = None,
 ) -> Bool[Array, "*b"]:
     """Whether each point is inside `mesh` (``sign`` as in `signed_distance`).
 
@@ -408,11 +429,11 @@ def occupancy(
     p = _points("occupancy points", points)
     check_choice("occupancy sign", sign, SIGNS)
     if sign == "pseudonormal":
-        return query_points(index, p, sign=sign, capacity=capacity).inside
+        return query_points(index, p, sign=sign).inside
     batch = p.shape[:-1]
     flat = p.reshape(-1, 3)
     if flat.shape[0] == 0:
         return jnp.zeros(batch, bool)
     finite = jnp.all(jnp.isfinite(flat), -1)
-    w, _ = _settled_winding(index, jnp.where(finite[:, None], flat, index.centre), 2.0, _capacity(capacity))
+    w, _ = _settled_winding(index, jnp.where(finite[:, None], flat, index.centre))
     return ((w > 0.5) & finite).reshape(batch)

@@ -89,12 +89,6 @@ def children(pairs: Pairs, keep, child_level_size) -> jax.Array:
     return jnp.where(keep, jnp.clip(child_level_size - FAN_OUT * pairs.node, 0, FAN_OUT), 0)
 
 
-def rows_needed(pairs: Pairs, keep, nb: int) -> jax.Array:
-    """[] int32 rows that `make_rows` needs for the pairs kept."""
-    per_block = jax.ops.segment_sum(keep.astype(jnp.int32), pairs.block, nb, indices_are_sorted=True)
-    return jnp.sum(-(-per_block // ROW))
-
-
 def open_pairs(pairs: Pairs, keep, child_level_size, capacity: int, nb: int) -> tuple[Pairs, jax.Array]:
     """The children (in the level below, of `child_level_size` nodes) of the pairs kept
     ([capacity_in] bool), at most `capacity` of them; and [nb] bool blocks that lost some."""
@@ -102,7 +96,7 @@ def open_pairs(pairs: Pairs, keep, child_level_size, capacity: int, nb: int) -> 
     owner, rank, ok, _ = expand_counts(counts, capacity)
     block = jnp.where(ok, pairs.block[owner], nb)
     node = jnp.where(ok, FAN_OUT * pairs.node[owner] + rank, 0)
-    count = jnp.minimum(jnp.sum(counts), capacity)
+    count = jnp.minimum(jnp.sum(counts), capacity)  # (the sum is what was needed)
     return Pairs(block, node, count), _lost_blocks(pairs.block, counts, capacity, nb)
 
 
@@ -112,6 +106,7 @@ class Rows(NamedTuple):
     node: jax.Array  # [capacity, ROW] int32 node ids within the level, -1 for unused
     block: jax.Array  # [capacity] int32 (the block count for unused rows)
     count: jax.Array  # [] int32 rows in use
+    needed: jax.Array  # [] int32 rows the pairs needed (more than the capacity: some lost)
 
 
 def make_rows(pairs: Pairs, keep, capacity: int, nb: int) -> tuple[Rows, jax.Array]:
@@ -128,7 +123,18 @@ def make_rows(pairs: Pairs, keep, capacity: int, nb: int) -> tuple[Rows, jax.Arr
     table = jnp.full((capacity, ROW), -1, jnp.int32).at[row, j % ROW].set(pairs.node, mode="drop")
     owner, _, ok, total = expand_counts(rows, capacity)
     lost = (first_row + rows > capacity) & (rows > 0)
-    return Rows(table, jnp.where(ok, owner, nb), jnp.minimum(total, capacity)), lost
+    return Rows(table, jnp.where(ok, owner, nb), jnp.minimum(total, capacity), total), lost
+
+
+def join_rows(parts: list[Rows], nb: int) -> Rows:
+    """Several `Rows` (node ids already global, equal widths) as one, rows in use first."""
+    node = jnp.concatenate([r.node for r in parts])
+    block = jnp.concatenate([r.block for r in parts])
+    used = block < nb
+    at = jnp.where(used, jnp.cumsum(used) - 1, block.shape[0])
+    node = jnp.full_like(node, -1).at[at].set(node, mode="drop")
+    block = jnp.full_like(block, nb).at[at].set(block, mode="drop")
+    return Rows(node, block, jnp.sum(used), sum(r.needed for r in parts))
 
 
 def eval_rows(rows: Rows, blocks: Blocks, fn: Callable, empty) -> tuple:
@@ -201,33 +207,32 @@ def far_corner2(box, q):
     return far[0] * far[0] + far[1] * far[1] + far[2] * far[2]
 
 
-def capacities(nb: int, pairs_per_block: int, levels: tuple[tuple[int, int], ...]) -> tuple[list[int], int]:
-    """Static pair capacity per level (leaves first, as `MeshIndex.levels`) and the row
-    capacity, for a search inside `jax.jit` (`pairs_per_block` per block at most)."""
-    pairs = [nb * min(pairs_per_block, size) for _, size in levels]
-    return pairs, nb * pairs_per_block // ROW + nb
+def descend(select, nb: int, levels, pair_caps: tuple[int, ...]):
+    """Walks a search from the root down to the leaves with static capacities.
 
+    ``select(pairs, depth) -> keep`` picks the pairs to open at a level. `pair_caps[d]`
+    is the capacity of the pairs at depth d (0: the leaves, as `MeshIndex.levels`).
 
-def descend(select, open_level, nb: int, levels, caps, row_cap, finish):
-    """Runs a search from the root down, level by level.
-
-    ``select(pairs, depth) -> (keep, extra)`` picks the pairs to open at a level;
-    ``finish(pairs, keep, row_capacity, lost)`` evaluates the leaves' kept pairs. With
-    `caps` None the capacities are sized on the host between levels (concrete inputs: one
-    device round trip per level, each capacity on the shape ladder); otherwise the static
-    `caps` and `row_cap` are used (inside `jax.jit`) and blocks that did not fit are lost.
+    Returns:
+      (leaf pairs, their keep mask, [nb] bool blocks that lost pairs, [len(levels) - 1]
+      int32 pairs each level needed).
     """
-    from jaxvox._shapes import bucket
-
     pairs = root_pairs(nb)
     lost = jnp.zeros(nb, bool)
-    for depth in range(len(levels) - 1, -1, -1):
+    needs = []
+    for depth in range(len(levels) - 1, 0, -1):
         keep = select(pairs, depth)
-        if depth == 0:
-            cap = row_cap if caps is not None else bucket(int(rows_needed(pairs, keep, nb)))
-            return finish(pairs, keep, cap, lost)
         size = levels[depth - 1][1]
-        cap = caps[depth - 1] if caps is not None else bucket(int(jnp.sum(children(pairs, keep, size))))
-        pairs, dropped = open_level(pairs, keep, size, cap)
+        needs.append(jnp.sum(children(pairs, keep, size)))
+        pairs, dropped = open_pairs(pairs, keep, size, pair_caps[depth - 1], nb)
         lost |= dropped
-    raise AssertionError("unreachable")
+    keep = select(pairs, 0)
+    return pairs, keep, lost, jnp.stack(needs[::-1]) if needs else jnp.zeros(0, jnp.int32)
+
+
+def grown(caps: tuple[int, ...], needs) -> tuple[int, ...]:
+    """Capacities after a run that needed `needs` (host ints): each at least its need with
+    a quarter to spare, on the shape ladder; never smaller than before."""
+    from jaxvox._shapes import bucket
+
+    return tuple(max(c, bucket(int(n) + int(n) // 4)) for c, n in zip(caps, needs))

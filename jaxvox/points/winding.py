@@ -21,63 +21,60 @@ is certain where ``|w_fast - 1/2| > bound``; elsewhere the host API sums exactly
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._geometry import solid_angle_parts
-from jaxvox._shapes import bucket
 from jaxvox.points import search
 from jaxvox.points.index import MeshIndex
 
 FLOAT_MARGIN = 1e-4  # float32 rounding allowance added to every error bound
 
 
-class Sums:
-    """Running per-point sums of a search ([nb, BLOCK] each)."""
+def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tuple[int, ...]):
+    """Fast winding numbers and their error bounds [nb, BLOCK] of the sorted points, [nb]
+    bool blocks that lost pairs or rows to a capacity (their values are incomplete), and
+    [len(caps)] int32 what each capacity needed; traced.
 
-    def __init__(self, blocks: search.Blocks):
-        self.w = jnp.zeros(blocks.p.shape[1:], jnp.float32)
-        self.err = jnp.full(blocks.p.shape[1:], FLOAT_MARGIN, jnp.float32)
-
-
-def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, pairs_per_block: int | None):
-    """Fast winding numbers and their error bounds [nb, BLOCK] of the sorted points, and
-    [nb] bool blocks that lost pairs to a capacity (their values are incomplete). With
-    `pairs_per_block` None, capacities are sized on the host (concrete inputs only)."""
+    `caps`: static capacities (`capacity_count` entries): the pairs at each depth below
+    the root (leaves first), the far rows at each depth (leaves first), the near leaf rows.
+    """
     nb = blocks.p.shape[1]
-    caps, row_cap = search.capacities(nb, pairs_per_block, index.levels) if pairs_per_block else (None, None)
-    sums = Sums(blocks)
-    lost_rows = [jnp.zeros(nb, bool)]
+    top = len(index.levels)
+    w = jnp.zeros(blocks.p.shape[1:], jnp.float32)
+    err = jnp.full(blocks.p.shape[1:], FLOAT_MARGIN, jnp.float32)
+    state = {"lost": jnp.zeros(nb, bool), "rows": [], "needed": [None] * top}
 
     def select(pairs, depth):
-        offset = jnp.int32(index.levels[depth][0])
-        far, near = _split(index, blocks, pairs, offset, beta=beta)
-        cap = row_cap if caps is not None else bucket(int(search.rows_needed(pairs, far, nb)))
-        sums.w, sums.err, lost = _far_terms(index, blocks, pairs, far, offset, sums.w, sums.err, capacity=cap)
-        lost_rows.append(lost)
+        far, near = _split(index, blocks, pairs, depth, beta)
+        rows, lost = search.make_rows(pairs, far, caps[top - 1 + depth], nb)
+        offset = index.levels[depth][0]
+        state["rows"].append(rows._replace(node=jnp.where(rows.node >= 0, rows.node + offset, -1)))
+        state["lost"] |= lost
+        state["needed"][depth] = rows.needed
         return near
 
-    def open_level(pairs, keep, size, cap):
-        return _open(blocks, pairs, keep, jnp.int32(size), capacity=cap)
-
-    def finish(pairs, keep, cap, lost):
-        w, dropped = _near_leaves(index, blocks, pairs, keep, sums.w, capacity=cap)
-        for extra in lost_rows:
-            lost = lost | extra
-        return w, sums.err, lost | dropped
-
-    return search.descend(select, open_level, nb, index.levels, caps, row_cap, finish)
+    pairs, near, lost, needs = search.descend(select, nb, index.levels, caps[: top - 1])
+    far = search.join_rows(state["rows"], nb)
+    dw, de = search.eval_rows(far, blocks, lambda p, nodes: _dipoles(index, p, nodes), (0.0, 0.0))
+    rows, dropped = search.make_rows(pairs, near, caps[-1], nb)
+    (dn,) = search.eval_rows(rows, blocks, lambda p, leaves: (leaf_solid_angles(index, p, leaves),), (0.0,))
+    w = _add(_add(w, far, dw, nb), rows, dn, nb)
+    needed = jnp.concatenate([needs, jnp.stack(state["needed"]), rows.needed[None]])
+    return w, _add(err, far, de, nb), lost | dropped | state["lost"], needed
 
 
-@functools.partial(jax.jit, static_argnames="beta")
-def _split(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, offset, *, beta: float):
+def capacity_count(index: MeshIndex) -> int:
+    """How many capacities `winding_sums` takes."""
+    return 2 * len(index.levels)
+
+
+def _split(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, depth: int, beta: float):
     """(far, near) [capacity] bool: the pairs whose node is far from the block, and those
     to open (nodes without area are neither)."""
     nb = blocks.p.shape[1]
-    node = index.dipole[offset + pairs.node]  # [capacity, 8]
+    node = index.dipole[index.levels[depth][0] + pairs.node]  # [capacity, 8]
     box = blocks.bounds[jnp.minimum(pairs.block, nb - 1)]
     gap2 = sum(jnp.maximum(0.0, jnp.maximum(box[:, k] - node[:, k], node[:, k] - box[:, 3 + k])) ** 2 for k in range(3))
     used = (pairs.block < nb) & (node[:, 7] > 0)
@@ -85,45 +82,24 @@ def _split(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, offset,
     return far, used & ~far
 
 
-@functools.partial(jax.jit, static_argnames="capacity")
-def _open(blocks: search.Blocks, pairs: search.Pairs, keep, size, *, capacity: int):
-    return search.open_pairs(pairs, keep, size, capacity, blocks.p.shape[1])
-
-
 def _add(acc, rows: search.Rows, values, nb: int):
     """acc [nb, BLOCK] plus the per-row values [capacity, BLOCK] summed per block."""
-    return acc + jax.ops.segment_sum(values, rows.block, nb, indices_are_sorted=True)
+    return acc + jax.ops.segment_sum(values, rows.block, nb)
 
 
-@functools.partial(jax.jit, static_argnames="capacity")
-def _far_terms(index: MeshIndex, blocks, pairs, far, offset, w, err, *, capacity: int):
-    """Adds the far pairs' dipole terms and error bounds to w, err ([nb, BLOCK])."""
-    nb = blocks.p.shape[1]
-    rows, lost = search.make_rows(pairs, far, capacity, nb)
-
-    def terms(p, nodes):
-        d = index.dipole[offset + jnp.maximum(nodes, 0)]  # [c, ROW, 8]
-        col = lambda i: d[:, :, i, None]  # [c, ROW, 1] against p [c, 1, BLOCK]
-        x = [col(k) - p[k][:, None, :] for k in range(3)]
-        r2 = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
-        dist = jnp.sqrt(r2)
-        dipole = (col(4) * x[0] + col(5) * x[1] + col(6) * x[2]) / (4 * jnp.pi * r2 * dist)
-        gap = jnp.maximum(dist - col(3), 1e-30)
-        bound = 2 * col(3) * col(7) / (4 * jnp.pi * gap * gap * gap)
-        ok = (nodes >= 0)[:, :, None]
-        return jnp.where(ok, dipole, 0.0).sum(1), jnp.where(ok, bound, 0.0).sum(1)
-
-    dw, de = search.eval_rows(rows, blocks, terms, (0.0, 0.0))
-    return _add(w, rows, dw, nb), _add(err, rows, de, nb), lost
-
-
-@functools.partial(jax.jit, static_argnames="capacity")
-def _near_leaves(index: MeshIndex, blocks, pairs, near, w, *, capacity: int):
-    """Adds the exact solid angles of the near leaves' triangles to w [nb, BLOCK]."""
-    nb = blocks.p.shape[1]
-    rows, lost = search.make_rows(pairs, near, capacity, nb)
-    (dw,) = search.eval_rows(rows, blocks, lambda p, leaves: (leaf_solid_angles(index, p, leaves),), (0.0,))
-    return _add(w, rows, dw, nb), lost
+def _dipoles(index: MeshIndex, p, nodes):
+    """Dipole terms and their error bounds summed over the nodes [c, ROW] (global ids, -1:
+    none) of a row at the points p (3 arrays [c, BLOCK]): two [c, BLOCK] arrays."""
+    d = index.dipole[jnp.maximum(nodes, 0)]  # [c, ROW, 8]
+    col = lambda i: d[:, :, i, None]  # [c, ROW, 1] against p [c, 1, BLOCK]
+    x = [col(k) - p[k][:, None, :] for k in range(3)]
+    r2 = x[0] * x[0] + x[1] * x[1] + x[2] * x[2]
+    dist = jnp.sqrt(r2)
+    dipole = (col(4) * x[0] + col(5) * x[1] + col(6) * x[2]) / (4 * jnp.pi * r2 * dist)
+    gap = jnp.maximum(dist - col(3), 1e-30)
+    bound = 2 * col(3) * col(7) / (4 * jnp.pi * gap * gap * gap)
+    ok = (nodes >= 0)[:, :, None]
+    return jnp.where(ok, dipole, 0.0).sum(1), jnp.where(ok, bound, 0.0).sum(1)
 
 
 def leaf_solid_angles(index: MeshIndex, p, leaves):
@@ -137,6 +113,8 @@ def leaf_solid_angles(index: MeshIndex, p, leaves):
 
 
 def tree_triangles(index: MeshIndex) -> np.ndarray:
-    """The index's real triangles [F, 3, 3] float64 (world units, host), for exact sums."""
+    """The index's triangles [F, 3, 3] float64 (world units, host; F the face capacity,
+    padding triangles are points: no solid angle), for exact sums whose programs depend
+    on the capacity only."""
     corners = np.asarray(index.corners, np.float64).T.reshape(-1, 3, 3)
-    return corners[np.asarray(index.valid)] + np.asarray(index.centre, np.float64)
+    return corners + np.asarray(index.centre, np.float64)
