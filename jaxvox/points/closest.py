@@ -133,15 +133,18 @@ class Feature(NamedTuple):
 
 
 def closest_on_triangles(p, a, b, c) -> Feature:
-    """Closest points on triangles (a, b, c) [n, 3] to points p [n, 3] (Ericson's regions,
-    a degenerate triangle's closest point on its longest edge's segments)."""
+    """Closest points on triangles (a, b, c) [n, 3] to points p [n, 3] (Ericson's regions;
+    a degenerate or needle triangle's closest point on its edges)."""
     dot = lambda x, y: jnp.sum(x * y, -1)
     ab, ac, ap = b - a, c - a, p - a
     bp, cp = p - b, p - c
     d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     den = va + vb + vc
-    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (den > 0)
+    # den is |ab x ac|^2 up to rounding (fused multiply-adds leave a degenerate triangle's
+    # den slightly nonzero): the face counts only for a triangle of clear area
+    proper = jnp.sum(jnp.cross(ab, ac) ** 2, -1) > 1e-10 * dot(ab, ab) * dot(ac, ac)
+    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (den > 0) & proper
     safe = jnp.where(den > 0, den, 1.0)
     face_bary = jnp.stack([va, vb, vc], -1) / safe[..., None]
 

@@ -184,7 +184,8 @@ def _oriented_boxes(tris: np.ndarray, valid: np.ndarray, levels: int) -> list[np
             np.nanmax(np.where(np.isnan(proj), -np.inf, proj), 1),
         )
         empty = count == 0
-        centre = mean + np.einsum("na,naj->nj", np.where(empty[:, None], 0.0, (lo + hi) / 2), axes)
+        lo, hi = np.where(empty[:, None], 0.0, lo), np.where(empty[:, None], 0.0, hi)
+        centre = mean + np.einsum("na,naj->nj", (lo + hi) / 2, axes)
         half = np.where(empty[:, None], -1.0, (hi - lo) / 2)
         out.append(np.concatenate([centre, axes.reshape(-1, 9), half], 1))
     return out

@@ -208,7 +208,7 @@ def _answer(index: MeshIndex, flat, slot, finite, lost, w, *, sign: str | None, 
         point=nan(feature.point + index.centre),
         triangle=jnp.where(finite, face, -1),
         barycentric=nan(feature.barycentric),
-        status=jnp.minimum(status, PointStatus.INVALID if sign is None else status).astype(jnp.int32),
+        status=jnp.where(status == PointStatus.UNCERTAIN, PointStatus.OK, status).astype(jnp.int32),
     )
     sd = nan(_signed_norm(offset, s, n * s[:, None]))
     return PointQuery(closest_, sd, inside & finite, nan(w), status.astype(jnp.int32))
