@@ -337,8 +337,16 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
       (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
       their sides (`Sides.finish`).
     """
-    f = np.asarray(mesh.faces)
-    welded = welded_faces(np.asarray(mesh.vertices), f)
+    welded, suspect, chain = _sign_topology(np.asarray(mesh.vertices), np.asarray(mesh.faces), tris)
+    if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
+        return lambda ijk, keys, dist, tri, behind, on: behind
+    return Components(tris, welded, suspect, chain, band).inside
+
+
+def _sign_topology(vertices: np.ndarray, faces: np.ndarray, tris: np.ndarray):
+    """(welded faces, [F] bool faces that may make pseudo-normal sides wrong: zero area,
+    crossings, irregular edges, pinched vertices; the boundary chain)."""
+    welded = welded_faces(vertices, faces)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     suspect = (
         (np.linalg.norm(cross, axis=1) == 0)
@@ -346,10 +354,21 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
         | irregular_edge_faces(welded)
         | pinched_vertex_faces(welded)
     )
-    chain = boundary_chain(welded)
-    if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
-        return lambda ijk, keys, dist, tri, behind, on: behind
-    return Components(tris, welded, suspect, chain, band).inside
+    return welded, suspect, boundary_chain(welded)
+
+
+def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether the pseudo-normal side of every point's closest feature is the side of the
+    winding number (module docstring: watertight, no crossings, irregular edges, pinched
+    vertices, zero-area faces or nested shells). Host, float64; the boundary is checked
+    first, so an open mesh costs no crossing test."""
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces)
+    if len(boundary_chain(welded_faces(vertices, faces))):
+        return False
+    tris = vertices[faces]
+    welded, suspect, _ = _sign_topology(vertices, faces, tris)
+    return not suspect.any() and not nested_shells(tris, welded)
 
 
 NESTED_WORK = 1 << 26  # (point, triangle) pairs `nested_shells` sums at most

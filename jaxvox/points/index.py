@@ -32,7 +32,7 @@ from jaxtyping import Array, Bool, Float32, Int32
 from jaxvox._geometry import triangle_rows
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket
-from jaxvox.band_sign import pseudo_normals
+from jaxvox.band_sign import pseudo_normals, pseudonormal_sides_exact
 from jaxvox.mesh import Mesh, validate_mesh
 
 FAN_OUT = 8  # children per node, triangles per leaf
@@ -73,6 +73,9 @@ class MeshIndex:
         xyz each, half extents along them; -1 for empty nodes).
       dipole: [N, 8] float32 per node: centre xyz, radius, area vector xyz, unsigned area.
       num_faces: [] int32 the face count.
+      closed: [] bool whether pseudo-normal sides are winding-number sides everywhere
+        (`jaxvox.band_sign.pseudonormal_sides_exact`: watertight, no crossings, ...); the
+        host API then signs by pseudo-normals, exactly, without summing winding numbers.
       levels: ((offset, size), ...) static: the node levels in ``box`` from the leaves
         (level 1) up to the root.
     """
@@ -90,6 +93,7 @@ class MeshIndex:
     nodes: Float32[Array, "N 24"]
     dipole: Float32[Array, "N 8"]
     num_faces: Int32[Array, ""]
+    closed: Bool[Array, ""]
     levels: tuple[tuple[int, int], ...] = dataclasses.field(metadata={"static": True})
 
     @property
@@ -204,7 +208,8 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
         at least `MIN_FACES`). Give meshes one capacity to stack their indices for `jax.vmap`.
 
     Returns:
-      `MeshIndex`. Cost: O(F log F) on the host.
+      `MeshIndex`. Cost: O(F log F) on the host, plus a crossing test of the faces when
+      the mesh is watertight.
 
     Raises:
       JaxvoxError: a malformed mesh, a mesh without faces, or a capacity below the face count.
@@ -254,6 +259,7 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
         nodes=jnp.asarray(np.concatenate([table(0), table(1), np.concatenate(frames)], 1), jnp.float32),
         dipole=jnp.asarray(table(2), jnp.float32),
         num_faces=jnp.int32(len(f)),
+        closed=jnp.asarray(pseudonormal_sides_exact(v, f)),
         levels=tuple(zip(offsets, sizes)),
     )
 
