@@ -38,19 +38,18 @@ def closest_slots(index: MeshIndex, blocks: search.Blocks, caps: tuple[int, ...]
     then the leaf rows (`capacity_count` entries). ``Found.needs`` says what each needed.
     """
     nb = blocks.p.shape[1]
-    state = {"bound": jnp.full(nb, jnp.inf, jnp.float32), "seed": None}
+    bound = [jnp.full(nb, jnp.inf, jnp.float32)]  # the blocks' bounds, as the walk tightens them
+    seeds: list[tuple[search.Rows, jax.Array]] = []
 
     def select(pairs, depth):
-        u = None if state["seed"] is None else state["seed"][1]
-        keep, state["bound"], seed = _select(index, blocks, pairs, state["bound"], depth, u)
-        state["seed"] = seed if seed is not None else state["seed"]
+        keep, bound[0], seed = _select(index, blocks, pairs, bound[0], depth, seeds[0][1] if seeds else None)
+        seeds.extend([] if seed is None else [seed])
         return keep
 
     pairs, keep, lost, needs = search.descend(select, nb, index.levels, caps[:-1])
     rows, dropped = search.make_rows(pairs, keep, caps[-1], nb)
-    seed = state["seed"]
-    if seed is not None:  # the seed's leaves are evaluated again with the rest: one kernel
-        rows = search.join_rows([seed[0], rows], nb)
+    if seeds:  # the seed's leaves are evaluated again with the rest: one kernel
+        rows = search.join_rows([seeds[0][0], rows], nb)
     d2, face = search.eval_rows(rows, blocks, lambda p, leaves: _leaf_minima(index, p, leaves), (jnp.inf, _NO_FACE))
     owner = rows.block
     best = jax.ops.segment_min(d2, owner, nb)

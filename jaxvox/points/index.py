@@ -131,7 +131,7 @@ def _node_levels(tris: np.ndarray, valid: np.ndarray):
     rep = np.where(valid[:, None], tris[:, 0], inf)
     # level 0 "nodes" are the triangles: centre, radius 0 about the corners handled below
     centre, radius, vector, unsigned = centroid, np.zeros(len(tris)), area, weight
-    corners = np.where(valid[:, None, None], tris, np.nan)  # what the leaves' radii cover
+    corners: np.ndarray | None = np.where(valid[:, None, None], tris, np.nan)  # what the leaves' radii cover
     out = []
     first = True
     while first or len(box) > 1:
@@ -169,7 +169,7 @@ def _oriented_boxes(tris: np.ndarray, valid: np.ndarray, levels: int) -> list[np
     ok = ~np.isnan(pts[..., 0])
     x = np.where(ok[..., None], pts, 0.0)
     count, total, outer = ok.sum(1), x.sum(1), np.einsum("nki,nkj->nij", x, x)
-    out = []
+    out: list[np.ndarray] = []
     for depth in range(levels):
         if depth:
             count, total, outer = (_group(a, 0).sum(1) for a in (count, total, outer))

@@ -355,12 +355,13 @@ def query_points(
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
     slot, finite, lost = _closest(index, flat)
     w = jnp.zeros(flat.shape[0], jnp.float32)
+    method: str = sign
     if sign == "winding" and _host(index) and bool(index.closed):
-        sign = "closed"  # pseudo-normal sides are the winding number's: w is 0 or 1
+        method = "closed"  # pseudo-normal sides are the winding number's: w is 0 or 1
     elif sign == "winding":
         w, lost_w = _settled_winding(index, flat)
         lost = lost | lost_w
-    return _unflatten(_answer(index, flat, slot, finite, lost, w, sign=sign, margin=margin), batch)
+    return _unflatten(_answer(index, flat, slot, finite, lost, w, sign=method, margin=margin), batch)
 
 
 def _pseudo_normal(index: MeshIndex, slot, region):

@@ -95,11 +95,11 @@ def sample_sdf(
       JaxvoxError: bad n, fractions, sigmas or padding; a mesh without area.
     """
     n = check_int("sample_sdf n", n, minimum=1)
-    fractions = tuple(check_number("sample_sdf fractions", f, minimum=0.0) for f in fractions)
-    if len(fractions) != 3 or abs(sum(fractions) - 1.0) > 1e-6:
+    shares = [check_number("sample_sdf fractions", f, minimum=0.0) for f in fractions]
+    if len(shares) != 3 or abs(sum(shares) - 1.0) > 1e-6:
         raise refuse("sample_sdf fractions", "must be three shares summing to 1", fractions)
-    sigmas = tuple(check_number("sample_sdf sigmas", s, minimum=0.0) for s in sigmas)
-    if len(sigmas) != 2:
+    scales = [check_number("sample_sdf sigmas", s, minimum=0.0) for s in sigmas]
+    if len(scales) != 2:
         raise refuse("sample_sdf sigmas", "must be two scales", sigmas)
     padding = check_number("sample_sdf padding", padding, minimum=0.0)
     index = mesh_index(mesh) if index is None else index
@@ -111,7 +111,7 @@ def sample_sdf(
         raise refuse("sample_sdf mesh", "has no surface area", float(area.sum()))
     lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
     diag = float(np.linalg.norm(hi - lo))
-    counts = [round(n * fractions[0]), round(n * fractions[1])]
+    counts = [round(n * shares[0]), round(n * shares[1])]
     counts.append(n - sum(counts))
     rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
     near = counts[0] + counts[1]
@@ -120,7 +120,7 @@ def sample_sdf(
     root = np.sqrt(u)[:, None]
     corners = tris[tri]
     surface = (1 - root) * corners[:, 0] + root * (1 - w[:, None]) * corners[:, 1] + root * w[:, None] * corners[:, 2]
-    scale = np.repeat(np.asarray(sigmas) * diag, counts[:2])[:, None]
+    scale = np.repeat(np.asarray(scales) * diag, counts[:2])[:, None]
     grow = (hi - lo) * padding
     uniform = (lo - grow) + rng.random((counts[2], 3)) * (hi - lo + 2 * grow)
     points = np.concatenate([surface + scale * rng.standard_normal((near, 3)), uniform]).astype(np.float32)
@@ -183,9 +183,13 @@ def sample_meshes(
             report[path] = f"error: {exc}"
             bar.write(f"{stem}: skipped ({exc})")
             continue
-        arrays = {k: np.asarray(getattr(samples, k)) for k in ("points", "sdf", "occupancy", "status", "kind")}
+        arrays: dict[str, np.ndarray] = {
+            k: np.asarray(getattr(samples, k)) for k in ("points", "sdf", "occupancy", "status", "kind")
+        }
+        arrays["seed"] = np.asarray(s, np.int64)
         partial = target + ".partial.npz"
-        np.savez(partial, seed=np.int64(s), **arrays)
+        with open(partial, "wb") as file:
+            np.savez(file, **arrays)  # type: ignore[arg-type]
         os.replace(partial, target)
         report[path] = "written"
         uncertain = int((arrays["status"] == 1).sum())

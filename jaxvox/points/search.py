@@ -65,12 +65,12 @@ def per_point(blocks: Blocks, values: jax.Array) -> jax.Array:
 
 
 class Pairs(NamedTuple):
-    """A frontier: (block, node) pairs sorted by block; slots at or past ``count`` are unused
+    """A frontier: (block, node) pairs sorted by block; slots at or past ``filled`` are unused
     (their block is the block count, past every real one)."""
 
     block: jax.Array  # [capacity] int32
     node: jax.Array  # [capacity] int32 node id within its level
-    count: jax.Array  # [] int32
+    filled: jax.Array  # [] int32 slots in use
 
 
 def root_pairs(nb: int) -> Pairs:
@@ -105,7 +105,7 @@ class Rows(NamedTuple):
 
     node: jax.Array  # [capacity, ROW] int32 node ids within the level, -1 for unused
     block: jax.Array  # [capacity] int32 (the block count for unused rows)
-    count: jax.Array  # [] int32 rows in use
+    filled: jax.Array  # [] int32 rows in use
     needed: jax.Array  # [] int32 rows the pairs needed (more than the capacity: some lost)
 
 
@@ -134,7 +134,7 @@ def join_rows(parts: list[Rows], nb: int) -> Rows:
     at = jnp.where(used, jnp.cumsum(used) - 1, block.shape[0])
     node = jnp.full_like(node, -1).at[at].set(node, mode="drop")
     block = jnp.full_like(block, nb).at[at].set(block, mode="drop")
-    return Rows(node, block, jnp.sum(used), sum(r.needed for r in parts))
+    return Rows(node, block, jnp.sum(used), jnp.sum(jnp.stack([r.needed for r in parts])))
 
 
 def eval_rows(rows: Rows, blocks: Blocks, fn: Callable, empty) -> tuple:
@@ -161,7 +161,7 @@ def eval_rows(rows: Rows, blocks: Blocks, fn: Callable, empty) -> tuple:
         values = fn(p, nodes)
         return i + 1, tuple(jax.lax.dynamic_update_slice_in_dim(o, v, start, 0) for o, v in zip(out, values))
 
-    steps = -(-rows.count // chunk)
+    steps = -(-rows.filled // chunk)
     _, out = jax.lax.while_loop(lambda s: s[0] < steps, body, (jnp.int32(0), out))
     return tuple(o[:capacity] for o in out)
 

@@ -44,25 +44,27 @@ def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tup
     top = len(index.levels)
     w = jnp.zeros(blocks.p.shape[1:], jnp.float32)
     err = jnp.full(blocks.p.shape[1:], FLOAT_MARGIN, jnp.float32)
-    state = {"lost": jnp.zeros(nb, bool), "rows": [], "needed": [None] * top}
+    far_rows: list[search.Rows] = []
+    far_lost: list[jax.Array] = []
+    far_needed: list[jax.Array] = [jnp.int32(0)] * top
 
     def select(pairs, depth):
         far, near = _split(index, blocks, pairs, depth, beta)
         rows, lost = search.make_rows(pairs, far, caps[top - 1 + depth], nb)
         offset = index.levels[depth][0]
-        state["rows"].append(rows._replace(node=jnp.where(rows.node >= 0, rows.node + offset, -1)))
-        state["lost"] |= lost
-        state["needed"][depth] = rows.needed
+        far_rows.append(rows._replace(node=jnp.where(rows.node >= 0, rows.node + offset, -1)))
+        far_lost.append(lost)
+        far_needed[depth] = rows.needed
         return near
 
     pairs, near, lost, needs = search.descend(select, nb, index.levels, caps[: top - 1])
-    far = search.join_rows(state["rows"], nb)
+    far = search.join_rows(far_rows, nb)
     dw, de = search.eval_rows(far, blocks, lambda p, nodes: _dipoles(index, p, nodes), (0.0, 0.0))
     rows, dropped = search.make_rows(pairs, near, caps[-1], nb)
     (dn,) = search.eval_rows(rows, blocks, lambda p, leaves: (leaf_solid_angles(index, p, leaves),), (0.0,))
     w = _add(_add(w, far, dw, nb), rows, dn, nb)
-    needed = jnp.concatenate([needs, jnp.stack(state["needed"]), rows.needed[None]])
-    return w, _add(err, far, de, nb), lost | dropped | state["lost"], needed
+    needed = jnp.concatenate([needs, jnp.stack(far_needed), rows.needed[None]])
+    return w, _add(err, far, de, nb), lost | dropped | jnp.any(jnp.stack(far_lost), 0), needed
 
 
 def capacity_count(index: MeshIndex) -> int:
