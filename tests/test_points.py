@@ -113,9 +113,9 @@ def test_ties_go_to_the_smallest_face_id():
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
     v = np.concatenate([tri, tri + [0, 0, 5], tri])
     mesh = jv.Mesh(v, np.array([[6, 7, 8], [3, 4, 5], [0, 1, 2]], np.int32))
-    p = np.random.default_rng(1).uniform(-1, 2, (64, 3)).astype(np.float32)
+    p = np.random.default_rng(1).uniform(-1, 2, (N, 3)).astype(np.float32)
     p[:, 2] = np.minimum(p[:, 2], 2.0)
-    result = jp.closest_points(mesh, p)
+    result = jp.closest_points(jp.mesh_index(mesh, capacity=64), p)  # the hypothesis test's programs
     assert set(np.asarray(result.triangle).tolist()) == {0}
 
 
@@ -307,13 +307,14 @@ def jp_sample(mesh, seed):
     return jv.sample_sdf(mesh, N, jax.random.PRNGKey(seed), index=jp.mesh_index(mesh, capacity=CAP))
 
 
-def test_jaxvox_sample_command_skips_bad_meshes_and_resumes(tmp_path, sphere, hemisphere):
+def test_jaxvox_sample_command_skips_bad_meshes_and_resumes(tmp_path, sphere):
     from jaxvox.cli import main
 
     src = tmp_path / "meshes"
     src.mkdir()
     jv.save_mesh(str(src / "sphere.obj"), sphere)
-    jv.save_mesh(str(src / "half.obj"), hemisphere)
+    moved = jv.Mesh(np.asarray(sphere.vertices) * 2 + 1, sphere.faces)  # same face bucket: same programs
+    jv.save_mesh(str(src / "half.obj"), moved)
     (src / "broken.obj").write_text("this is not a mesh\n")
     (src / "nan.obj").write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
     out = tmp_path / "out"
