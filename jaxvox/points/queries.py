@@ -42,6 +42,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float32, Int32
 
 from jaxvox._checks import check_choice, check_number, check_type, is_concrete, refuse
+from jaxvox._errors import JaxvoxError
 from jaxvox._pytree import pytree_dataclass
 from jaxvox._shapes import bucket
 from jaxvox.mesh import Mesh
@@ -148,11 +149,12 @@ def _searched(what: str, run, index: MeshIndex, nb: int):
     """Runs ``run(caps) -> (result, lost, needs)``; on concrete inputs, again with grown
     capacities while a block was lost (nothing is dropped), remembering what sufficed."""
     caps = _plan(what, index, nb)
-    while True:
+    for _ in range(2 * len(caps) + 2):  # each retry fits at least one more level
         result, lost, needs = run(caps)
         if not _host(lost) or not bool(jnp.any(lost)):
             return result, lost
         caps = _PLANS[(what, index.capacity, nb)] = search.grown(caps, np.asarray(needs))
+    raise JaxvoxError(f"{what} search: capacities {caps} still too small after growing them (a bug)")
 
 
 @functools.partial(jax.jit, static_argnames="caps")
