@@ -188,9 +188,11 @@ def _closest(index: MeshIndex, flat):
 
 
 @functools.partial(jax.jit, static_argnames=("sign", "margin"))
-def _answer(index: MeshIndex, flat, slot, finite, lost, w, *, sign: str | None, margin: float) -> PointQuery:
+def _answer(index: MeshIndex, flat, slot, finite, lost, w, by_sides, *, sign: str | None, margin: float) -> PointQuery:
     """Everything about flattened points [n, 3] from their closest triangles' tree slots and
-    (with ``sign="winding"``) winding numbers [n]; differentiable in flat and the vertices."""
+    (with ``sign="winding"``) winding numbers [n], or with `by_sides` ([] bool, a closed
+    mesh) the pseudo-normal sides as winding numbers 0 and 1; differentiable in flat and
+    the vertices."""
     face = index.order[slot]
     tri = index.vertices[index.faces[face]] - index.centre  # [n, 3, 3]
     q = flat - index.centre
@@ -198,12 +200,14 @@ def _answer(index: MeshIndex, flat, slot, finite, lost, w, *, sign: str | None, 
     normal = jax.lax.stop_gradient(_pseudo_normal(index, slot, feature.region))
     offset = q - feature.point
     status = jnp.where(finite, jnp.where(lost, PointStatus.LOST, PointStatus.OK), PointStatus.INVALID)
+    behind = jnp.sum(normal * jax.lax.stop_gradient(offset), -1) <= 0
     if sign == "winding":
+        w = jnp.where(by_sides, jnp.where(behind, 1.0, 0.0), w)
         inside = w > 0.5
         status = jnp.where((status == PointStatus.OK) & (jnp.abs(w - 0.5) < margin), PointStatus.UNCERTAIN, status)
     else:
-        inside = jnp.sum(normal * jax.lax.stop_gradient(offset), -1) <= 0
-        w = jnp.where(inside, 1.0, 0.0) if sign == "closed" else jnp.full(flat.shape[0], jnp.nan, jnp.float32)
+        inside = behind
+        w = jnp.full(flat.shape[0], jnp.nan, jnp.float32)
     s = jnp.where(inside, -1.0, 1.0)
     n = _unit(normal)
     nan = lambda x: jnp.where(finite.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan)
@@ -244,7 +248,8 @@ def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"]) -
         return _empty_closest(batch)
     slot, finite, lost = _closest(index, flat)
     zeros = jnp.zeros(flat.shape[0], jnp.float32)
-    return _unflatten(_answer(index, flat, slot, finite, lost, zeros, sign=None, margin=0.0).closest, batch)
+    answer = _answer(index, flat, slot, finite, lost, zeros, jnp.asarray(False), sign=None, margin=0.0)
+    return _unflatten(answer.closest, batch)
 
 
 def _empty_closest(batch) -> ClosestPoints:
@@ -357,13 +362,12 @@ def query_points(
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
     slot, finite, lost = _closest(index, flat)
     w = jnp.zeros(flat.shape[0], jnp.float32)
-    method: str = sign
-    if sign == "winding" and _host(index) and bool(index.closed):
-        method = "closed"  # pseudo-normal sides are the winding number's: w is 0 or 1
-    elif sign == "winding":
+    by_sides = sign == "winding" and _host(index) and bool(index.closed)
+    if sign == "winding" and not by_sides:
         w, lost_w = _settled_winding(index, flat)
         lost = lost | lost_w
-    return _unflatten(_answer(index, flat, slot, finite, lost, w, sign=method, margin=margin), batch)
+    answer = _answer(index, flat, slot, finite, lost, w, jnp.asarray(by_sides), sign=sign, margin=margin)
+    return _unflatten(answer, batch)
 
 
 def _pseudo_normal(index: MeshIndex, slot, region):
