@@ -6,7 +6,7 @@ runs through all three under one `jax.vmap` and one `jax.jit`. This module holds
 pieces around that:
 
 * `stack_meshes` / `stack_grids`: pad (`pad_mesh`) and stack meshes and grids along a
-  leading batch axis, sizes rounded on the shape ladder (`jaxvox._shapes.bucket`);
+  leading batch axis, sizes rounded on the shape ladder (`jaxvox._core.shapes.bucket`);
 * `batch_capacities`: host-side *allocate*: voxelizer and per-level octree capacities that
   fit every item, on the ladder, so similar batches share one compiled program;
 * `voxelize_build_trace`: the jittable, vmapped voxelize -> build -> trace, with overflow
@@ -31,9 +31,9 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_choice, check_int, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.octree import (

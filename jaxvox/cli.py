@@ -43,7 +43,7 @@ def _voxelize_timed(mesh, grid, mode):
 def cmd_voxelize(args) -> int:
     """Voxelizes a mesh and writes the voxels (.binvox, .npz, or their surface as .ply / .obj)."""
     import jaxvox as jv
-    from jaxvox.voxel_files import check_save_path
+    from jaxvox.io.voxels import check_save_path
 
     check_save_path("--out", args.out)  # before the work: an unknown extension or a missing folder
     mesh, name = _load(args.mesh)
@@ -152,7 +152,7 @@ def cmd_build(args) -> int:
     writes the file.
     """
     import jaxvox as jv
-    from jaxvox._checks import check_int, check_output_path, refuse
+    from jaxvox._core.checks import check_int, check_output_path, refuse
 
     check_output_path("--out", args.out)  # before the work
     processes = check_int("--processes", args.processes, minimum=1)
@@ -193,7 +193,7 @@ def cmd_run(args) -> int:
     """The main job: voxelize a mesh (default: the built-in scene) in both modes, build its
     octree and DAG, report, draw."""
     import jaxvox as jv
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
     from jaxvox.plot import save_projections
 
     mesh, name = _load(args.mesh)
@@ -238,7 +238,7 @@ def cmd_run(args) -> int:
 
 def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
     """Comma-separated floats, as many as one of `counts`; a `JaxvoxError` otherwise."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     try:
         values = [float(x) for x in text.split(",")]
@@ -251,7 +251,7 @@ def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
 
 def _size(text: str) -> tuple[int, int]:
     """``WIDTHxHEIGHT`` -> (width, height)."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
@@ -323,7 +323,7 @@ def _render_scene(args):
 
 def _emitter(text: str):
     """``XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B`` -> (lo, hi, rgb)."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     box, _, rgb = text.partition(":")
     if not rgb:
@@ -338,7 +338,7 @@ def _emitter(text: str):
 def cmd_render(args) -> int:
     """Path-traces a mesh (voxelized into a DAG), a saved tree, or the default scene; writes EXR + PNG."""
     import jaxvox as jv
-    from jaxvox._checks import check_choice, check_int, check_number, refuse
+    from jaxvox._core.checks import check_choice, check_int, check_number, refuse
     from jaxvox.camera import check_view
 
     # Every option is checked before the scene is voxelized.
@@ -596,8 +596,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from jaxvox._errors import JaxvoxError
-    from jaxvox.compilation_cache import enable_compilation_cache
+    from jaxvox._core.compilation_cache import enable_compilation_cache
+    from jaxvox._core.errors import JaxvoxError
     from jaxvox.grid import check_resolution
 
     try:

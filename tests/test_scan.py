@@ -1,4 +1,4 @@
-"""`jaxvox._scan.cumsum` against numpy's prefix sums."""
+"""`jaxvox._core.scan.cumsum` against numpy's prefix sums."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxvox._scan import cumsum
+from jaxvox._core.scan import cumsum
 
 
 @pytest.mark.parametrize("n", [0, 1, 257, 100_003, 256 * 4096 + 3])

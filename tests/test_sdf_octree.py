@@ -144,7 +144,7 @@ def test_octree_tracing_matches_plain(trees, name):
 
 def test_gathering_the_slow_rays_changes_no_ray(trees):
     """Rays run in stages: those still running are gathered into a batch `SHRINK` times
-    smaller, down to `MIN_BATCH` (`jaxvox._stages`). Staged (4096 -> 512 -> 64 rays) or
+    smaller, down to `MIN_BATCH` (`jaxvox._core.stages`). Staged (4096 -> 512 -> 64 rays) or
     not, every ray ends with the same status, leaf and index, and the same distance and
     normal up to float32 rounding (the stages are programs for other batch sizes, which
     XLA may fuse differently; so may the refinement's evaluation count, by at most 2),
@@ -152,9 +152,9 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
     most steps."""
     import importlib
 
-    stages = importlib.import_module("jaxvox._stages")
-    octree_module = importlib.import_module("jaxvox.sdf_octree")
-    plain_module = importlib.import_module("jaxvox.sphere_tracing")
+    stages = importlib.import_module("jaxvox._core.stages")
+    octree_module = importlib.import_module("jaxvox.sphere_tracing.octree")
+    plain_module = importlib.import_module("jaxvox.sphere_tracing.analytic")
     n = 4096
     assert stages.batch_sizes(n, 64) == [4096, 512, 64]
     scene, tree = SCENES["csg"], trees["csg"]

@@ -20,9 +20,9 @@ from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox import morton
-from jaxvox.band_sign import CAP_BOUND, MOVE, Components, nested_shells, pseudo_normals
-from jaxvox.sparse_field import SLOTS, TILE, UNUSED_VALUE
-from jaxvox.topology import boundary_chain, welded_faces
+from jaxvox.distance.band_sign import CAP_BOUND, MOVE, Components, nested_shells, pseudo_normals
+from jaxvox.distance.sparse import SLOTS, TILE, UNUSED_VALUE
+from jaxvox.distance.topology import boundary_chain, welded_faces
 from tests.reference import mesh_distance, winding_number
 
 TOL = 1e-4  # voxels
@@ -408,7 +408,7 @@ def test_regions_change_nothing(meshes_dir, name, resolution, monkeypatch):
     for field in (whole, parts):
         assert np.array_equal(np.asarray(jv.voxel_index(field.tree, np.asarray(field.voxels.coords[:n]))), np.arange(n))
     with monkeypatch.context() as patch:
-        patch.setattr(importlib.import_module("jaxvox.sparse_field"), "reserved_empty", lambda shape, dtype: None)
+        patch.setattr(importlib.import_module("jaxvox.distance.sparse"), "reserved_empty", lambda shape, dtype: None)
         joined = jv.sparse_distance_field(mesh, grid, band=3, region=region)
     for got, want in zip(jax.tree.leaves(joined), jax.tree.leaves(parts)):
         assert np.array_equal(np.asarray(got), np.asarray(want))

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox.sphere_tracing import REFINE_STEPS, refine_hits
+from jaxvox.sphere_tracing.analytic import REFINE_STEPS, refine_hits
 
 sdf = jv.sdf
 REL = 1e-5  # target: relative error of t at incidence >= 1 degree, float32 tracing
@@ -259,7 +259,7 @@ def test_eager_jit_and_vmap_agree():
 def _measure():  # pragma: no cover - run by hand
     """Mean extra scene evaluations per hit, and unrefined (the loop's t, as before) vs refined
     maximum relative and absolute errors of t, by incidence band."""
-    from jaxvox.sphere_tracing import trace_ray, unit_directions
+    from jaxvox.sphere_tracing.analytic import trace_ray, unit_directions
 
     rng = np.random.default_rng(0)
     degrees = np.geomspace(1.0, 90.0, 4000)

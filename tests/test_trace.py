@@ -404,7 +404,7 @@ def test_on_marked_runs_the_marked_rows_only(n, chunk, share):
     calls `fn` on more chunks than the marked rows fill."""
     import jax.numpy as jnp
 
-    from jaxvox.trace.hit import on_marked
+    from jaxvox._core.scan import on_marked
 
     rng = np.random.default_rng(n + chunk)
     rows = rng.integers(-50, 50, (n, 3)).astype(np.int32)

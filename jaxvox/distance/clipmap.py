@@ -17,18 +17,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_number, check_type, check_vector, is_concrete, refuse
-from jaxvox._geometry import rows_dist2, triangle_rows
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket, expand_counts, pad_rows
-from jaxvox.band_sign import EXACT_BELOW
+from jaxvox._core.checks import check_choice, check_int, check_number, check_type, check_vector, is_concrete, refuse
+from jaxvox._core.geometry import rows_dist2, triangle_rows
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket, expand_counts, pad_rows
+from jaxvox.distance.band_sign import EXACT_BELOW
 from jaxvox.distance.field import METHODS, box_distance, box_grid
+from jaxvox.distance.solid import grid_triangles, open_edges, padded_mesh, parity_boxes, solid_inside
+from jaxvox.distance.winding import box_winding_numbers, brute_force_winding_numbers
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
-from jaxvox.solid import grid_triangles, open_edges, padded_mesh, parity_boxes, solid_inside
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
-from jaxvox.trace.hit import RUNNING
-from jaxvox.winding import box_winding_numbers, brute_force_winding_numbers
 
 _CORNERS = tuple(np.ndindex(2, 2, 2))  # corner offsets of a trilinear cell
 ROW = 8  # voxels per work slot of the "exact" kernel: a row along its box's longest (contiguous) side

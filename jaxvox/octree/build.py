@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._shapes import bucket, key_bits
+from jaxvox._core.checks import check_int, check_type, refuse
+from jaxvox._core.shapes import bucket, key_bits
 from jaxvox.octree.host import tree_from_levels, voxel_levels
 from jaxvox.octree.tree import EMPTY, OVERFLOW_NODES, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import check_overflow, raise_if_overflow

@@ -55,17 +55,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32, Int32
 
-from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import check_int, check_type, refuse
+from jaxvox._core.devices import everywhere, on_all_devices, on_each_device
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.scan import on_marked
 from jaxvox.camera import check_view, pixel_directions
 from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
 from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
 from jaxvox.trace.api import jit_trace
-from jaxvox.trace.driver import everywhere, on_all_devices, on_each_device
-from jaxvox.trace.hit import on_marked
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
 _CORNER_CHUNK = 4096  # hits on a voxel edge or corner checked per walk of `occupied` (see `_voxel_surface`)

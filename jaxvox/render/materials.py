@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_type, check_vector, refuse
-from jaxvox._shapes import pad_rows, voxel_bucket
-from jaxvox.image import srgb_to_linear
+from jaxvox._core.checks import check_type, check_vector, refuse
+from jaxvox._core.shapes import pad_rows, voxel_bucket
+from jaxvox.io.images import srgb_to_linear
 from jaxvox.voxelize import Voxels
 
 

@@ -39,8 +39,9 @@ Rays that miss the grid box never enter the queue. ``lanes=None`` gives the plai
 vmapped loop (one lane per ray).
 """
 
+from jaxvox._core.hit import HIT, INVALID, MISS, STEP_CAP, Hit, valid_rays
 from jaxvox.trace.api import TRACE_METHODS, trace, trace_dense
-from jaxvox.trace.hit import HIT, INVALID, MISS, STEP_CAP, Hit, default_max_steps, valid_rays
+from jaxvox.trace.ray import default_max_steps
 
 __all__ = [
     "HIT",

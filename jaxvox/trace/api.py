@@ -10,15 +10,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Real, Shaped
 
-from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_choice, check_int, check_type, is_concrete, refuse
+from jaxvox._core.hit import HIT, Hit
+from jaxvox._core.scan import on_marked
+from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
 from jaxvox.octree.queries import check_indexed
 from jaxvox.trace.beam import beam_layout
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
-from jaxvox.trace.hit import HIT, Hit, default_max_steps, on_marked
+from jaxvox.trace.ray import default_max_steps
 
 TRACE_METHODS = ("esvo", "stack")  # `trace` methods
 

@@ -9,9 +9,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxvox._core.hit import HIT, INVALID, MISS, RUNNING
 from jaxvox.octree import Octree
 from jaxvox.octree.compact_dag import CompactDag, compact_child, compact_mask_bit
-from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING
 
 _TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
 
@@ -170,3 +170,9 @@ def settle(s, stepped, status, held):
 
 def step_status(miss, hit):
     return jnp.where(miss, MISS, jnp.where(hit, HIT, RUNNING)).astype(jnp.int32)
+
+
+def default_max_steps(tree: Octree | CompactDag) -> int:
+    """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
+    ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
+    return 6 * tree.grid.resolution + 16 * tree.depth

@@ -40,9 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32
 
-from jaxvox._checks import check_int, check_number, check_type, refuse
-from jaxvox._geometry import solid_angle_parts
-from jaxvox._shapes import bucket, chunk_rows, expand_counts, pad_rows
+from jaxvox._core.checks import check_int, check_number, check_type, refuse
+from jaxvox._core.geometry import solid_angle_parts
+from jaxvox._core.shapes import bucket, chunk_rows, expand_counts, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 
@@ -287,7 +287,7 @@ def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> jax.Array:
     """Float64 triangles [F, 3, 3] as device blocks [n, R, BRUTE_FORCE_BLOCK] of rows,
     padded with degenerate triangles whose corners are all `pad`. `layout` maps the padded
     triangles [F', 3, 3] to their rows [R, F'] (default: the corners' `split_rows`, R = 18;
-    `jaxvox._geometry.triangle_rows` for distances)."""
+    `jaxvox._core.geometry.triangle_rows` for distances)."""
     extra = -len(tris) % BRUTE_FORCE_BLOCK
     padded = np.concatenate([tris, np.full((extra, 3, 3), pad)])
     rows = split_rows(padded.reshape(-1, 9).T) if layout is None else layout(padded)  # [R, F']

@@ -18,7 +18,7 @@ traversal resumes where sphere tracing stopped. Empty space costs octree steps i
 of scene evaluations. One traversal of the whole batch first ends the rays that enter
 no leaf; the loop then runs in rounds (one traversal and a leaf march of at most `MARCH`
 evaluations per round), over the whole batch while more than 1/8 of it runs, then over
-the rays still running gathered into smaller batches (`jaxvox._stages.run_in_stages`).
+the rays still running gathered into smaller batches (`jaxvox._core.stages.run_in_stages`).
 """
 
 from __future__ import annotations
@@ -32,14 +32,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_number, check_type, refuse
-from jaxvox._shapes import bucket
-from jaxvox._stages import MIN_BATCH, run_in_stages
+from jaxvox._core.checks import check_choice, check_int, check_number, check_type, refuse
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.shapes import bucket
+from jaxvox._core.stages import MIN_BATCH, run_in_stages
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, lipschitz_bound
 from jaxvox.sdf.base import check_scene
-from jaxvox.sphere_tracing import (
+from jaxvox.sphere_tracing.analytic import (
     checked_rays,
     refine_hits,
     surface_hit,
@@ -47,7 +48,6 @@ from jaxvox.sphere_tracing import (
     unit_directions,
 )
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
-from jaxvox.trace.hit import RUNNING
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
 # Child offsets in slot order (slot = x | y << 1 | z << 2, as in `jaxvox.octree`).

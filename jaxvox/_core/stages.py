@@ -19,7 +19,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxvox.trace.hit import RUNNING
+from jaxvox._core.hit import RUNNING
 
 SHRINK = 8  # each stage's batch is this many times smaller than the last
 MIN_BATCH = 1024  # no stage below this many rows (a smaller one saved nothing measurable)
