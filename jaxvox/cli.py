@@ -535,8 +535,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["conservative", "6-separating", "solid-boundary"],
         default="conservative",
         help="which voxels of a mesh: voxelize's modes, or solid-boundary (jaxvox.solid_boundary: voxels whose centres "
-        "are inside, exposed to the outside; the closest images, 0.05-5.5 dB PSNR above conservative voxels with "
-        "normals, most at low resolutions, and a slower build)",
+        "are inside, exposed to the outside; the images closest to the mesh's, most of all at low resolutions, "
+        "and a slower build)",
     )
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
@@ -571,10 +571,8 @@ def ask_for_huge_pages() -> None:
     for transparent huge pages for its large blocks (``GLIBC_TUNABLES`` holding
     `HUGE_PAGES`, glibc 2.35 and later). XLA's CPU runtime allocates a fresh temporary
     buffer of tens of MiB for every run of a large program, and the kernel fills it in
-    4 KiB pages on first touch: about 38,000 page faults per 1080p `trace` (70 ms of
-    system time on two cores). With huge pages: 1,200-2,000 faults, and the frame 223-234
-    against 247-257 ms (the bunny's DAG at 1024^3, three alternating pairs; voxelizing,
-    `render`: 4-15% and 6% faster). A no-op once the tunable is set or off glibc; a
+    4 KiB pages on first touch, one page fault per page; huge pages take a few hundred
+    times fewer faults. A no-op once the tunable is set or off glibc; a
     library user starts Python with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``."""
     tunables = os.environ.get("GLIBC_TUNABLES", "")
     if HUGE_PAGES in tunables or platform.libc_ver()[0] != "glibc":

@@ -85,9 +85,7 @@ from jaxvox.distance.winding import (
 )
 from jaxvox.mesh import Mesh
 
-POINT_CHUNK = (
-    1 << 16
-)  # band voxels per call of the sign kernels (fewer dispatches than 2^14: sides of 14 M voxels 1.2-1.8 -> 1.0-1.3 s)
+POINT_CHUNK = 1 << 16  # band voxels per call of the sign kernels (fewer dispatches than 2^14)
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)

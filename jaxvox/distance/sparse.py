@@ -17,9 +17,7 @@ Method (no propagation, so no propagation error):
   float64, the first corner carried as a float32 pair so that no precision is lost far
   from the origin; no division per pair) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
-  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly: the bunny at
-  1024^3 evaluates its pairs in about 1.2 s, where scattering the 138 M pairs of the
-  triangles' boxes took 11.6 s. The host works in rounds of `GROUP_ITEMS` items, whose
+  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly. The host works in rounds of `GROUP_ITEMS` items, whose
   arrays are small enough to reuse memory (first touches of fresh memory cost more here
   than the arithmetic). Cells are numbered in Morton order within a
   tile, so the band voxels come out in global Morton order, no merge needed; all shapes
@@ -136,8 +134,8 @@ def _tile_units(rows, ids, origin):
       order within the tile.
     """
     # Cells along the minor axis ([U, TILE^3]): XLA's CPU loops then vectorize over the
-    # cells of a unit, with the unit's triangle row a scalar (3x faster than [TILE^3, U]:
-    # 7.2 against 22.4 ms per call of 8192 units, 2026-12-04). The slots are unrolled.
+    # cells of a unit, with the unit's triangle row a scalar (faster than [TILE^3, U]).
+    # The slots are unrolled.
     o = [origin[k].astype(jnp.float32)[:, None] for k in range(3)]
     p = [jnp.asarray(_LOCAL[:, k] + 0.5, jnp.float32)[None, :] for k in range(3)]
     slot_rows = [row[ids] for row in rows]  # 28 x [S, U]
@@ -423,7 +421,7 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
 def _field_rows(resolution: int, size: int) -> tuple | None:
     """Buffers for a whole field's rows (ijk int32 [m, 3], values float32 [m], triangles
     int32 [m]) written region after region (`band_regions`' ``out``), so that they become
-    the field's own without a join (4096^3: 228 M rows, 8.4 s to join on 2026-12-03). m bounds both
+    the field's own without a join (a join of a large field's rows costs as much as a region's work). m bounds both
     the rows (every cell, in whole tiles, of the regions of edge `size` that cover the
     grid) and the field's capacity (`bucket` of R^3): address space only
     (`reserved_empty`). None where the system will not reserve it; the regions are then

@@ -153,8 +153,7 @@ def _exit_distance(grid: Grid, voxel, o, u):
 # Scene evaluations per leaf and round: a ray still inside its leaf after them goes on
 # in the next round (its traversal finds the same leaf at once). A vmapped march waits
 # for its slowest lane, and near-tangent rays take tens of steps inside one leaf, so an
-# unbounded march made each round cost that many evaluations for every ray. csg scene
-# (26 primitives), 480x270: 1.07 s unbounded, 0.61-0.65 s with 1-4, 0.76 s with 8.
+# unbounded march made each round cost that many evaluations for every ray.
 MARCH = 4
 
 
@@ -215,8 +214,7 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         status=jnp.where(running & ~entered, leaf.status, state.status).astype(jnp.int32),
     )
     # Grazing rays enter tens of leaves where most stop in one or two: the running rays
-    # are gathered into smaller batches (csg scene, 480x270: 0.96 s against 5.8 s;
-    # 0.63 s with MARCH).
+    # are gathered into smaller batches (`jaxvox._core.stages`).
     return run_in_stages(body, (o, u), state, idle=MISS, min_batch=min_batch)
 
 

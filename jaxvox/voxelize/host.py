@@ -131,7 +131,7 @@ def _sort_region(pages, with_ids: bool):
     """Sorts and deduplicates a region's candidates on the host.
 
     numpy's sort compiles nothing, so regions of any size share the device programs, and
-    on the CPU it is about 4x faster than XLA's (1M uint32 keys: 14 ms against 47 ms).
+    on the CPU it is faster than XLA's sort.
     With ids the candidates sort by (key, distance bits, triangle id), so the first of a
     key is the closest triangle, ties to the lower id, as in
     `jaxvox.voxelize.fixed.sort_unique`.
