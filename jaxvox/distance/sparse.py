@@ -17,10 +17,10 @@ Method (no propagation, so no propagation error):
   float64, the first corner carried as a float32 pair so that no precision is lost far
   from the origin; no division per pair) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
-  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly. The host works in rounds of `GROUP_ITEMS` items, whose
-  arrays are small enough to reuse memory (first touches of fresh memory cost more here
-  than the arithmetic). Cells are numbered in Morton order within a
-  tile, so the band voxels come out in global Morton order, no merge needed; all shapes
+  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly. The host
+  works in rounds of `GROUP_ITEMS` items, whose arrays are small enough to reuse memory
+  (first touches of fresh memory cost more here than the arithmetic). Cells are numbered
+  in Morton order within a tile, so the band voxels come out in global Morton order, no merge needed; all shapes
   are fixed, so a new mesh compiles nothing new.
 * **Sign** (`jaxvox.distance.band_sign`): negative where the generalized winding number exceeds
   1/2. Pseudo-normals of the closest feature for watertight meshes without crossing or

@@ -298,8 +298,9 @@ def region_voxels(
     progress: bool | None,
     share: tuple[int, int] = (0, 1),
 ) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
-    """`voxelize`'s regions one at a time, for consumers that keep only a summary of each
-    (`jaxvox.octree.stream`); the caller has checked the mesh, grid and region size.
+    """The region loop: `voxelize`'s regions one at a time, for `voxelize` itself and for
+    consumers that keep only a summary of each (`jaxvox.octree.stream`); the caller has
+    checked the mesh, grid and region size.
     ``share=(k, n)`` takes only every n-th region from the k-th on (one of n processes).
 
     Yields:
@@ -368,16 +369,14 @@ def voxelize(
     if region_size & (region_size - 1):
         raise refuse("voxelize region_size", f"must be a power of two <= {REGION_SIZE}", region_size)
     region_size = min(region_size, grid.resolution)
-    tris = _grid_triangles(mesh, grid)
-    regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
-    from tqdm.auto import tqdm
-
-    parts, tri_parts = [], []
-    disable = progress_off(progress, len(regions))
-    for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        keys, triangle = _voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+    parts: list[tuple[np.ndarray, np.ndarray]] = []
+    tri_parts: list[np.ndarray] = []
+    walk = region_voxels(
+        mesh, grid, six_sep=six_sep, region_size=region_size, triangle_ids=triangle_ids, progress=progress
+    )
+    for _, region_lo, keys, triangle in walk:
         parts.append((region_lo, keys))  # on the host as we go: device memory holds one region
-        if triangle_ids:
+        if triangle is not None:  # with triangle_ids
             tri_parts.append(triangle)
     total = sum(len(k) for _, k in parts)
     if total > 2**31 - 1:  # `Voxels.count` is int32
