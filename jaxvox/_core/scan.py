@@ -28,6 +28,16 @@ def cumsum(x: jax.Array) -> jax.Array:
     return (sums + offsets).T.reshape(-1)[:n]
 
 
+def compact_indices(mask: jax.Array, size: int, *, fill: int = 0) -> jax.Array:
+    """The indices of the True entries of [N] bool `mask`, in order, in an int32 [size]
+    array (static `size`); the slots past their count hold `fill`, and indices past `size`
+    are dropped. The compaction by a prefix sum of the mask and one scatter, shared by the
+    ray queue of the persistent lanes, `on_marked` and the staged loops."""
+    n = mask.shape[0]
+    slot = jnp.where(mask, cumsum(mask) - 1, size)  # unmarked entries go one past the end
+    return jnp.full(size, fill, jnp.int32).at[slot].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
+
+
 def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: int) -> jax.Array:
     """``fn(rows[i])`` where ``marked[i]``, `fill` elsewhere: [N] of `fill`'s dtype.
 
@@ -47,11 +57,7 @@ def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: in
     if n == 0:
         return jnp.full(0, fill)
     size = n + -n % chunk
-    order = (
-        jnp.zeros(size, jnp.int32)
-        .at[jnp.where(marked, cumsum(marked) - 1, size)]
-        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
-    )
+    order = compact_indices(marked, size)
     count = jnp.sum(marked)
 
     def body(carry):

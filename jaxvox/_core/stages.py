@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxvox._core.hit import RUNNING
+from jaxvox._core.scan import compact_indices
 
 SHRINK = 8  # each stage's batch is this many times smaller than the last
 MIN_BATCH = 1024  # no stage below this many rows (a smaller stage costs more than it saves)
@@ -56,7 +57,7 @@ def run_in_stages(body: Callable[[Any, Any], Any], inputs, state: Any, *, idle: 
     state = loop(inputs, state, sizes[1] if len(sizes) > 1 else 0)
     for k, size in enumerate(sizes[1:], 1):
         # The running rows (at most `size`); the padding rows repeat the last row, idle.
-        ids = jnp.nonzero(state.status == RUNNING, size=size, fill_value=n)[0]
+        ids = compact_indices(state.status == RUNNING, size, fill=n)
         take = lambda x: x[jnp.minimum(ids, n - 1)]
         part = jax.tree.map(take, state)
         part = part._replace(status=jnp.where(ids < n, part.status, idle).astype(part.status.dtype))

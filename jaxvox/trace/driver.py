@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from jaxvox._core.devices import on_each_device
 from jaxvox._core.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
-from jaxvox._core.scan import cumsum
+from jaxvox._core.scan import compact_indices
 from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
@@ -53,11 +53,7 @@ def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int
     init, step, voxel = _METHODS[method]
     n = status.shape[0]
     running = status == RUNNING
-    queue = (
-        jnp.zeros(n + 1, jnp.int32)
-        .at[jnp.where(running, cumsum(running) - 1, n)]
-        .set(jnp.arange(n, dtype=jnp.int32))[:n]
-    )
+    queue = compact_indices(running, n)  # the rays that enter the grid box, in order
     queued = jnp.sum(running)
     lane_init = jax.vmap(lambda ray, st: init(structure, ray, st))
     lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
