@@ -177,8 +177,8 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
     # Plain sphere tracing: the loop's state ray for ray.
     u = o * 0 + d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     plain = (scene, o, u, jnp.float32(0.0), jnp.float32(6.0), jnp.float32(1e-4), jnp.float32(1.0), 512)
-    staged = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=64))()
-    whole = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=n + 1))()
+    staged = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=64))()
+    whole = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=n + 1))()
     for field in ("status", "steps"):
         np.testing.assert_array_equal(np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)))
     hits = np.asarray(whole.status) == jv.HIT  # a miss's last t (past t_max) is not reported

@@ -64,8 +64,7 @@ from jaxvox.camera import check_view, pixel_directions
 from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
-from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
-from jaxvox.trace.api import jit_trace
+from jaxvox.trace import HIT, STEP_CAP, default_max_steps, jit_trace, trace, valid_rays
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
 _CORNER_CHUNK = 4096  # hits on a voxel edge or corner checked per walk of `occupied` (see `_voxel_surface`)

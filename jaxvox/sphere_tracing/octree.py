@@ -42,9 +42,9 @@ from jaxvox.sdf import SDF, lipschitz_bound
 from jaxvox.sdf.base import check_scene
 from jaxvox.sphere_tracing.analytic import (
     checked_rays,
+    march_ray,
     refine_hits,
     surface_hit,
-    trace_ray,
     unit_directions,
 )
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
@@ -162,7 +162,7 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
     n = o.shape[0]
     nudge = 1e-4 * tree.grid.voxel_size  # past a leaf's exit face, so the next round leaves it
     bad = jnp.any(jnp.isnan(o), -1) | jnp.any(jnp.isnan(u), -1) | jnp.all(u == 0, -1)
-    march = jax.vmap(lambda oo, uu, t0, t1, cap: trace_ray(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
+    march = jax.vmap(lambda oo, uu, t0, t1, cap: march_ray(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
 
     def body(rays, s: _Round) -> _Round:
         o, u = rays

@@ -40,7 +40,7 @@ vmapped loop (one lane per ray).
 """
 
 from jaxvox._core.hit import HIT, INVALID, MISS, STEP_CAP, Hit, valid_rays
-from jaxvox.trace.api import TRACE_METHODS, trace, trace_dense
+from jaxvox.trace.api import TRACE_METHODS, jit_trace, trace, trace_dense
 from jaxvox.trace.ray import default_max_steps
 
 __all__ = [
@@ -51,6 +51,7 @@ __all__ = [
     "STEP_CAP",
     "TRACE_METHODS",
     "default_max_steps",
+    "jit_trace",
     "trace",
     "trace_dense",
     "valid_rays",
