@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox.octree import CompactDag, Octree
-from jaxvox.trace.ray import child_row, mask_bit, materialize, opaque, root_row
+from jaxvox.trace.ray import barrier_token, child_row, fusion_barrier, mask_bit, root_row
 
 BEAM_SIDE = 8  # image tiles of 8 x 8 rays form the groups
 BEAM_RAYS = BEAM_SIDE * BEAM_SIDE
@@ -188,7 +188,7 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
 
     def march(_, carry):
         s, step = carry
-        free = materialize(empty_box(s, step), opaque(tree))
+        free = fusion_barrier(empty_box(s, step), barrier_token(tree))
         return jnp.where(free, s + step, s), jnp.where(free, step * 2, step * 0.5)
 
     g = anyone.shape[0]

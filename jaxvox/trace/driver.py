@@ -18,7 +18,7 @@ from jaxvox._core.scan import compact_indices
 from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
-from jaxvox.trace.ray import Ray, argmax3, materialize, max3, opaque, setup_ray
+from jaxvox.trace.ray import Ray, argmax3, barrier_token, fusion_barrier, max3, setup_ray
 from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
 
 _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
@@ -128,7 +128,7 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     res = structure.grid.resolution
     # per axis, each axis read out of the [N, 3] rows once (XLA's fusions would read the
     # strided columns in each of their many consumers)
-    o, d = materialize(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), opaque(structure))
+    o, d = fusion_barrier(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), barrier_token(structure))
     rays, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
     if layout is not None and o[0].shape[0] > 0:
         t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
@@ -142,7 +142,7 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
     t_in = max3(t0)
     # computed once: the [N, 3] results below would recompute them for each of their columns
-    t_in, entry = materialize((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), opaque(structure))
+    t_in, entry = fusion_barrier((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), barrier_token(structure))
     axes = jnp.arange(3, dtype=jnp.int32)
     flip = ((rays.flip[:, None] >> axes) & 1) == 1  # [N, 3]
     return Hit(
