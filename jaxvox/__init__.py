@@ -9,6 +9,11 @@ APIs that size capacities by counting passes. Analytic signed distance function 
 tracing and meshed by marching cubes. A diffuse path tracer (`jaxvox.render`) renders
 voxel DAGs (textured or vertex-coloured, emissive) under an importance-sampled
 environment light to EXR and PNG files.
+
+Every public name is importable from here. The same names are also grouped by topic in
+public namespaces: `jaxvox.distance` (distance fields, solids, winding numbers),
+`jaxvox.io` (mesh, voxel, tree and image files), `jaxvox.sphere_tracing`, `jaxvox.octree`,
+`jaxvox.sdf` and `jaxvox.morton`. The layout of the package is in docs/layout.md.
 """
 
 from jaxvox import distance, io, morton, octree, sdf, sphere_tracing
