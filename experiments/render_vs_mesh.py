@@ -56,7 +56,7 @@ def worker(spec: dict) -> dict:
     import jax
 
     import jaxvox as jv
-    from jaxvox.image import write_png
+    from jaxvox.io.images import write_png
 
     mesh = jv.load_mesh(_common.MESH_DIR / f"{spec['mesh']}.obj")
     eye, target = jv.look_at_view(mesh, azimuth=spec["azimuth"], elevation=20.0, distance=1.6)

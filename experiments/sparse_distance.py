@@ -9,7 +9,7 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
   the values and of the whole `SparseField` (voxels, values, triangles, tree), peak
   resident memory. Resolutions listed in ``--stream`` take `jv.sparse_field_regions`
   instead (each region's field counted and dropped: fields larger than memory). The
-  bunny is open, so its sign takes components of mesh plus caps (`jaxvox.band_sign`);
+  bunny is open, so its sign takes components of mesh plus caps (`jaxvox.distance.band_sign`);
 * OpenVDB: ``FloatGrid.createLevelSetFromPolygons`` (meshToLevelSet, multi-threaded) with
   the same voxel size and half width, run by the system ``/usr/bin/python3`` (Debian
   ``python3-openvdb``) in a subprocess, timed there (first call and median of repeats);

@@ -9,10 +9,17 @@ APIs that size capacities by counting passes. Analytic signed distance function 
 tracing and meshed by marching cubes. A diffuse path tracer (`jaxvox.render`) renders
 voxel DAGs (textured or vertex-coloured, emissive) under an importance-sampled
 environment light to EXR and PNG files.
+
+Every public name is importable from here. The same names are also grouped by topic in
+public namespaces: `jaxvox.distance` (distance fields, solids, winding numbers),
+`jaxvox.io` (mesh, voxel, tree and image files), `jaxvox.points` (point queries),
+`jaxvox.sphere_tracing`, `jaxvox.octree`, `jaxvox.sdf` and `jaxvox.morton`. The layout
+of the package is in docs/layout.md.
 """
 
-from jaxvox import morton, points, sdf
-from jaxvox._errors import JaxvoxError
+from jaxvox import distance, io, morton, octree, points, sdf, sphere_tracing
+from jaxvox._core.compilation_cache import enable_compilation_cache
+from jaxvox._core.errors import JaxvoxError
 from jaxvox.batch import (
     BatchResult,
     batch_capacities,
@@ -22,26 +29,46 @@ from jaxvox.batch import (
     voxelize_build_trace,
 )
 from jaxvox.camera import look_at_view, pinhole_rays
-from jaxvox.compilation_cache import enable_compilation_cache
 from jaxvox.distance import (
     Clipmap,
     QuantizedField,
+    SparseField,
     build_clipmap,
     clipmap_corners,
     distance_field,
     distance_field_bytes,
+    field_to_mesh,
+    open_edges,
     quantize_field,
+    sample,
+    solid_boundary,
+    solid_voxelize,
+    sparse_distance_field,
+    sparse_field_regions,
     time_sliced_cascades,
     trace_clipmap,
     union_clipmaps,
     update_clipmap,
+    winding_numbers,
 )
-from jaxvox.field_mesh import field_to_mesh
-from jaxvox.field_trace import sample_gradient, sphere_trace_field
 from jaxvox.grid import Grid
-from jaxvox.image import read_exr, read_hdr, save_render, tonemap, write_exr, write_png
-from jaxvox.io import load, load_attributes, save
-from jaxvox.mesh import Mesh, load_mesh, pad_mesh, sample_texture, save_mesh
+from jaxvox.io import (
+    load,
+    load_attributes,
+    load_binvox,
+    load_mesh,
+    load_voxels,
+    read_exr,
+    read_hdr,
+    save,
+    save_binvox,
+    save_mesh,
+    save_voxels,
+    tonemap,
+    write_exr,
+    write_png,
+)
+from jaxvox.mesh import Mesh, pad_mesh, sample_texture
 from jaxvox.octree import (
     EMPTY,
     MISSING,
@@ -80,15 +107,20 @@ from jaxvox.render import (
     load_environment,
     render,
     render_mesh,
+    save_render,
     sky_environment,
     uniform_environment,
     voxel_albedo,
 )
 from jaxvox.scene import default_scene
-from jaxvox.sdf_octree import build_octree_from_sdf, sphere_trace_octree, voxelize_sdf
-from jaxvox.solid import open_edges, solid_boundary, solid_voxelize
-from jaxvox.sparse_field import SparseField, sample, sparse_distance_field, sparse_field_regions
-from jaxvox.sphere_tracing import sphere_trace
+from jaxvox.sphere_tracing import (
+    build_octree_from_sdf,
+    sample_gradient,
+    sphere_trace,
+    sphere_trace_field,
+    sphere_trace_octree,
+    voxelize_sdf,
+)
 from jaxvox.trace import (
     HIT,
     INVALID,
@@ -99,8 +131,6 @@ from jaxvox.trace import (
     trace,
     trace_dense,
 )
-from jaxvox.voxel_files import load_binvox, load_voxels, save_binvox, save_voxels
-from jaxvox.voxel_surface import voxels_to_mesh
 from jaxvox.voxelize import (
     CONSERVATIVE,
     OVERFLOW_CANDIDATES,
@@ -115,8 +145,8 @@ from jaxvox.voxelize import (
     voxel_capacities,
     voxelize,
     voxelize_fixed,
+    voxels_to_mesh,
 )
-from jaxvox.winding import winding_numbers
 
 __version__ = "0.1.0"
 
@@ -168,11 +198,13 @@ __all__ = [
     "compact",
     "compact_dag",
     "default_scene",
+    "distance",
     "distance_field",
     "distance_field_bytes",
     "enable_compilation_cache",
     "expand",
     "field_to_mesh",
+    "io",
     "load",
     "load_attributes",
     "load_binvox",
@@ -184,6 +216,7 @@ __all__ = [
     "mesh_to_dag",
     "morton",
     "occupancy",
+    "octree",
     "octree_capacities",
     "open_edges",
     "pad_mesh",
@@ -216,6 +249,7 @@ __all__ = [
     "sphere_trace",
     "sphere_trace_field",
     "sphere_trace_octree",
+    "sphere_tracing",
     "stack_grids",
     "stack_indices",
     "stack_meshes",

@@ -6,7 +6,7 @@ runs through all three under one `jax.vmap` and one `jax.jit`. This module holds
 pieces around that:
 
 * `stack_meshes` / `stack_grids`: pad (`pad_mesh`) and stack meshes and grids along a
-  leading batch axis, sizes rounded on the shape ladder (`jaxvox._shapes.bucket`);
+  leading batch axis, sizes rounded on the shape ladder (`jaxvox._core.shapes.bucket`);
 * `batch_capacities`: host-side *allocate*: voxelizer and per-level octree capacities that
   fit every item, on the ladder, so similar batches share one compiled program;
 * `voxelize_build_trace`: the jittable, vmapped voxelize -> build -> trace, with overflow
@@ -31,9 +31,10 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket
+from jaxvox import morton
+from jaxvox._core.checks import check_choice, check_int, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
 from jaxvox.octree import (
@@ -44,6 +45,7 @@ from jaxvox.octree import (
     check_level_capacities,
     compact,
 )
+from jaxvox.octree.build import level_sizes
 from jaxvox.overflow import describe
 from jaxvox.trace import TRACE_METHODS, Hit, trace
 from jaxvox.voxelize import (
@@ -168,17 +170,6 @@ def stack_grids(grids: Sequence[Grid]) -> Grid:
 # ----------------------------------------------------------------------------- capacities
 
 
-def _level_sizes(coords: np.ndarray, depth: int) -> np.ndarray:
-    """Octree nodes per level [D] int64 of Morton-sorted voxels [n, 3] (root level first):
-    level ``l`` holds the distinct ``ijk >> (D - l)``, consecutive in Morton order."""
-    sizes = np.zeros(depth, np.int64)
-    if len(coords):
-        for level in range(depth):
-            cell = coords >> (depth - level)
-            sizes[level] = 1 + np.count_nonzero(np.any(cell[1:] != cell[:-1], axis=1))
-    return sizes
-
-
 def _tree_capacities(sizes) -> tuple[int, ...]:
     """Per-level capacities on the ladder for octree node counts `sizes` (root first):
     ``bucket(n, 1)`` capped at ``8^l``; the root level holds exactly one node."""
@@ -253,7 +244,7 @@ def batch_capacities(
     caps, sizes = [], np.zeros(depth, np.int64)
     for mesh, grid in zip(meshes, grids):
         caps.append(voxel_capacities(mesh, grid, mode=mode))
-        sizes = np.maximum(sizes, _level_sizes(voxelize(mesh, grid, mode=mode).to_numpy(), depth))
+        sizes = np.maximum(sizes, level_sizes(morton.encode_host(voxelize(mesh, grid, mode=mode).to_numpy()), depth))
     return Capacities._make(max(c) for c in zip(*caps)), _tree_capacities(sizes)
 
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float32, Real
 
-from jaxvox._checks import check_int, check_number, check_vector, is_concrete, refuse
+from jaxvox._core.checks import check_int, check_number, check_vector, is_concrete, refuse
 
 
 def look_at_view(mesh_or_bounds, *, azimuth: float = 35.0, elevation: float = 25.0, distance: float = 2.2):

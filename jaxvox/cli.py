@@ -43,7 +43,7 @@ def _voxelize_timed(mesh, grid, mode):
 def cmd_voxelize(args) -> int:
     """Voxelizes a mesh and writes the voxels (.binvox, .npz, or their surface as .ply / .obj)."""
     import jaxvox as jv
-    from jaxvox.voxel_files import check_save_path
+    from jaxvox.io.voxels import check_save_path
 
     check_save_path("--out", args.out)  # before the work: an unknown extension or a missing folder
     mesh, name = _load(args.mesh)
@@ -152,7 +152,7 @@ def cmd_build(args) -> int:
     writes the file.
     """
     import jaxvox as jv
-    from jaxvox._checks import check_int, check_output_path, refuse
+    from jaxvox._core.checks import check_int, check_output_path, refuse
 
     check_output_path("--out", args.out)  # before the work
     processes = check_int("--processes", args.processes, minimum=1)
@@ -193,7 +193,7 @@ def cmd_run(args) -> int:
     """The main job: voxelize a mesh (default: the built-in scene) in both modes, build its
     octree and DAG, report, draw."""
     import jaxvox as jv
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
     from jaxvox.plot import save_projections
 
     mesh, name = _load(args.mesh)
@@ -238,7 +238,7 @@ def cmd_run(args) -> int:
 
 def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
     """Comma-separated floats, as many as one of `counts`; a `JaxvoxError` otherwise."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     try:
         values = [float(x) for x in text.split(",")]
@@ -251,7 +251,7 @@ def _numbers(text: str, name: str, counts: tuple[int, ...]) -> list[float]:
 
 def _size(text: str) -> tuple[int, int]:
     """``WIDTHxHEIGHT`` -> (width, height)."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     parts = text.lower().split("x")
     if len(parts) != 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
@@ -323,7 +323,7 @@ def _render_scene(args):
 
 def _emitter(text: str):
     """``XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX:R,G,B`` -> (lo, hi, rgb)."""
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     box, _, rgb = text.partition(":")
     if not rgb:
@@ -338,7 +338,7 @@ def _emitter(text: str):
 def cmd_render(args) -> int:
     """Path-traces a mesh (voxelized into a DAG), a saved tree, or the default scene; writes EXR + PNG."""
     import jaxvox as jv
-    from jaxvox._checks import check_choice, check_int, check_number, refuse
+    from jaxvox._core.checks import check_choice, check_int, check_number, refuse
     from jaxvox.camera import check_view
 
     # Every option is checked before the scene is voxelized.
@@ -559,8 +559,8 @@ def build_parser() -> argparse.ArgumentParser:
         choices=["conservative", "6-separating", "solid-boundary"],
         default="conservative",
         help="which voxels of a mesh: voxelize's modes, or solid-boundary (jaxvox.solid_boundary: voxels whose centres "
-        "are inside, exposed to the outside; the closest images, 0.05-5.5 dB PSNR above conservative voxels with "
-        "normals, most at low resolutions, and a slower build)",
+        "are inside, exposed to the outside; the images closest to the mesh's, most of all at low resolutions, "
+        "and a slower build)",
     )
     render.add_argument("--seed", type=int, default=0)
     render.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
@@ -608,10 +608,8 @@ def ask_for_huge_pages() -> None:
     for transparent huge pages for its large blocks (``GLIBC_TUNABLES`` holding
     `HUGE_PAGES`, glibc 2.35 and later). XLA's CPU runtime allocates a fresh temporary
     buffer of tens of MiB for every run of a large program, and the kernel fills it in
-    4 KiB pages on first touch: about 38,000 page faults per 1080p `trace` (70 ms of
-    system time on two cores). With huge pages: 1,200-2,000 faults, and the frame 223-234
-    against 247-257 ms (the bunny's DAG at 1024^3, three alternating pairs; voxelizing,
-    `render`: 4-15% and 6% faster). A no-op once the tunable is set or off glibc; a
+    4 KiB pages on first touch, one page fault per page; huge pages take a few hundred
+    times fewer faults. A no-op once the tunable is set or off glibc; a
     library user starts Python with ``GLIBC_TUNABLES=glibc.malloc.hugetlb=1``."""
     tunables = os.environ.get("GLIBC_TUNABLES", "")
     if HUGE_PAGES in tunables or platform.libc_ver()[0] != "glibc":
@@ -633,8 +631,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from jaxvox._errors import JaxvoxError
-    from jaxvox.compilation_cache import enable_compilation_cache
+    from jaxvox._core.compilation_cache import enable_compilation_cache
+    from jaxvox._core.errors import JaxvoxError
     from jaxvox.grid import check_resolution
 
     try:

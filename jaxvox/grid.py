@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32
 
-from jaxvox._checks import check_number, refuse
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import check_number, refuse
+from jaxvox._core.pytree import pytree_dataclass
 
 MAX_RESOLUTION = 1 << 20  # Morton keys are two 30-bit words: 20 bits per axis.
 

@@ -29,7 +29,7 @@ import enum
 import jax
 import numpy as np
 
-from jaxvox._errors import JaxvoxError
+from jaxvox._core.errors import JaxvoxError
 
 
 class Overflow(enum.IntFlag):

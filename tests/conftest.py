@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import gzip
 import os
 import pathlib
+import shutil
 
 import numpy as np
 import pytest
@@ -23,7 +25,7 @@ os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false"]).strip()
 jaxvox.enable_compilation_cache()
-SHARED_MESHES = REPO_ROOT.parent / "shared" / "meshes"
+TEST_DATA = REPO_ROOT / "tests" / "data"  # the test meshes, with their sources (SOURCES.md)
 
 
 # The modules whose tests take longest run first, so that with pytest-xdist no worker
@@ -38,11 +40,17 @@ def pytest_collection_modifyitems(items):
 
 
 @pytest.fixture(scope="session")
-def meshes_dir() -> pathlib.Path:
-    """The shared test meshes (``../shared/meshes`` next to the repository); skips if absent."""
-    if not SHARED_MESHES.is_dir():
-        pytest.skip(f"shared test meshes not found at {SHARED_MESHES}")
-    return SHARED_MESHES
+def meshes_dir(tmp_path_factory) -> pathlib.Path:
+    """A folder of the test meshes (``tests/data``, see its SOURCES.md): the OBJ files as
+    they are and the gzip-compressed ones unpacked, once per session (per xdist worker)."""
+    folder = tmp_path_factory.mktemp("meshes")
+    for path in sorted(TEST_DATA.iterdir()):
+        if path.suffix == ".obj":
+            shutil.copyfile(path, folder / path.name)
+        elif path.name.endswith(".obj.gz"):
+            with gzip.open(path, "rb") as src, open(folder / path.name[: -len(".gz")], "wb") as dst:
+                shutil.copyfileobj(src, dst)
+    return folder
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -166,11 +166,14 @@ def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
     pages (2^18 slots each): every page is written once (the host path checks that it
     received exactly the counted candidates) and the voxels and their triangle ids are
     those of 64^3 regions, each of which fits in one page."""
-    from jaxvox.voxelize.host import _PAGE
+    from jaxvox.voxelize import host
 
     mesh = jv.load_mesh(meshes_dir / "stanford-bunny.obj")
     grid = jv.Grid.fit(mesh, resolution=256)
-    assert jv.voxel_capacities(mesh, grid).candidates > 2 * _PAGE
+    # The counting pass alone (`voxel_capacities` would also voxelize without ids).
+    lo, hi = host._region_bounds(np.zeros(3, np.int32), grid.resolution)
+    chunks = host._chunks(host._grid_triangles(mesh, grid), np.arange(mesh.num_faces))
+    assert host._count_chunks(chunks, lo, hi, False)[0].sum(0)[2] > 2 * host._PAGE
     for mode in ("conservative", "6-separating"):
         whole = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True)
         small = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True, region_size=64)

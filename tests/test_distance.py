@@ -30,8 +30,8 @@ from scipy import ndimage
 
 import jaxvox as jv
 from jaxvox.distance.field import box_distance, box_grid
+from jaxvox.distance.solid import grid_triangles, padded_mesh, solid_inside
 from jaxvox.distance.sweep import fast_sweep
-from jaxvox.solid import grid_triangles, padded_mesh, solid_inside
 from tests.reference import mesh_distance, ray_parity
 
 BOUNDS = {  # method: (max above exact, max below exact), voxels
@@ -98,7 +98,7 @@ def test_triangle_rows_of_slivers():
     (ab . ac)^2, which cancels to 0 for such triangles."""
     import warnings
 
-    from jaxvox._geometry import rows_dist2, triangle_rows
+    from jaxvox._core.geometry import rows_dist2, triangle_rows
     from tests.reference import closest_point_on_triangles
 
     rng = np.random.default_rng(1)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox import field_mesh
-from jaxvox.field_mesh import _march
+from jaxvox.distance import meshing as field_mesh
+from jaxvox.distance.meshing import _march
 from tests.reference import closest_point_on_triangles, mesh_distance
 
 R = 32

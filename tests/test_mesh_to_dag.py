@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox._shapes import voxel_bucket
+from jaxvox._core.shapes import voxel_bucket
 from jaxvox.octree.host import unique_rows as _unique_rows
 from jaxvox.render.materials import normal_table
 

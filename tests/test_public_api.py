@@ -17,7 +17,14 @@ import jaxvox as jv
 PACKAGE = pathlib.Path(jv.__file__).parent
 # Classes whose constructors are data containers (pytrees rebuilt without __init__) or
 # enums: their fields are documented on the class.
-_NAMESPACES = {"jaxvox": jv, "jaxvox.sdf": jv.sdf}
+_NAMESPACES = {
+    "jaxvox": jv,
+    "jaxvox.distance": jv.distance,
+    "jaxvox.io": jv.io,
+    "jaxvox.octree": jv.octree,
+    "jaxvox.sdf": jv.sdf,
+    "jaxvox.sphere_tracing": jv.sphere_tracing,
+}
 
 
 def _public_callables():
@@ -80,3 +87,11 @@ def test_import_jaxvox_loads_no_optional_library():
     code = f"import sys, jaxvox; print([m for m in {heavy!r} if m in sys.modules])"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert loaded == "[]", loaded
+
+
+def test_the_namespaces_hold_the_flat_names():
+    """Every public name of a topic namespace that `jaxvox` also exports is the same object."""
+    for prefix, namespace in _NAMESPACES.items():
+        for name in namespace.__all__:
+            if prefix != "jaxvox" and name in jv.__all__:
+                assert getattr(jv, name) is getattr(namespace, name), f"{prefix}.{name}"

@@ -473,7 +473,7 @@ def test_mesh_renderer_samples_the_texture(textured_quad):
     """A textured quad facing the camera, lit by a sun along its normal, no bounces: each
     quadrant shows its texel's linear colour / pi * E (as the voxels' albedo does)."""
     pytest.importorskip("embreex")
-    from jaxvox.image import srgb_to_linear
+    from jaxvox.io.images import srgb_to_linear
 
     path, texels = textured_quad
     mesh = jv.load_mesh(path)
@@ -579,7 +579,7 @@ def test_device_tables_on_the_ladder_are_used_as_they_are(scene):
     copied: tests/test_mesh_to_dag.py); a float32 device table already on the ladder is
     taken with no copy (checked on the device), and one that is not valid still gets the
     host path's error."""
-    from jaxvox._shapes import voxel_bucket
+    from jaxvox._core.shapes import voxel_bucket
     from jaxvox.render.materials import normal_table, rgb_table
 
     tree = scene[0]

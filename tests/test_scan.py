@@ -1,4 +1,4 @@
-"""`jaxvox._scan.cumsum` against numpy's prefix sums."""
+"""`jaxvox._core.scan`: `cumsum` against numpy's prefix sums, `compact_indices` against numpy."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxvox._scan import cumsum
+from jaxvox._core.scan import cumsum
 
 
 @pytest.mark.parametrize("n", [0, 1, 257, 100_003, 256 * 4096 + 3])
@@ -18,3 +18,19 @@ def test_cumsum_matches_numpy(n):
     np.testing.assert_array_equal(np.asarray(run(flags)), np.cumsum(flags))
     np.testing.assert_array_equal(np.asarray(run(counts)), np.cumsum(counts))
     assert run(flags).dtype == np.int32
+
+
+@pytest.mark.parametrize("n", [1, 100, 3000])
+def test_compact_indices_matches_numpy(n):
+    """The marked indices in order, `fill` past their count, cut at `size` (the three
+    compactions it replaced: the lanes' queue, `on_marked`, the staged loops' nonzero)."""
+    from jaxvox._core.scan import compact_indices
+
+    mask = np.random.default_rng(n).random(n) < 0.3
+    for size in (n, n + 7, max(1, n // 8)):
+        for fill in (0, n):
+            expected = np.full(size, fill, np.int32)
+            marked = np.flatnonzero(mask)[:size]
+            expected[: len(marked)] = marked
+            got = jax.jit(compact_indices, static_argnums=1, static_argnames="fill")(mask, size, fill=fill)
+            np.testing.assert_array_equal(np.asarray(got), expected)

@@ -144,7 +144,7 @@ def test_octree_tracing_matches_plain(trees, name):
 
 def test_gathering_the_slow_rays_changes_no_ray(trees):
     """Rays run in stages: those still running are gathered into a batch `SHRINK` times
-    smaller, down to `MIN_BATCH` (`jaxvox._stages`). Staged (4096 -> 512 -> 64 rays) or
+    smaller, down to `MIN_BATCH` (`jaxvox._core.stages`). Staged (4096 -> 512 -> 64 rays) or
     not, every ray ends with the same status, leaf and index, and the same distance and
     normal up to float32 rounding (the stages are programs for other batch sizes, which
     XLA may fuse differently; so may the refinement's evaluation count, by at most 2),
@@ -152,9 +152,9 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
     most steps."""
     import importlib
 
-    stages = importlib.import_module("jaxvox._stages")
-    octree_module = importlib.import_module("jaxvox.sdf_octree")
-    plain_module = importlib.import_module("jaxvox.sphere_tracing")
+    stages = importlib.import_module("jaxvox._core.stages")
+    octree_module = importlib.import_module("jaxvox.sphere_tracing.octree")
+    plain_module = importlib.import_module("jaxvox.sphere_tracing.analytic")
     n = 4096
     assert stages.batch_sizes(n, 64) == [4096, 512, 64]
     scene, tree = SCENES["csg"], trees["csg"]
@@ -177,8 +177,8 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
     # Plain sphere tracing: the loop's state ray for ray.
     u = o * 0 + d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     plain = (scene, o, u, jnp.float32(0.0), jnp.float32(6.0), jnp.float32(1e-4), jnp.float32(1.0), 512)
-    staged = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=64))()
-    whole = jax.jit(lambda: plain_module.trace_rays(*plain, min_batch=n + 1))()
+    staged = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=64))()
+    whole = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=n + 1))()
     for field in ("status", "steps"):
         np.testing.assert_array_equal(np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)))
     hits = np.asarray(whole.status) == jv.HIT  # a miss's last t (past t_max) is not reported

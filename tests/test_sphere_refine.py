@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from jaxvox.sphere_tracing import REFINE_STEPS, refine_hits
+from jaxvox.sphere_tracing.analytic import REFINE_STEPS, refine_hits
 
 sdf = jv.sdf
 REL = 1e-5  # target: relative error of t at incidence >= 1 degree, float32 tracing
@@ -259,7 +259,7 @@ def test_eager_jit_and_vmap_agree():
 def _measure():  # pragma: no cover - run by hand
     """Mean extra scene evaluations per hit, and unrefined (the loop's t, as before) vs refined
     maximum relative and absolute errors of t, by incidence band."""
-    from jaxvox.sphere_tracing import trace_ray, unit_directions
+    from jaxvox.sphere_tracing.analytic import march_ray, unit_directions
 
     rng = np.random.default_rng(0)
     degrees = np.geomspace(1.0, 90.0, 4000)
@@ -270,7 +270,7 @@ def _measure():  # pragma: no cover - run by hand
     cases["rotated box"] = box_scene_and_rays(rng, degrees)
     for name, (scene, o, u, t_ref) in cases.items():
         hit, steps = jv.sphere_trace(scene, o, u, t_max=20.0, max_steps=4096, return_steps=True)
-        loop = jax.vmap(lambda sc, oo, uu: trace_ray(sc, oo, uu, 0.0, 20.0, 1e-4, 1.0, 4096), in_axes=(None, 0, 0))(
+        loop = jax.vmap(lambda sc, oo, uu: march_ray(sc, oo, uu, 0.0, 20.0, 1e-4, 1.0, 4096), in_axes=(None, 0, 0))(
             scene, jnp.asarray(o), unit_directions(jnp.asarray(u))
         )
         extra = np.asarray(steps) - np.asarray(loop.steps)

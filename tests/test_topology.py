@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxvox.topology import (
+from jaxvox.distance.topology import (
     boundary_chain,
     connected_components,
     crossing_faces,

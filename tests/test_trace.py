@@ -317,7 +317,7 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
         np.testing.assert_allclose(np.asarray(r.radiance), np.asarray(s.radiance), rtol=1e-5, atol=1e-6)
         assert int(r.stopped) == int(s.stopped) and float(np.asarray(r.radiance).max()) > 0
         # The tree and tables the renderer places on every device are aliased, not copied.
-        from jaxvox.trace.driver import on_all_devices
+        from jaxvox._core.devices import on_all_devices
         table = jax.numpy.arange(12.0).reshape(4, 3)
         shared = on_all_devices(table)
         pointers = {{x.data.unsafe_buffer_pointer() for x in shared.addressable_shards}}
@@ -404,7 +404,7 @@ def test_on_marked_runs_the_marked_rows_only(n, chunk, share):
     calls `fn` on more chunks than the marked rows fill."""
     import jax.numpy as jnp
 
-    from jaxvox.trace.hit import on_marked
+    from jaxvox._core.scan import on_marked
 
     rng = np.random.default_rng(n + chunk)
     rows = rng.integers(-50, 50, (n, 3)).astype(np.int32)

@@ -39,7 +39,7 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
    Methods on ids give distances to real triangles, so they never underestimate;
    sweeping can (by about 0.3 voxel along ridges of the field, where the upwind
    update mixes two fronts) and overestimates diagonally from small features.
-4. **Sign** from a solid voxelization of the voxel centres (`jaxvox.solid`): ``"parity"`` (Schwarz &
+4. **Sign** from a solid voxelization of the voxel centres (`jaxvox.distance.solid`): ``"parity"`` (Schwarz &
    Seidel: every triangle flips the inside bit of the voxels of a +x column beyond
    the column's crossing, then a prefix XOR along x; exact and O(surface), right for
    watertight meshes only, which it checks) or ``"winding"`` (the generalized
@@ -49,7 +49,7 @@ The pipeline follows Boissé's thread (``../shared/seeds/003_*.txt``), in grid u
 Modules: `field` (`distance_field`, the method table, memory estimates), `exact`, `jfa`
 (seeds, narrow band, jump flooding) and `sweep` (fast sweeping, in JAX by hyperplanes
 of a skewed grid), `quantize` (16-bit storage), `clipmap` (cascaded clipmaps and
-their tracing); the sign is `jaxvox.solid`'s. The public names are re-exported here
+their tracing); the sign is `jaxvox.distance.solid`'s. The public names are re-exported here
 and from `jaxvox`; everything else is private.
 """
 
@@ -64,8 +64,11 @@ from jaxvox.distance.clipmap import (
 )
 from jaxvox.distance.field import BYTES_PER_VOXEL, METHODS, distance_field, distance_field_bytes
 from jaxvox.distance.jfa import NO_TRIANGLE
+from jaxvox.distance.meshing import field_to_mesh
 from jaxvox.distance.quantize import FORMATS, QuantizedField, quantize_field
-from jaxvox.solid import SIGN_BYTES_PER_VOXEL, SIGN_METHODS, open_edges, solid_voxelize
+from jaxvox.distance.solid import SIGN_BYTES_PER_VOXEL, SIGN_METHODS, open_edges, solid_boundary, solid_voxelize
+from jaxvox.distance.sparse import SparseField, sample, sparse_distance_field, sparse_field_regions
+from jaxvox.distance.winding import winding_numbers
 
 __all__ = [
     "BYTES_PER_VOXEL",
@@ -76,15 +79,22 @@ __all__ = [
     "QuantizedField",
     "SIGN_BYTES_PER_VOXEL",
     "SIGN_METHODS",
+    "SparseField",
     "build_clipmap",
     "clipmap_corners",
     "distance_field",
     "distance_field_bytes",
+    "field_to_mesh",
     "open_edges",
     "quantize_field",
+    "sample",
+    "solid_boundary",
     "solid_voxelize",
+    "sparse_distance_field",
+    "sparse_field_regions",
     "time_sliced_cascades",
     "trace_clipmap",
     "union_clipmaps",
     "update_clipmap",
+    "winding_numbers",
 ]

@@ -17,18 +17,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_number, check_type, check_vector, is_concrete, refuse
-from jaxvox._geometry import rows_dist2, triangle_rows
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket, expand_counts, pad_rows
-from jaxvox.band_sign import EXACT_BELOW
+from jaxvox._core.checks import check_choice, check_int, check_number, check_type, check_vector, is_concrete, refuse
+from jaxvox._core.geometry import rows_dist2, triangle_rows
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket, expand_counts, pad_rows
+from jaxvox.distance.band_sign import EXACT_BELOW
 from jaxvox.distance.field import METHODS, box_distance, box_grid
+from jaxvox.distance.solid import grid_triangles, open_edges, padded_mesh, parity_boxes, solid_inside
+from jaxvox.distance.winding import box_winding_numbers, brute_force_winding_numbers
 from jaxvox.grid import Grid, check_resolution
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
-from jaxvox.solid import grid_triangles, open_edges, padded_mesh, parity_boxes, solid_inside
 from jaxvox.trace import HIT, MISS, STEP_CAP, Hit
-from jaxvox.trace.hit import RUNNING
-from jaxvox.winding import box_winding_numbers, brute_force_winding_numbers
 
 _CORNERS = tuple(np.ndindex(2, 2, 2))  # corner offsets of a trilinear cell
 ROW = 8  # voxels per work slot of the "exact" kernel: a row along its box's longest (contiguous) side
@@ -399,8 +399,7 @@ def _host_tables(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     3] float64 (world units), their bounding boxes' minima and maxima [F, 3], and the
     triangles of `padded_mesh(mesh)` [P, 3, 3] float64 (none for an empty mesh). A flight
     passes the same `Mesh` every frame and a `Mesh`'s arrays are immutable, so the last
-    mesh's tables are kept, and the mesh with them (about 4 ms a frame for spot's 5,856
-    faces)."""
+    mesh's tables are kept, and the mesh with them."""
     if _LAST_TABLES and _LAST_TABLES[0][0] is mesh:
         return _LAST_TABLES[0][1]
     world = host_triangles(mesh)
@@ -465,7 +464,7 @@ def build_clipmap(
         jnp.float32(voxel_size),
         float(truncation),
         check_choice("build_clipmap method", method, METHODS),
-        "winding" if open_edges(mesh) else "parity",  # once: about 3 ms a frame for spot's 5,856 faces
+        "winding" if open_edges(mesh) else "parity",  # once, not every frame
     )
     return update_clipmap(empty, mesh, camera)
 

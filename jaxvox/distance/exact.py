@@ -12,7 +12,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from jaxvox._geometry import point_triangle_dist2, solid_angle
+from jaxvox._core.geometry import point_triangle_dist2, solid_angle
 
 _PAIRS_PER_CHUNK = 1 << 21  # (voxel, triangle) pairs per chunk of the brute-force loops
 

@@ -4,7 +4,7 @@ How each method works and what error it makes: see `jaxvox.distance`. Here the
 pipeline is put together: the closest-triangle voxelization seeds `jfa.seed`, the
 narrow band and propagation (`jfa`, `sweep`, `exact`) give unsigned distances in
 voxels of any box made of a grid's first voxels (`box_distance`, also the clipmap's
-scissor volumes), and `jaxvox.solid` gives the sign.
+scissor volumes), and `jaxvox.distance.solid` gives the sign.
 
 Memory: a dense field costs 4 R^3 bytes; the build needs more for temporaries, see
 `distance_field_bytes`. `distance_field` refuses sizes above ``max_bytes``.
@@ -19,14 +19,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32
 
-from jaxvox._checks import check_choice, check_int, check_type
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_choice, check_int, check_type
+from jaxvox._core.shapes import bucket
 from jaxvox.distance.exact import mesh_distance, voxel_centres
 from jaxvox.distance.jfa import jfa_offsets, jfa_steps, jump_flood, seed
-from jaxvox.distance.sweep import fast_sweep
-from jaxvox.grid import Grid, check_resolution
-from jaxvox.mesh import Mesh, validate_mesh
-from jaxvox.solid import (
+from jaxvox.distance.solid import (
     SIGN_BYTES_PER_VOXEL,
     SIGN_METHODS,
     check_bytes,
@@ -35,6 +32,9 @@ from jaxvox.solid import (
     sign_method,
     solid_inside,
 )
+from jaxvox.distance.sweep import fast_sweep
+from jaxvox.grid import Grid, check_resolution
+from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, voxelize
 
 METHODS = ("exact", "jfa", "jfa-separable", "sweep", "jfa+sweep", "band")

@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_number, check_type, is_concrete, refuse
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import check_choice, check_number, check_type, is_concrete, refuse
+from jaxvox._core.pytree import pytree_dataclass
 from jaxvox.grid import Grid
 
 FORMATS = ("float16", "fixed16")

@@ -6,8 +6,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxvox._checks import check_type, refuse
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_type, refuse
+from jaxvox._core.shapes import bucket
 from jaxvox.mesh import Mesh, pad_mesh, sample_texture, validate_mesh
 from jaxvox.voxelize import Voxels
 

@@ -1,7 +1,7 @@
 """Bottom-up builds of octrees and DAGs (see `jaxvox.octree`): the jittable build with
 static capacities (one segment pass per level from Morton-sorted voxels, DAG
 deduplication by a lexicographic sort of child rows), the host-side checks and counting
-pass (`_checked_codes`, `_level_sizes`) and capacity schedule (`_schedule`), and the
+pass (`_checked_codes`, `level_sizes`) and capacity schedule (`_schedule`), and the
 public `build_octree`, `build_dag`, `octree_capacities` and `check_level_capacities`.
 Without capacities the build runs in numpy (`jaxvox.octree.host`), table for table the
 same, and compiles nothing."""
@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._shapes import bucket, key_bits
+from jaxvox._core.checks import check_int, check_type, refuse
+from jaxvox._core.shapes import bucket, key_bits
 from jaxvox.octree.host import tree_from_levels, voxel_levels
 from jaxvox.octree.tree import EMPTY, OVERFLOW_NODES, SLOTS, Octree, child_slot, popcount8
 from jaxvox.overflow import check_overflow, raise_if_overflow
@@ -274,9 +274,10 @@ def _checked_codes(caller: str, vox: Voxels) -> np.ndarray:
     return codes
 
 
-def _level_sizes(codes: np.ndarray, depth: int) -> np.ndarray:
+def level_sizes(codes: np.ndarray, depth: int) -> np.ndarray:
     """Host int64 [D] octree nodes per level, root first, of voxels with increasing Morton
-    codes [V] uint64: level ``l`` holds the distinct ``code >> 3 (D - l)``."""
+    codes [V] uint64: level ``l`` holds the distinct ``code >> 3 (D - l)``. Shared by
+    `octree_capacities` and `jaxvox.batch.batch_capacities`."""
     # Consecutive voxels first differ at the highest set bit p of their codes' XOR; they
     # sit in different nodes of level l exactly when l >= D - p // 3.
     first_level = depth - (_bit_length(codes[1:] ^ codes[:-1]) - 1) // 3
@@ -323,7 +324,7 @@ def octree_capacities(vox: Voxels) -> tuple[int, ...]:
     """
     check_type("octree_capacities vox", vox, Voxels)
     depth = vox.grid.resolution.bit_length() - 1
-    return _schedule(_level_sizes(_checked_codes("octree_capacities", vox), depth))
+    return _schedule(level_sizes(_checked_codes("octree_capacities", vox), depth))
 
 
 def build_octree(vox: Voxels, *, capacities: tuple[int, ...] | None = None, checked: bool = False) -> Octree:

@@ -17,7 +17,7 @@ folded into its parents). A node above level ``D - 1`` at word offset ``o`` with
 The root is at offset 0; ``root`` holds it (or, for a depth-1 tree, the root's mask).
 Child ``s`` of a node is present when bit ``s`` of its mask is set, and is its
 ``popcount(m & ((1 << s) - 1))``-th child. ``words`` is padded with zeros to the shape
-ladder (`jaxvox._shapes.bucket`), so trees of similar size share compiled consumers.
+ladder (`jaxvox._core.shapes.bucket`), so trees of similar size share compiled consumers.
 Without prefix sums the layout is smaller but cannot address attributes: `voxel_index`
 refuses it and `trace` leaves ``Hit.index`` at -1 (`MISSING`).
 """
@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Int32, UInt32
 
-from jaxvox._checks import check_type
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_type
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree.tree import EMPTY, Octree, child_slot, stored_sizes
 

@@ -2,9 +2,9 @@
 without capacities, and of `mesh_to_dag` (`jaxvox.octree.stream`).
 
 The jittable build (`jaxvox.octree.build`) needs static capacities, so every new size
-of tree compiles it again (the bunny's DAG: 4.9 s at 256^3, 7.1 s at 1024^3 on this CPU). The host path knows its
+of tree compiles it again. The host path knows its
 sizes, so it runs the same algorithm in numpy, which compiles nothing and whose sorts
-are about 4x faster than XLA's here: Morton-sorted codes are grouped by parent one
+are faster than XLA's on the CPU: Morton-sorted codes are grouped by parent one
 level at a time, bottom-up; a DAG keeps the sorted distinct masks of level D - 1 and the
 lexicographically sorted distinct child rows (`EMPTY` last) above it, exactly the
 canonical order of `jaxvox.octree.build._build`, table for table (checked in the tests).

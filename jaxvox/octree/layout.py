@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_type
+from jaxvox._core.checks import check_type
 from jaxvox.octree.tree import EMPTY, Octree, padded_sizes, stored_sizes
 
 

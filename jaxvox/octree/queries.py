@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Int32, Integer
 
-from jaxvox._checks import check_int, check_type, is_concrete, refuse
-from jaxvox._shapes import expand_counts, voxel_bucket
+from jaxvox._core.checks import check_int, check_type, is_concrete, refuse
+from jaxvox._core.shapes import expand_counts, voxel_bucket
 from jaxvox.octree.compact_dag import CompactDag, compact_voxel_index
 from jaxvox.octree.layout import padded
 from jaxvox.octree.tree import EMPTY, MAX_INDEXED, MISSING, SLOTS, Octree, child_slot, popcount8

@@ -37,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_choice, check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket, voxel_bucket
+from jaxvox._core.checks import check_choice, check_int, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.shapes import bucket, voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.octree.attributes import voxel_attributes

@@ -12,8 +12,8 @@ import numpy as np
 from jaxtyping import Array, Int32, UInt8, UInt32
 
 from jaxvox import morton
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import row_bucket
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import row_bucket
 from jaxvox.grid import Grid
 from jaxvox.overflow import Overflow
 
@@ -36,7 +36,7 @@ class Octree:
     exactly its nodes (the root row always exists) except the last two, which take the
     padding rows that bring `child`/`prefix` and `mask` to power-of-two lengths (at most
     twice their rows, four times for the one-byte masks, or the resolution's floor of
-    R^2 rows up to 1024^3, at most 2^18: `jaxvox._shapes.row_bucket`). Trees of similar size so share
+    R^2 rows up to 1024^3, at most 2^18: `jaxvox._core.shapes.row_bucket`). Trees of similar size so share
     compiled consumers (`trace`, `render`, `voxel_index`, `expand`); `compact` drops the
     padding. Only the table lengths, the resolution, `dag` and `mode` are part of a
     compiled program's key: `level_capacity` is an array, and `dag` and `mode` are

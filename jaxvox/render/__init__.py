@@ -21,11 +21,11 @@ One module per concern:
   `box_emission`).
 """
 
-from jaxvox.image import save_render
 from jaxvox.render.environment import Environment, load_environment, sky_environment, uniform_environment
 from jaxvox.render.integrator import RenderResult, render
 from jaxvox.render.materials import box_emission, voxel_albedo
 from jaxvox.render.mesh_reference import render_mesh
+from jaxvox.render.output import save_render
 
 __all__ = [
     "Environment",

@@ -24,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_number, check_vector, refuse
-from jaxvox._pytree import pytree_dataclass
-from jaxvox.image import read_exr, read_hdr
+from jaxvox._core.checks import check_number, check_vector, refuse
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox.io.images import read_exr, read_hdr
 from jaxvox.render.materials import check_rgb
 
 _SUN_COS = math.cos(math.radians(0.53))  # default sun disc: 0.53 degrees in radius (2x the real sun)

@@ -55,27 +55,25 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32, Int32
 
-from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import check_int, check_type, refuse
+from jaxvox._core.devices import everywhere, on_all_devices, on_each_device
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.scan import on_marked
 from jaxvox.camera import check_view, pixel_directions
 from jaxvox.octree import CompactDag, Octree, occupied
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.materials import normal_table, rgb_table
-from jaxvox.trace import HIT, STEP_CAP, default_max_steps, trace, valid_rays
-from jaxvox.trace.api import jit_trace
-from jaxvox.trace.driver import everywhere, on_all_devices, on_each_device
-from jaxvox.trace.hit import on_marked
+from jaxvox.trace import HIT, STEP_CAP, default_max_steps, jit_trace, trace, valid_rays
 
 _OFFSET = 2.0**-6  # bounce origins sit this many voxel edges off the face they leave
 _CORNER_CHUNK = 4096  # hits on a voxel edge or corner checked per walk of `occupied` (see `_voxel_surface`)
 # Shadow rays from a voxel with a smooth shading normal start this many voxel edges
 # above the hit along it: from the face itself, a ray toward a light low over a smooth
-# surface meets the surface's own staircase of voxels (shadow acne). Bunny, 1024^3,
-# voxel normals: 36.5 dB PSNR from the face, 38.0 dB lifted 1.5 edges (2.5 edges:
-# 38.0 dB; along the light instead, 3 edges: 37.7 dB). `experiments/render_vs_mesh.py`.
-# With face normals the lift cost 1.2 dB (32.9 -> 31.6 dB): there the steps are the
-# surface and their shadows belong to it.
+# surface meets the surface's own staircase of voxels (shadow acne). The lift was
+# chosen against Embree's renders of the meshes (`experiments/render_vs_mesh.py`; the
+# figures are in docs/design-history.md). With face normals there is no lift: there the
+# steps are the surface and their shadows belong to it.
 SHADOW_LIFT = 1.5
 LIGHT_STREAM = 1 << 16  # random stream of the environment sample at vertex k: LIGHT_STREAM + k
 
@@ -201,8 +199,8 @@ def shadow_origins(tree: Octree | CompactDag, surf: Surface) -> jax.Array:
     smooth surface and their steps must not shadow it: the origin is `SHADOW_LIFT` voxel
     edges above the hit along the shading normal. In a crease that point can lie in an
     occupied voxel, and the shadow ray, starting inside, reports the sun hidden. (Falling
-    back to the hit point there instead moved PSNR by under 0.01 dB on the bunny and spot at
-    1024^3 and cost 3-5% of the render time for the lookup.) Shaded by its faces, the
+    back to the hit point there instead changed the images by little and cost a lookup
+    per shadow ray.) Shaded by its faces, the
     staircase is the surface and casts its own shadows: the origin is the hit point.
     """
     smooth = jnp.any(surf.shading != surf.normal, axis=-1, keepdims=True)

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_type, check_vector, refuse
-from jaxvox._shapes import pad_rows, voxel_bucket
-from jaxvox.image import srgb_to_linear
+from jaxvox._core.checks import check_type, check_vector, refuse
+from jaxvox._core.shapes import pad_rows, voxel_bucket
+from jaxvox.io.images import srgb_to_linear
 from jaxvox.voxelize import Voxels
 
 
@@ -99,9 +99,7 @@ def _on_ladder(a: np.ndarray, resolution: int | None) -> np.ndarray:
     many (the attribute memmaps of `mesh_to_dag`, whose files are written to that length
     with zero rows), the buffer's rows are taken as they are; else zero rows are appended
     in a copy. Rows past `a`'s are never read (voxel indices stay below n). Placed on a CPU
-    device (on all of them at once, see `render`), such a host table is not copied: a
-    57 M-row table went on two devices in under 0.01 s, against 2.6-2.7 s padded, checked
-    and copied to each."""
+    device (on all of them at once, see `render`), such a host table is not copied."""
     if resolution is None:
         return a
     rows = voxel_bucket(a.shape[0], resolution)

@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox.image import srgb_to_linear
+from jaxvox._core.checks import check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox.io.images import srgb_to_linear
 from jaxvox.mesh import sample_texture, validate_mesh
 from jaxvox.render.environment import Environment, sky_environment
 from jaxvox.render.integrator import (

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import is_concrete, refuse
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import is_concrete, refuse
+from jaxvox._core.pytree import pytree_dataclass
 
 _MAX_PARAM = 1e18  # largest scene parameter magnitude: its square stays finite in float32
 

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import is_concrete, refuse
-from jaxvox._geometry import safe_norm
+from jaxvox._core.checks import is_concrete, refuse
+from jaxvox._core.geometry import safe_norm
 from jaxvox.sdf.base import SDF, check_scene, node, param
 
 _ROTATION_TOLERANCE = 1e-4  # max |R^T R - I| and |det R - 1| accepted by `rotate`

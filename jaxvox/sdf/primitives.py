@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import is_concrete, refuse
-from jaxvox._geometry import safe_norm
+from jaxvox._core.checks import is_concrete, refuse
+from jaxvox._core.geometry import safe_norm
 from jaxvox.sdf.base import SDF, node, param
 
 

@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_number, check_type, is_concrete, refuse
-from jaxvox._geometry import safe_norm
+from jaxvox._core.checks import check_choice, check_number, check_type, is_concrete, refuse
+from jaxvox._core.geometry import safe_norm
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
 from jaxvox.sdf.base import SDF, check_scene

@@ -29,7 +29,7 @@ grid face). Rays must start outside the surface or inside the band; see
 surface can cross). Sphere tracing is provably safe with ``relaxation=1 / sqrt(3)``; near
 a smooth surface the gradient norm is 1 up to O(h / radius) and it exceeds 1 only near
 sharp features (measured up to 1.38), so full steps lose no hits in practice (measured in
-`jaxvox.field_trace`, whose `sphere_trace_field` defaults to 1).
+`jaxvox.sphere_tracing.field`, whose `sphere_trace_field` defaults to 1).
 
 **Meshing.** `to_mesh` of the node also meshes a spurious surface 2.5-6 voxels inside
 the real one, where the clamp jumps from ``-band * h`` to ``+band * h`` at the inner edge
@@ -40,9 +40,9 @@ from __future__ import annotations
 
 import math
 
-from jaxvox._checks import check_type
+from jaxvox._core.checks import check_type
+from jaxvox.distance.sparse import SparseField, sample
 from jaxvox.sdf.base import SDF, node
-from jaxvox.sparse_field import SparseField, sample
 
 LIPSCHITZ = math.sqrt(3.0)  # Lipschitz bound of a sampled field with band >= 2
 LIPSCHITZ_THIN_BAND = 2.0 * math.sqrt(3.0)  # ... with band 0 or 1 (clamps may take the wrong sign)

@@ -39,8 +39,9 @@ Rays that miss the grid box never enter the queue. ``lanes=None`` gives the plai
 vmapped loop (one lane per ray).
 """
 
-from jaxvox.trace.api import TRACE_METHODS, trace, trace_dense
-from jaxvox.trace.hit import HIT, INVALID, MISS, STEP_CAP, Hit, default_max_steps, valid_rays
+from jaxvox._core.hit import HIT, INVALID, MISS, STEP_CAP, Hit, valid_rays
+from jaxvox.trace.api import TRACE_METHODS, jit_trace, trace, trace_dense
+from jaxvox.trace.ray import default_max_steps
 
 __all__ = [
     "HIT",
@@ -50,6 +51,7 @@ __all__ = [
     "STEP_CAP",
     "TRACE_METHODS",
     "default_max_steps",
+    "jit_trace",
     "trace",
     "trace_dense",
     "valid_rays",

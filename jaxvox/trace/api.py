@@ -10,15 +10,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Real, Shaped
 
-from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_choice, check_int, check_type, is_concrete, refuse
+from jaxvox._core.hit import HIT, Hit
+from jaxvox._core.scan import on_marked
+from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
 from jaxvox.octree.queries import check_indexed
 from jaxvox.trace.beam import beam_layout
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
-from jaxvox.trace.hit import HIT, Hit, default_max_steps, on_marked
+from jaxvox.trace.ray import default_max_steps
 
 TRACE_METHODS = ("esvo", "stack")  # `trace` methods
 
@@ -164,10 +166,8 @@ def trace(
         groups are 8 x 8 tiles of the last two batch axes (so an image's rays, [H, W, 3],
         form coherent groups) or runs of 64 rays of a one-axis batch. Hits are the same
         with and without it; incoherent groups simply gain nothing. Off by default: it
-        adds 0.4-0.5 s to a first compile and its program is keyed by the batch shape
-        (a new image size compiles, even with a ray count in a familiar bucket). On a
-        1080p frame at 1024^3 on two CPU devices it gained 3-51% (bunny 10.63 against
-        7.04 Mrays/s, spot 11.70 against 9.10; docs/ray-traversal.md).
+        adds a program to a first compile and that program is keyed by the batch shape
+        (a new image size compiles, even with a ray count in a familiar bucket).
 
     Returns:
       A `Hit` with the batch shape of the rays. With ``beam=True`` on concrete rays and

@@ -8,9 +8,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.pytree import pytree_dataclass
 from jaxvox.grid import Grid
-from jaxvox.trace.hit import RUNNING
 from jaxvox.trace.ray import Ray, argmin3, first_cell, max3, min3, pick, step_status, times, vec
 
 

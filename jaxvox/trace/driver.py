@@ -11,14 +11,14 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from jaxvox._scan import cumsum
+from jaxvox._core.devices import on_each_device
+from jaxvox._core.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
+from jaxvox._core.scan import compact_indices
 from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
-from jaxvox.trace.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
-from jaxvox.trace.ray import Ray, argmax3, materialize, max3, opaque, setup_ray
+from jaxvox.trace.ray import Ray, argmax3, barrier_token, fusion_barrier, max3, setup_ray
 from jaxvox.trace.stack import stacked_init, stacked_step, stacked_voxel
 
 _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
@@ -53,11 +53,7 @@ def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int
     init, step, voxel = _METHODS[method]
     n = status.shape[0]
     running = status == RUNNING
-    queue = (
-        jnp.zeros(n + 1, jnp.int32)
-        .at[jnp.where(running, cumsum(running) - 1, n)]
-        .set(jnp.arange(n, dtype=jnp.int32))[:n]
-    )
+    queue = compact_indices(running, n)  # the rays that enter the grid box, in order
     queued = jnp.sum(running)
     lane_init = jax.vmap(lambda ray, st: init(structure, ray, st))
     lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
@@ -132,7 +128,7 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     res = structure.grid.resolution
     # per axis, each axis read out of the [N, 3] rows once (XLA's fusions would read the
     # strided columns in each of their many consumers)
-    o, d = materialize(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), opaque(structure))
+    o, d = fusion_barrier(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), barrier_token(structure))
     rays, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
     if layout is not None and o[0].shape[0] > 0:
         t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
@@ -146,7 +142,7 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
     t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
     t_in = max3(t0)
     # computed once: the [N, 3] results below would recompute them for each of their columns
-    t_in, entry = materialize((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), opaque(structure))
+    t_in, entry = fusion_barrier((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), barrier_token(structure))
     axes = jnp.arange(3, dtype=jnp.int32)
     flip = ((rays.flip[:, None] >> axes) & 1) == 1  # [N, 3]
     return Hit(
@@ -156,41 +152,6 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
         index=jnp.zeros_like(status),
         status=status,
     )
-
-
-def on_each_device(fn, shared, *arrays):
-    """``fn(shared, *arrays)`` with each JAX device running it on its own equal slice of
-    the arrays' leading axis (a multiple of the device count) and all of `shared` (a
-    pytree); the outputs' slices are joined along their leading axis."""
-    split = jax.sharding.PartitionSpec("rays")
-    specs = (jax.sharding.PartitionSpec(),) + (split,) * len(arrays)
-    return jax.shard_map(fn, mesh=_mesh(), in_specs=specs, out_specs=split, check_vma=False)(shared, *arrays)
-
-
-def everywhere() -> jax.sharding.NamedSharding:
-    """The sharding that replicates an array on every JAX device: what `on_each_device`'s
-    callers give the values they carry from call to call, so that every call sees the
-    same shardings and compiles once."""
-    return jax.sharding.NamedSharding(_mesh(), jax.sharding.PartitionSpec())
-
-
-def on_all_devices(values):
-    """`values` (a pytree of arrays that are only read) placed with `everywhere()`. On CPU
-    the devices share the host's memory, so an array on one CPU device, or a page-aligned
-    host array (the attribute memmaps of `mesh_to_dag`), is aliased by every device
-    instead of copied (a 458 MiB table on one device: 0.6 ms, against 0.1-1.1 s copied to
-    a second device); other host arrays and other platforms are copied."""
-
-    def shared(x):
-        if isinstance(x, jax.Array) and len(x.devices()) == 1 and next(iter(x.devices())).platform == "cpu":
-            return np.asarray(x)  # a read-only view of the device's buffer
-        return x
-
-    return jax.device_put(jax.tree.map(shared, values), everywhere(), may_alias=True)
-
-
-def _mesh():
-    return jax.sharding.Mesh(np.array(jax.devices()), ("rays",))
 
 
 def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=None, index=None):

@@ -12,18 +12,18 @@ from jaxvox.octree import Octree
 from jaxvox.trace.ray import (
     Ray,
     argmin3,
+    barrier_token,
     child_row,
     first_cell,
+    fusion_barrier,
     mask_bit,
-    materialize,
     max3,
     min3,
-    opaque,
     pick,
     root_row,
-    settle,
     slot_bits,
     stack_set,
+    state_after_step,
     step_status,
     times,
     vec,
@@ -52,7 +52,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     t1 = times(ray, vec(lambda c: c + size, s.corner))
     t_in, t_out = max3(t0), min3(t1)
     slot = slot_bits(s.corner, shift) ^ ray.flip
-    t_in, axis, t_out, slot = materialize((t_in, argmin3(t1), t_out, slot), opaque(tree))
+    t_in, axis, t_out, slot = fusion_barrier((t_in, argmin3(t1), t_out, slot), barrier_token(tree))
     live = mask_bit(tree, s.parent, slot, s.level - 1) & (t_out > 0) & (t_in < t_out)
     push = live & (s.level < depth)
     before = pick(s.corner, axis)
@@ -60,8 +60,8 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
     row = child_row(tree, s.parent, slot)
     high = 31 - jax.lax.clz(before ^ (before + size))  # after ADVANCE the cell has size 2^high
     parent = jnp.where(push, row, pick(s.stack, depth - high - 1))  # POP: the stack's node of level depth - high - 1
-    t_in, axis, push, status, row, high, parent = materialize(
-        (t_in, axis, push, status, row, high, parent), opaque(tree)
+    t_in, axis, push, status, row, high, parent = fusion_barrier(
+        (t_in, axis, push, status, row, high, parent), barrier_token(tree)
     )
     # PUSH: the cell is an occupied node; enter its child the ray is in at entry (or at
     # t_start, when the ray starts inside the cell).
@@ -76,7 +76,7 @@ def esvo_step(tree: Octree, ray: Ray, s: _Esvo) -> _Esvo:
         stack=stack_set(s.stack, s.level, row, push),
         status=status,
     )
-    return settle(s, stepped, status, held=("corner",))
+    return state_after_step(s, stepped, status, held=("corner",))
 
 
 def esvo_voxel(tree: Octree, s: _Esvo):

@@ -9,9 +9,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxvox._core.hit import HIT, INVALID, MISS, RUNNING
 from jaxvox.octree import Octree
 from jaxvox.octree.compact_dag import CompactDag, compact_child, compact_mask_bit
-from jaxvox.trace.hit import HIT, INVALID, MISS, RUNNING
 
 _TINY = 2.0**-100  # stands in for a zero direction component (its slab times become huge)
 
@@ -121,15 +121,15 @@ def stack_set(stack, level, value, when):
     return tuple(jnp.where(when & (level == k), value, s) for k, s in enumerate(stack))
 
 
-def opaque(tree) -> jax.Array:
-    """A [] int32 0 or 1 that XLA cannot fold: the token of `materialize`. `tree` is an
+def barrier_token(tree) -> jax.Array:
+    """A [] int32 0 or 1 that XLA cannot fold: the token of `fusion_barrier`. `tree` is an
     `Octree`, a `CompactDag` or a dense grid (its first cell's occupancy)."""
     if hasattr(tree, "voxel_count"):
         return (tree.voxel_count == 0).astype(jnp.int32)
     return (tree.occupancy[:1].astype(jnp.int32).sum() > 1).astype(jnp.int32)  # a dense grid: 0
 
 
-def materialize(values, token):
+def fusion_barrier(values, token):
     """`values` (a pytree of int32/float32/bool arrays) computed once and stored, not
     recomputed by every consumer.
 
@@ -157,7 +157,7 @@ def select(keep, new, old):
     return jax.tree.map(lambda a, b: jnp.where(keep, a, b), new, old)
 
 
-def settle(s, stepped, status, held):
+def state_after_step(s, stepped, status, held):
     """The state after a step: `stepped` while the ray runs on; a ray that ended, in this
     step (`status`) or before (``s.status``, e.g. `STEP_CAP` set by the driver), keeps
     its first status and the fields named in `held` (those its voxel is read from). Its
@@ -170,3 +170,9 @@ def settle(s, stepped, status, held):
 
 def step_status(miss, hit):
     return jnp.where(miss, MISS, jnp.where(hit, HIT, RUNNING)).astype(jnp.int32)
+
+
+def default_max_steps(tree: Octree | CompactDag) -> int:
+    """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
+    ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
+    return 6 * tree.grid.resolution + 16 * tree.depth

@@ -19,9 +19,9 @@ from jaxvox.trace.ray import (
     min3,
     pick,
     root_row,
-    settle,
     slot_bits,
     stack_set,
+    state_after_step,
     step_status,
     times,
     vec,
@@ -80,7 +80,7 @@ def stacked_step(tree: Octree, ray: Ray, s: _Stacked) -> _Stacked:
         stack_child=stack_set(s.stack_child, s.level, next_child, descend),
         status=status,
     )
-    return settle(s, stepped, status, held=("corner", "child"))
+    return state_after_step(s, stepped, status, held=("corner", "child"))
 
 
 def stacked_voxel(tree: Octree, s: _Stacked):

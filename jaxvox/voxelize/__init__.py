@@ -30,8 +30,9 @@ add voxels that lie within that tolerance of the exact decision boundary, never 
 # The subpackage and its function share the name `voxelize`: `jaxvox/__init__.py` imports
 # the function, so after ``import jaxvox`` the attribute `jaxvox.voxelize` is the function
 # and ``sys.modules["jaxvox.voxelize"]`` is this package.
+from jaxvox.voxelize.fixed import voxelize_fixed
 from jaxvox.voxelize.host import voxel_capacities, voxelize
-from jaxvox.voxelize.pipeline import voxelize_fixed
+from jaxvox.voxelize.surface import voxels_to_mesh
 from jaxvox.voxelize.voxels import (
     CONSERVATIVE,
     MODES,
@@ -71,4 +72,5 @@ __all__ = [
     "voxel_capacities",
     "voxelize",
     "voxelize_fixed",
+    "voxels_to_mesh",
 ]

@@ -4,8 +4,6 @@ into page buffers, region by region, and `voxel_capacities` sizes `voxelize_fixe
 from __future__ import annotations
 
 import functools
-import mmap
-import sys
 from collections.abc import Iterator
 
 import jax
@@ -13,9 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._checks import check_choice, check_int, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket, voxel_bucket
+from jaxvox._core.buffers import aligned_empty, join_rows, progress_off
+from jaxvox._core.checks import check_choice, check_int, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.shapes import bucket, voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, validate_mesh
 from jaxvox.voxelize.triangles import expand_candidates, expand_columns, expand_rows, setup_triangles
@@ -132,10 +131,10 @@ def _sort_region(pages, with_ids: bool):
     """Sorts and deduplicates a region's candidates on the host.
 
     numpy's sort compiles nothing, so regions of any size share the device programs, and
-    on the CPU it is about 4x faster than XLA's (1M uint32 keys: 14 ms against 47 ms).
+    on the CPU it is faster than XLA's sort.
     With ids the candidates sort by (key, distance bits, triangle id), so the first of a
     key is the closest triangle, ties to the lower id, as in
-    `jaxvox.voxelize.pipeline.sort_unique`.
+    `jaxvox.voxelize.fixed.sort_unique`.
 
     Args:
       pages: the region's pages, each (keys,) or (keys, distance bits, triangle ids) of
@@ -299,8 +298,9 @@ def region_voxels(
     progress: bool | None,
     share: tuple[int, int] = (0, 1),
 ) -> Iterator[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]]:
-    """`voxelize`'s regions one at a time, for consumers that keep only a summary of each
-    (`jaxvox.octree.stream`); the caller has checked the mesh, grid and region size.
+    """The region loop: `voxelize`'s regions one at a time, for `voxelize` itself and for
+    consumers that keep only a summary of each (`jaxvox.octree.stream`); the caller has
+    checked the mesh, grid and region size.
     ``share=(k, n)`` takes only every n-th region from the k-th on (one of n processes).
 
     Yields:
@@ -319,71 +319,9 @@ def region_voxels(
         yield (position, region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
 
 
-def progress_off(progress: bool | None, regions: int) -> bool:
-    """Whether the progress bar over `regions` regions is off (`progress` None: on for several)."""
-    return regions < 2 if progress is None else not progress
-
-
-def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """An uninitialized host array in its own anonymous memory map: page-aligned, so
-    `jax.device_put` (``may_alias=True``) on the CPU uses the buffer itself instead of
-    copying it (0.02 s against 1.5 s for 805 MB: numpy's own buffers are 16-byte
-    aligned), and advised to use transparent huge pages, which makes the first write of
-    each page cheaper (decoding 55 M voxels into fresh memory: 1.0 s against 2.8 s)."""
-    size = _nbytes(shape, dtype)
-    if size == 0:
-        return np.empty(shape, dtype)
-    buffer = mmap.mmap(-1, size)
-    if hasattr(mmap, "MADV_HUGEPAGE"):  # Linux
-        buffer.madvise(mmap.MADV_HUGEPAGE)
-    return np.frombuffer(buffer, dtype).reshape(shape)
-
-
-# Linux's value where Python does not name it (before 3.13); elsewhere a plain private map.
-MAP_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000 if sys.platform.startswith("linux") else 0)
-
-
-def reserved_empty(shape: tuple[int, ...], dtype) -> np.ndarray | None:
-    """Like `aligned_empty`, but address space only (a private map that reserves no
-    memory): a page costs memory once written, so `shape` may be a generous bound, e.g.
-    every voxel of the grid, for rows whose count is found as they are written. None
-    where the system refuses the map (strict overcommit, a small address space)."""
-    try:
-        buffer = mmap.mmap(-1, max(_nbytes(shape, dtype), 1), flags=mmap.MAP_PRIVATE | MAP_NORESERVE)
-    except (OSError, OverflowError, ValueError, AttributeError):  # (AttributeError: no MAP_PRIVATE on Windows)
-        return None
-    return np.frombuffer(buffer, dtype, count=int(np.prod(shape, dtype=np.int64))).reshape(shape)
-
-
-def _nbytes(shape: tuple[int, ...], dtype) -> int:
-    """Bytes of an array of `shape` and `dtype` (int64 arithmetic)."""
-    return int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
-
-
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
     """Moves int32 host arrays into one buffer of `shape` padded with `UNUSED` (see `join_rows`)."""
     return join_rows(parts, shape, UNUSED, dtype=np.int32)
-
-
-def join_rows(parts: list[np.ndarray], shape: tuple[int, ...] | None = None, fill=0, dtype=None) -> np.ndarray:
-    """Concatenates host arrays along their first axis into one buffer of `shape` (default:
-    just their rows) of `dtype` (default the parts'), the rows past them set to `fill`.
-
-    Empties `parts` as it goes, and the buffer's pages are only touched as they are
-    filled, so the parts and the whole buffer are never held at once. The buffer is
-    aligned for `jax.device_put` without a copy (`aligned_empty`).
-    """
-    if shape is None:
-        shape = (sum(len(p) for p in parts),) + parts[0].shape[1:]
-    out = aligned_empty(shape, dtype or (parts[0].dtype if parts else np.int32))
-    start = 0
-    parts.reverse()
-    while parts:
-        part = parts.pop()
-        out[start : start + len(part)] = part
-        start += len(part)
-    out[start:] = fill
-    return out
 
 
 def voxelize(
@@ -431,16 +369,14 @@ def voxelize(
     if region_size & (region_size - 1):
         raise refuse("voxelize region_size", f"must be a power of two <= {REGION_SIZE}", region_size)
     region_size = min(region_size, grid.resolution)
-    tris = _grid_triangles(mesh, grid)
-    regions = _regions(tris, grid.resolution, region_size) if mesh.num_faces else []
-    from tqdm.auto import tqdm
-
-    parts, tri_parts = [], []
-    disable = progress_off(progress, len(regions))
-    for region_lo, idx in tqdm(regions, desc="regions", disable=disable, leave=False):
-        keys, triangle = _voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+    parts: list[tuple[np.ndarray, np.ndarray]] = []
+    tri_parts: list[np.ndarray] = []
+    walk = region_voxels(
+        mesh, grid, six_sep=six_sep, region_size=region_size, triangle_ids=triangle_ids, progress=progress
+    )
+    for _, region_lo, keys, triangle in walk:
         parts.append((region_lo, keys))  # on the host as we go: device memory holds one region
-        if triangle_ids:
+        if triangle is not None:  # with triangle_ids
             tri_parts.append(triangle)
     total = sum(len(k) for _, k in parts)
     if total > 2**31 - 1:  # `Voxels.count` is int32

@@ -9,8 +9,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxvox import morton
-from jaxvox._geometry import point_triangle_dist2
-from jaxvox._shapes import expand_counts
+from jaxvox._core.geometry import point_triangle_dist2
+from jaxvox._core.shapes import expand_counts
 
 _TOL = 2.0**-19  # relative half-plane widening, see the docstring of `jaxvox.voxelize`
 _BIG = float(1 << 30)  # clamp for interval bounds before integer conversion

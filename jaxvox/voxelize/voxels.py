@@ -12,9 +12,9 @@ import numpy as np
 from jaxtyping import Array, Int32
 
 from jaxvox import morton
-from jaxvox._checks import check_choice, check_int, check_type, refuse
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import voxel_bucket
+from jaxvox._core.checks import check_choice, check_int, check_type, refuse
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import voxel_bucket
 from jaxvox.grid import Grid
 from jaxvox.overflow import Overflow, check_overflow
 

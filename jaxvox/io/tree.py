@@ -39,10 +39,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_output_path, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._files import read_bytes
+from jaxvox._core.checks import check_output_path, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
 from jaxvox.grid import Grid, check_resolution
+from jaxvox.io.files import read_bytes
 from jaxvox.octree import EMPTY, Octree, compact, padded, stored_sizes
 from jaxvox.overflow import check_overflow
 from jaxvox.voxelize import SET_MODES

@@ -16,7 +16,7 @@ import os
 import jax
 import numpy as np
 
-from jaxvox._errors import JaxvoxError
+from jaxvox._core.errors import JaxvoxError
 
 
 def is_concrete(x) -> bool:

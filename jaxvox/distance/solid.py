@@ -31,16 +31,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
 
-from jaxvox._checks import check_choice, check_number, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._shapes import bucket, expand_counts, voxel_bucket
+from jaxvox._core.buffers import join_rows
+from jaxvox._core.checks import check_choice, check_number, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.shapes import bucket, expand_counts, voxel_bucket
+from jaxvox.distance.sparse import band_regions
+from jaxvox.distance.topology import welded_faces
+from jaxvox.distance.winding import box_winding_numbers
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, pad_mesh, validate_mesh
-from jaxvox.sparse_field import band_regions
-from jaxvox.topology import welded_faces
 from jaxvox.voxelize import REGION_SIZE, SOLID_BOUNDARY, UNUSED, Voxels
-from jaxvox.voxelize.host import join_rows
-from jaxvox.winding import box_winding_numbers
 
 SIGN_METHODS = ("auto", "parity", "winding")
 SIGN_BYTES_PER_VOXEL = 16  # peak working memory per voxel of a solid voxelization (bytes)

@@ -12,19 +12,17 @@ Method (no propagation, so no propagation error):
   grid-clipped box overlaps (one *item* per (triangle, tile)), orders the items by the
   Morton code of their tile, then by triangle, and deals each tile's triangles into work
   units of `SLOTS` (the counting pass). A jitted kernel of fixed shape evaluates every
-  cell of a unit's tile against each of its triangles (`jaxvox._geometry.rows_dist2`:
+  cell of a unit's tile against each of its triangles (`jaxvox._core.geometry.rows_dist2`:
   float32 grid units relative to the tile, from per-triangle rows computed once in
   float64, the first corner carried as a float32 pair so that no precision is lost far
   from the origin; no division per pair) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
-  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly: the bunny at
-  1024^3 evaluates its pairs in about 1.2 s, where scattering the 138 M pairs of the
-  triangles' boxes took 11.6 s. The host works in rounds of `GROUP_ITEMS` items, whose
-  arrays are small enough to reuse memory (first touches of fresh memory cost more here
-  than the arithmetic). Cells are numbered in Morton order within a
-  tile, so the band voxels come out in global Morton order, no merge needed; all shapes
+  ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly. The host
+  works in rounds of `GROUP_ITEMS` items, whose arrays are small enough to reuse memory
+  (first touches of fresh memory cost more here than the arithmetic). Cells are numbered
+  in Morton order within a tile, so the band voxels come out in global Morton order, no merge needed; all shapes
   are fixed, so a new mesh compiles nothing new.
-* **Sign** (`jaxvox.band_sign`): negative where the generalized winding number exceeds
+* **Sign** (`jaxvox.distance.band_sign`): negative where the generalized winding number exceeds
   1/2. Pseudo-normals of the closest feature for watertight meshes without crossing or
   irregular triangles; for every other mesh, the boundary is closed by caps (fans), the
   band voxels are joined into components by moves that provably cross neither mesh nor
@@ -40,9 +38,9 @@ one region, and the result is the `SparseField` itself (the bunny at 4096^3: a 6
 peak for a 5.1 GiB field), or one region's field at a time (`sparse_field_regions`).
 
 Precision: the tile kernel's float32 error grows with the closest triangle's size (up to
-about `jaxvox.band_sign.F32_ERROR` per grid unit of its longest edge); voxels of
-triangles longer than `jaxvox.band_sign.REFINE_EDGE` get float64 distances
-(`jaxvox.band_sign.exact_closest`), so every value stays within 1e-4 voxel.
+about `jaxvox.distance.band_sign.F32_ERROR` per grid unit of its longest edge); voxels of
+triangles longer than `jaxvox.distance.band_sign.REFINE_EDGE` get float64 distances
+(`jaxvox.distance.band_sign.exact_closest`), so every value stays within 1e-4 voxel.
 """
 
 from __future__ import annotations
@@ -59,17 +57,17 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Float32
 
 from jaxvox import morton
-from jaxvox._checks import check_int, check_type, refuse
-from jaxvox._geometry import rows_dist2, triangle_rows
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket, chunk_rows, pad_rows
-from jaxvox.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
+from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, reserved_empty
+from jaxvox._core.checks import check_int, check_type, refuse
+from jaxvox._core.geometry import rows_dist2, triangle_rows
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
+from jaxvox.distance.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, voxel_index
 from jaxvox.octree.stream import check_count, check_region, finish_dag, merge_all, push_region
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
-from jaxvox.voxelize.host import aligned_empty, join_rows, progress_off, reserved_empty
 
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 4  # triangles per work unit (a tile overlapped by more takes several); 4 pads less than 8
@@ -136,8 +134,8 @@ def _tile_units(rows, ids, origin):
       order within the tile.
     """
     # Cells along the minor axis ([U, TILE^3]): XLA's CPU loops then vectorize over the
-    # cells of a unit, with the unit's triangle row a scalar (3x faster than [TILE^3, U]:
-    # 7.2 against 22.4 ms per call of 8192 units, 2026-12-04). The slots are unrolled.
+    # cells of a unit, with the unit's triangle row a scalar (faster than [TILE^3, U]).
+    # The slots are unrolled.
     o = [origin[k].astype(jnp.float32)[:, None] for k in range(3)]
     p = [jnp.asarray(_LOCAL[:, k] + 0.5, jnp.float32)[None, :] for k in range(3)]
     slot_rows = [row[ids] for row in rows]  # 28 x [S, U]
@@ -423,7 +421,7 @@ def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
 def _field_rows(resolution: int, size: int) -> tuple | None:
     """Buffers for a whole field's rows (ijk int32 [m, 3], values float32 [m], triangles
     int32 [m]) written region after region (`band_regions`' ``out``), so that they become
-    the field's own without a join (4096^3: 228 M rows, 8.4 s to join on 2026-12-03). m bounds both
+    the field's own without a join (a join of a large field's rows costs as much as a region's work). m bounds both
     the rows (every cell, in whole tiles, of the regions of edge `size` that cover the
     grid) and the field's capacity (`bucket` of R^3): address space only
     (`reserved_empty`). None where the system will not reserve it; the regions are then

@@ -30,7 +30,7 @@ def enable_compilation_cache(*, path: str | os.PathLike | None = None) -> str | 
     """
     import jax
 
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     folder = os.fspath(path) if path is not None else os.environ.get("JAXVOX_CACHE_DIR", DEFAULT_DIR)
     if not folder:

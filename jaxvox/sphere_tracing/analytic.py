@@ -11,7 +11,7 @@ is taken as a plain step (and ``omega = 1``) instead: a ray that leaves
 ``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
 
 Each ray steps a `NamedTuple` state with a step cap, the flattened batch at once; rays
-still running are gathered into smaller batches as the others end (`jaxvox._stages`:
+still running are gathered into smaller batches as the others end (`jaxvox._core.stages`:
 under `vmap` a `while_loop` stepped every ray until the slowest ended, 72-127 steps
 against a mean of 5-10 on the CSG scenes of `experiments/sdf_stability.py`). Rays that
 reach the cap report `STEP_CAP`, never a hit or a miss.
@@ -45,13 +45,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Real
 
-from jaxvox._checks import is_concrete
-from jaxvox._errors import JaxvoxError
-from jaxvox._geometry import safe_norm
-from jaxvox._stages import MIN_BATCH, run_in_stages
+from jaxvox._core.checks import is_concrete
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.geometry import safe_norm
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.stages import MIN_BATCH, run_in_stages
 from jaxvox.sdf import SDF
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
-from jaxvox.trace.hit import RUNNING
 
 
 class _State(NamedTuple):
@@ -105,16 +105,16 @@ def _ray_start(o, u, t_min, t_max, relaxation) -> _State:
     )
 
 
-def trace_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
+def march_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
     """Sphere traces one ray (origin o, unit direction u); returns the final `_State`."""
     step = _ray_step(scene, o, u, t_min, t_max, epsilon, max_steps)
     return jax.lax.while_loop(lambda s: s.status == RUNNING, step, _ray_start(o, u, t_min, t_max, relaxation))
 
 
-def trace_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min_batch: int = MIN_BATCH):
+def march_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min_batch: int = MIN_BATCH):
     """Sphere traces rays [n, 3] (unit directions) with scalar bounds; returns the final
     `_State` [n]. Rays still running are gathered into smaller batches as the others end
-    (`jaxvox._stages`): a vmapped `trace_ray` stepped every ray until the slowest ended.
+    (`jaxvox._core.stages`): a vmapped `march_ray` stepped every ray until the slowest ended.
     """
 
     def step(oo, uu, s: _State) -> _State:
@@ -289,7 +289,7 @@ def _sphere_trace(scene, origins, directions, t_min, t_max, epsilon, relaxation,
     batch = origins.shape[:-1]
     o, u = origins.reshape(-1, 3), unit_directions(directions.reshape(-1, 3))
     frozen = jax.lax.stop_gradient((scene, o, u))
-    final = trace_rays(*frozen, t_min, t_max, epsilon, relaxation, max_steps)
+    final = march_rays(*frozen, t_min, t_max, epsilon, relaxation, max_steps)
     on_surface = jnp.abs(final.d_prev) < epsilon * jnp.maximum(final.t, 1.0)
     t, extra = refine_hits(*frozen, final.t, final.d_prev, (final.status == HIT) & on_surface, t_min, t_max)
     hit = surface_hit(scene, o, u, t, final.status, on_surface)

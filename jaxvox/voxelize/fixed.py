@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxvox import morton
-from jaxvox._checks import check_choice, check_type
+from jaxvox._core.checks import check_choice, check_type
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
 from jaxvox.overflow import raise_if_overflow

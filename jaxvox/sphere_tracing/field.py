@@ -42,10 +42,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Float32, Real
 
-from jaxvox._checks import check_choice, check_int, check_type, is_concrete, refuse
+from jaxvox._core.checks import check_choice, check_int, check_type, is_concrete, refuse
+from jaxvox.distance.sparse import SparseField, checked_points, sample
 from jaxvox.sdf import sampled
-from jaxvox.sdf_octree import sphere_trace_octree
-from jaxvox.sparse_field import SparseField, checked_points, sample
+from jaxvox.sphere_tracing.octree import sphere_trace_octree
 from jaxvox.trace import TRACE_METHODS, Hit
 
 

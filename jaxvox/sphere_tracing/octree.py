@@ -18,7 +18,7 @@ traversal resumes where sphere tracing stopped. Empty space costs octree steps i
 of scene evaluations. One traversal of the whole batch first ends the rays that enter
 no leaf; the loop then runs in rounds (one traversal and a leaf march of at most `MARCH`
 evaluations per round), over the whole batch while more than 1/8 of it runs, then over
-the rays still running gathered into smaller batches (`jaxvox._stages.run_in_stages`).
+the rays still running gathered into smaller batches (`jaxvox._core.stages.run_in_stages`).
 """
 
 from __future__ import annotations
@@ -32,22 +32,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._checks import check_choice, check_int, check_number, check_type, refuse
-from jaxvox._shapes import bucket
-from jaxvox._stages import MIN_BATCH, run_in_stages
+from jaxvox._core.checks import check_choice, check_int, check_number, check_type, refuse
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.shapes import bucket
+from jaxvox._core.stages import MIN_BATCH, run_in_stages
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, lipschitz_bound
 from jaxvox.sdf.base import check_scene
-from jaxvox.sphere_tracing import (
+from jaxvox.sphere_tracing.analytic import (
     checked_rays,
+    march_ray,
     refine_hits,
     surface_hit,
-    trace_ray,
     unit_directions,
 )
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, TRACE_METHODS, trace
-from jaxvox.trace.hit import RUNNING
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
 # Child offsets in slot order (slot = x | y << 1 | z << 2, as in `jaxvox.octree`).
@@ -153,8 +153,7 @@ def _exit_distance(grid: Grid, voxel, o, u):
 # Scene evaluations per leaf and round: a ray still inside its leaf after them goes on
 # in the next round (its traversal finds the same leaf at once). A vmapped march waits
 # for its slowest lane, and near-tangent rays take tens of steps inside one leaf, so an
-# unbounded march made each round cost that many evaluations for every ray. csg scene
-# (26 primitives), 480x270: 1.07 s unbounded, 0.61-0.65 s with 1-4, 0.76 s with 8.
+# unbounded march made each round cost that many evaluations for every ray.
 MARCH = 4
 
 
@@ -163,7 +162,7 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
     n = o.shape[0]
     nudge = 1e-4 * tree.grid.voxel_size  # past a leaf's exit face, so the next round leaves it
     bad = jnp.any(jnp.isnan(o), -1) | jnp.any(jnp.isnan(u), -1) | jnp.all(u == 0, -1)
-    march = jax.vmap(lambda oo, uu, t0, t1, cap: trace_ray(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
+    march = jax.vmap(lambda oo, uu, t0, t1, cap: march_ray(scene, oo, uu, t0, t1, epsilon, relaxation, cap))
 
     def body(rays, s: _Round) -> _Round:
         o, u = rays
@@ -215,8 +214,7 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         status=jnp.where(running & ~entered, leaf.status, state.status).astype(jnp.int32),
     )
     # Grazing rays enter tens of leaves where most stop in one or two: the running rays
-    # are gathered into smaller batches (csg scene, 480x270: 0.96 s against 5.8 s;
-    # 0.63 s with MARCH).
+    # are gathered into smaller batches (`jaxvox._core.stages`).
     return run_in_stages(body, (o, u), state, idle=MISS, min_batch=min_batch)
 
 

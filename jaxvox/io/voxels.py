@@ -31,13 +31,13 @@ import os
 
 import numpy as np
 
-from jaxvox._checks import check_choice, check_output_path, check_type, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._files import read_bytes
+from jaxvox._core.checks import check_choice, check_output_path, check_type, refuse
+from jaxvox._core.errors import JaxvoxError
 from jaxvox.grid import MAX_RESOLUTION, Grid
-from jaxvox.mesh import file_format, save_mesh
-from jaxvox.voxel_surface import voxels_to_mesh
+from jaxvox.io.files import read_bytes
+from jaxvox.io.meshes import file_format, save_mesh
 from jaxvox.voxelize import CONSERVATIVE, SET_MODES, Voxels
+from jaxvox.voxelize.surface import voxels_to_mesh
 
 SAVE_FORMATS = (".binvox", ".npz", ".ply", ".obj")
 LOAD_FORMATS = (".binvox", ".npz")

@@ -3,8 +3,7 @@
 A loop over a batch of rays (sphere tracing, octree rounds) runs until its slowest ray
 ends, and every iteration costs the whole batch: under `jax.vmap` a `while_loop` steps
 every lane until the last one stops. Most rays end early and a few (grazing ones) take
-10-25x longer (72-127 steps against a mean of 5-10 on `experiments/sdf_stability.py`'s
-CSG scenes). `run_in_stages` runs the loop on the whole batch until at most 1/`SHRINK`
+many times longer. `run_in_stages` runs the loop on the whole batch until at most 1/`SHRINK`
 of the rows are still running, gathers those into a batch `SHRINK` times smaller, and
 so on down to `MIN_BATCH` rows, where the loop runs to the end. Each stage has a static
 size, so the whole is one program; rows are independent, so no result changes except by
@@ -19,10 +18,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxvox.trace.hit import RUNNING
+from jaxvox._core.hit import RUNNING
+from jaxvox._core.scan import compact_indices
 
 SHRINK = 8  # each stage's batch is this many times smaller than the last
-MIN_BATCH = 1024  # no stage below this many rows (a smaller one saved nothing measurable)
+MIN_BATCH = 1024  # no stage below this many rows (a smaller stage costs more than it saves)
 
 
 def batch_sizes(n: int, min_batch: int = MIN_BATCH) -> list[int]:
@@ -57,7 +57,7 @@ def run_in_stages(body: Callable[[Any, Any], Any], inputs, state: Any, *, idle: 
     state = loop(inputs, state, sizes[1] if len(sizes) > 1 else 0)
     for k, size in enumerate(sizes[1:], 1):
         # The running rows (at most `size`); the padding rows repeat the last row, idle.
-        ids = jnp.nonzero(state.status == RUNNING, size=size, fill_value=n)[0]
+        ids = compact_indices(state.status == RUNNING, size, fill=n)
         take = lambda x: x[jnp.minimum(ids, n - 1)]
         part = jax.tree.map(take, state)
         part = part._replace(status=jnp.where(ids < n, part.status, idle).astype(part.status.dtype))

@@ -1,10 +1,10 @@
-"""Signs of band voxels (`jaxvox.sparse_field`): inside where the generalized winding number
+"""Signs of band voxels (`jaxvox.distance.sparse`): inside where the generalized winding number
 of the mesh exceeds 1/2, negative inside.
 
 Two methods, both exact (the float64 brute-force winding number is the reference):
 
 * **Pseudo-normals.** For a watertight mesh whose triangles neither cross one another
-  (`jaxvox.topology.crossing_faces`) nor have an irregular edge, a pinched vertex or zero
+  (`jaxvox.distance.topology.crossing_faces`) nor have an irregular edge, a pinched vertex or zero
   area, and none of whose shells winds around another (`nested_shells`: between two
   nested spheres of the same orientation the winding number is 1, but the closest
   surface is the inner sphere, seen from outside): the side of the angle-weighted
@@ -31,7 +31,7 @@ Two methods, both exact (the float64 brute-force winding number is the reference
     and every point within ``band`` of the triangle lies more than a move (1 voxel) from
     every cap.
 
-  One fast winding number per component (`jaxvox.winding.point_winding_numbers`, at its
+  One fast winding number per component (`jaxvox.distance.winding.point_winding_numbers`, at its
   voxel farthest from mesh and caps) plus the exact cap term, rounded, gives its ``W``.
   Each voxel then takes ``w = W - w_caps``: the cap term is summed exactly (brute force
   over the cap triangles) unless a bound keeps it below `CAP_BOUND`, in which case
@@ -48,7 +48,7 @@ Two methods, both exact (the float64 brute-force winding number is the reference
   (voxels on the surface are alone) is evaluated voxel by voxel: its W from the fast
   tree plus the exact cap term, rounded, less the cap term. Winding numbers within
   `CLOSE` of 1/2 are summed again by brute force (in float64 within
-  `jaxvox.winding.F32_CLOSE`). The bunny at 256^3 (897 K band voxels) takes 2
+  `jaxvox.distance.winding.F32_CLOSE`). The bunny at 256^3 (897 K band voxels) takes 2
   components and about 900 voxels on their own this way, where one winding number per
   (triangle, side) and per voxel near a hole took 264 K.
 """
@@ -63,10 +63,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._geometry import rows_dist2, solid_angle_parts, triangle_rows
-from jaxvox._shapes import bucket, chunk_rows, pad_rows
-from jaxvox.mesh import Mesh
-from jaxvox.topology import (
+from jaxvox._core.geometry import rows_dist2, solid_angle_parts, triangle_rows
+from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
+from jaxvox.distance.topology import (
     boundary_chain,
     connected_components,
     crossing_faces,
@@ -75,7 +74,7 @@ from jaxvox.topology import (
     regular_edge_pairs,
     welded_faces,
 )
-from jaxvox.winding import (
+from jaxvox.distance.winding import (
     brute_force_winding_numbers,
     exact_winding_numbers,
     host_winding_numbers,
@@ -84,10 +83,9 @@ from jaxvox.winding import (
     relative_corners,
     triangle_blocks,
 )
+from jaxvox.mesh import Mesh
 
-POINT_CHUNK = (
-    1 << 16
-)  # band voxels per call of the sign kernels (fewer dispatches than 2^14: sides of 14 M voxels 1.2-1.8 -> 1.0-1.3 s)
+POINT_CHUNK = 1 << 16  # band voxels per call of the sign kernels (fewer dispatches than 2^14)
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from jaxvox._checks import refuse
+from jaxvox._core.checks import refuse
 
 
 def read_bytes(what: str, path) -> bytes:

@@ -30,9 +30,9 @@ import itertools
 
 import numpy as np
 
-from jaxvox._checks import check_type
+from jaxvox._core.checks import check_type
 from jaxvox.mesh import Mesh
-from jaxvox.voxelize import Voxels
+from jaxvox.voxelize.voxels import Voxels
 
 # The 27 cells around a voxel, offset (dx, dy, dz) at index (dx+1)*9 + (dy+1)*3 + (dz+1).
 _OFFSETS = np.array(list(itertools.product((-1, 0, 1), repeat=3)), np.int64)  # [27, 3]

@@ -58,9 +58,9 @@ import itertools
 
 import numpy as np
 
-from jaxvox._checks import check_number, check_type, refuse
+from jaxvox._core.checks import check_number, check_type, refuse
+from jaxvox.distance.sparse import SparseField
 from jaxvox.mesh import Mesh
-from jaxvox.sparse_field import SparseField
 
 BLOCK = 32  # cells per block edge (>= 2; <= 64 keeps vertex offsets resolvable in float32)
 NUDGE = 2.0**-12  # samples closer than NUDGE * band voxel units to the level move that far from it

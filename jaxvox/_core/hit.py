@@ -1,6 +1,9 @@
-"""The `Hit` result of the traversals, its statuses (`HIT`, `MISS`, `STEP_CAP`, `INVALID`),
-the ray checks and step cap shared with the renderer, and `on_marked` (a per-ray lookup
-run on the marked rays only)."""
+"""The `Hit` record every tracer returns, its statuses (`HIT`, `MISS`, `STEP_CAP`,
+`INVALID`, and `RUNNING` while a ray is traced) and the ray check `valid_rays`.
+
+Shared by the octree and grid traversals (`jaxvox.trace`), sphere tracing
+(`jaxvox.sphere_tracing`), the clipmaps (`jaxvox.distance`) and the renderer, so it lives
+on the ground floor."""
 
 from __future__ import annotations
 
@@ -11,9 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32, Int32
 
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._scan import cumsum
-from jaxvox.octree import CompactDag, Octree
+from jaxvox._core.pytree import pytree_dataclass
 
 # `Hit.status` values.
 HIT = 0
@@ -71,45 +72,3 @@ def valid_rays(origins: jax.Array | np.ndarray, directions: jax.Array | np.ndarr
         | jnp.any(jnp.isnan(directions), axis=-1)
         | jnp.all(directions == 0, axis=-1)
     )
-
-
-def default_max_steps(tree: Octree | CompactDag) -> int:
-    """The default cap on loop steps per ray in `tree`, for `trace` and `render`:
-    ``6 R + 16 D`` (R the grid's resolution, D the tree's depth)."""
-    return 6 * tree.grid.resolution + 16 * tree.depth
-
-
-def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: int) -> jax.Array:
-    """``fn(rows[i])`` where ``marked[i]``, `fill` elsewhere: [N] of `fill`'s dtype.
-
-    `fn` maps [chunk, ...] rows to [chunk] values (a walk down a tree, say). The marked
-    rows are compacted and `fn` runs on `chunk` of them at a time inside a `while_loop`
-    that runs as many chunks as there are marked rows, so the lookups cost what the
-    marked rows cost, not what all N cost (an image of the bunny: 14% of the rays hit).
-
-    Args:
-      fn: jittable [chunk, ...] -> [chunk].
-      marked: [N] bool.
-      rows: [N, ...] the per-ray inputs of `fn`.
-      fill: [] the value of the unmarked rays (its dtype is the result's).
-      chunk: rows per call of `fn` (static).
-    """
-    n = marked.shape[0]
-    if n == 0:
-        return jnp.full(0, fill)
-    size = n + -n % chunk
-    order = (
-        jnp.zeros(size, jnp.int32)
-        .at[jnp.where(marked, cumsum(marked) - 1, size)]
-        .set(jnp.arange(n, dtype=jnp.int32), mode="drop")
-    )
-    count = jnp.sum(marked)
-
-    def body(carry):
-        k, out = carry
-        ids = jax.lax.dynamic_slice(order, (k * chunk,), (chunk,))
-        live = k * chunk + jnp.arange(chunk) < count
-        return k + 1, out.at[jnp.where(live, ids, n)].set(fn(rows[ids]), mode="drop")
-
-    out = jnp.full(n, fill)
-    return jax.lax.while_loop(lambda c: c[0] * chunk < count, body, (jnp.int32(0), out))[1]
