@@ -4,7 +4,7 @@ The search keeps, level by level, the nodes that may hold a block's closest tria
 every point of a block is within ``U`` of the surface, ``U`` the smallest distance from
 the block's farthest corner to a node's surface point (``rep``), so a node whose box is
 farther than ``U`` from the block's box holds no block point's closest triangle. The
-leaves kept are evaluated exactly per point (`jaxvox._geometry.rows_dist2`, 8 triangles a
+leaves kept are evaluated exactly per point (`jaxvox._core.geometry.rows_dist2`, 8 triangles a
 leaf). Ties between triangles at the same float32 distance go to the smallest face id.
 """
 
@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxvox._geometry import rows_dist2
+from jaxvox._core.geometry import rows_dist2
 from jaxvox.points import search
 from jaxvox.points.index import FAN_OUT, MeshIndex
 

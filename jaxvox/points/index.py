@@ -12,7 +12,7 @@ the two searches need:
   ``c`` that bounds its triangles, the area vector ``A`` (sum of area times unit normal)
   and the unsigned area ``S`` (for the error bound of the far field).
 
-Triangles are stored as the float32 rows of `jaxvox._geometry.triangle_rows` (computed
+Triangles are stored as the float32 rows of `jaxvox._core.geometry.triangle_rows` (computed
 in float64 on the host), their corners and their angle-weighted pseudo-normals. Everything
 is relative to ``centre`` (the middle of the mesh's box), so a mesh far from the origin
 keeps float32 precision. The face count is padded to the shape ladder (`bucket`, at least
@@ -29,10 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float32, Int32
 
-from jaxvox._geometry import triangle_rows
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
-from jaxvox.band_sign import pseudo_normals, pseudonormal_sides_exact
+from jaxvox._core.geometry import triangle_rows
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket
+from jaxvox.distance.band_sign import pseudo_normals, pseudonormal_sides_exact
 from jaxvox.mesh import Mesh, validate_mesh
 
 FAN_OUT = 8  # children per node, triangles per leaf
@@ -74,7 +74,7 @@ class MeshIndex:
       dipole: [N, 8] float32 per node: centre xyz, radius, area vector xyz, unsigned area.
       num_faces: [] int32 the face count.
       closed: [] bool whether pseudo-normal sides are winding-number sides everywhere
-        (`jaxvox.band_sign.pseudonormal_sides_exact`: watertight, no crossings, ...); the
+        (`jaxvox.distance.band_sign.pseudonormal_sides_exact`: watertight, no crossings, ...); the
         host API then signs by pseudo-normals, exactly, without summing winding numbers.
       levels: ((offset, size), ...) static: the node levels in ``box`` from the leaves
         (level 1) up to the root.
@@ -214,7 +214,7 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     Raises:
       JaxvoxError: a malformed mesh, a mesh without faces, or a capacity below the face count.
     """
-    from jaxvox._checks import check_int, refuse
+    from jaxvox._core.checks import check_int, refuse
 
     validate_mesh(mesh)
     v = np.asarray(mesh.vertices, np.float64)
@@ -273,7 +273,7 @@ def stack_indices(indices: list[MeshIndex]) -> MeshIndex:
     Raises:
       JaxvoxError: an empty list or indices of different face capacities.
     """
-    from jaxvox._checks import refuse
+    from jaxvox._core.checks import refuse
 
     if not indices:
         raise refuse("stack_indices indices", "must hold at least one MeshIndex", indices)

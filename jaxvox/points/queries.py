@@ -41,10 +41,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float32, Int32
 
-from jaxvox._checks import check_choice, check_number, check_type, is_concrete, refuse
-from jaxvox._errors import JaxvoxError
-from jaxvox._pytree import pytree_dataclass
-from jaxvox._shapes import bucket
+from jaxvox._core.checks import check_choice, check_number, check_type, is_concrete, refuse
+from jaxvox._core.devices import on_all_devices, on_each_device
+from jaxvox._core.errors import JaxvoxError
+from jaxvox._core.pytree import pytree_dataclass
+from jaxvox._core.shapes import bucket
 from jaxvox.mesh import Mesh
 from jaxvox.points import closest, search, winding
 from jaxvox.points.index import MeshIndex, mesh_index
@@ -55,6 +56,7 @@ DEFAULT_PAIRS = {"closest": 256, "winding": 512}  # first plan: pairs per block
 DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
+SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
 
 
 class PointStatus(enum.IntEnum):
@@ -145,34 +147,62 @@ def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
     return _PLANS[key]
 
 
-def _searched(what: str, run, index: MeshIndex, nb: int):
-    """Runs ``run(caps) -> (result, lost, needs)``; on concrete inputs, again with grown
-    capacities while a block was lost (nothing is dropped), remembering what sufficed."""
-    caps = _plan(what, index, nb)
+def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
+    """Runs the search ``body(index, points, caps=..., **static) -> (result, lost, needs)``
+    over flattened points [n, 3] with the plan's capacities; on concrete inputs, again with
+    grown capacities while a block was lost (nothing is dropped), remembering what
+    sufficed. On concrete inputs with several JAX devices (e.g.
+    ``jax.config.update("jax_num_cpu_devices", os.cpu_count())``, as the command line
+    does), one program runs the search on an equal share of the points on each device."""
+    host = _host(index, flat)
+    parts = jax.device_count() if host and flat.shape[0] >= SPLIT_MIN * jax.device_count() else 1
+    n = flat.shape[0]
+    per = -(-n // parts)
+    key = (what, index.capacity, _blocks_of(per, block))
+    caps = _plan(what, index, key[2])
+    if parts > 1:
+        points = np.asarray(flat)
+        points = np.concatenate([points, np.repeat(points[-1:], per * parts - n, 0)])
+        index = on_all_devices(index)
+        run = lambda caps: _split_program(body, index, points, caps=caps, **static)
+    else:
+        run = lambda caps: _program(body, index, jax.lax.stop_gradient(flat), caps=caps, **static)
     for _ in range(2 * len(caps) + 2):  # each retry fits at least one more level
         result, lost, needs = run(caps)
-        if not _host(lost) or not bool(jnp.any(lost)):
-            return result, lost
-        caps = _PLANS[(what, index.capacity, nb)] = search.grown(caps, np.asarray(needs))
+        if not host or not bool(jnp.any(lost)):
+            return jax.tree_util.tree_map(lambda x: x[:n], (result, lost))
+        caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0))
     raise JaxvoxError(f"{what} search: capacities {caps} still too small after growing them (a bug)")
 
 
-@functools.partial(jax.jit, static_argnames="caps")
-def _closest_run(index: MeshIndex, points, *, caps):
+@functools.partial(jax.jit, static_argnums=0, static_argnames=("caps", "beta"))
+def _program(body, index, points, **static):
+    """One search as one program."""
+    return body(index, points, **static)
+
+
+@functools.partial(jax.jit, static_argnums=0, static_argnames=("caps", "beta"))
+def _split_program(body, index, points, **static):
+    """One search as one program, each device searching its share of the points."""
+    return on_each_device(functools.partial(body, **static), index, points)
+
+
+def _closest_body(index: MeshIndex, points, *, caps):
+    """(slot [n], finite [n]), lost [n], needs [1, k] of the closest-triangle search."""
     finite = jnp.all(jnp.isfinite(points), -1)
     blocks = search.make_blocks(index, jnp.where(finite[:, None], points, index.centre))
     found = closest.closest_slots(index, blocks, caps)
     lost = search.per_point(blocks, jnp.repeat(found.lost[:, None], search.BLOCK, 1))
-    return (search.per_point(blocks, found.slot), finite), lost, found.needs
+    return (search.per_point(blocks, found.slot), finite), lost, found.needs[None]
 
 
-@functools.partial(jax.jit, static_argnames=("beta", "caps"))
-def _winding_run(index: MeshIndex, points, *, beta: float, caps):
+def _winding_body(index: MeshIndex, points, *, beta: float, caps):
+    """(w [n], bound [n]), lost [n], needs [1, k] of the fast winding-number sum."""
     finite = jnp.all(jnp.isfinite(points), -1)
     blocks = search.make_blocks(index, jnp.where(finite[:, None], points, index.centre), WINDING_BLOCK)
     w, err, lost, needs = winding.winding_sums(index, blocks, beta, caps)
     lost = search.per_point(blocks, jnp.repeat(lost[:, None], WINDING_BLOCK, 1))
-    return (search.per_point(blocks, w), search.per_point(blocks, err)), lost, needs
+    return (search.per_point(blocks, w), search.per_point(blocks, err)), lost, needs[None]
 
 
 def _blocks_of(n: int, size: int) -> int:
@@ -181,9 +211,7 @@ def _blocks_of(n: int, size: int) -> int:
 
 def _closest(index: MeshIndex, flat):
     """(slot [n], finite [n], lost [n]) of the closest triangles of flattened points [n, 3]."""
-    nb = _blocks_of(flat.shape[0], search.BLOCK)
-    run = lambda caps: _closest_run(index, jax.lax.stop_gradient(flat), caps=caps)
-    (slot, finite), lost = _searched("closest", run, index, nb)
+    (slot, finite), lost = _searched("closest", _closest_body, index, flat, search.BLOCK)
     return slot, finite, lost
 
 
@@ -259,14 +287,12 @@ def _empty_closest(batch) -> ClosestPoints:
 
 def _fast_winding(index: MeshIndex, flat, beta: float):
     """((w, bound), lost) [n] fast winding numbers of flattened points (non-finite: any)."""
-    nb = _blocks_of(flat.shape[0], WINDING_BLOCK)
-    run = lambda caps: _winding_run(index, jax.lax.stop_gradient(flat), beta=beta, caps=caps)
-    return _searched("winding", run, index, nb)
+    return _searched("winding", _winding_body, index, flat, WINDING_BLOCK, beta=beta)
 
 
 def _exact_winding(index: MeshIndex, flat) -> np.ndarray:
     """Exact winding numbers [n] float64 (host) of points [n, 3] (float64 near 1/2)."""
-    from jaxvox.winding import exact_winding_numbers
+    from jaxvox.distance.winding import exact_winding_numbers
 
     return exact_winding_numbers(winding.tree_triangles(index), np.asarray(flat, np.float64))
 

@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float32, Int8, Int32
 
-from jaxvox._checks import check_int, check_number, refuse
-from jaxvox._pytree import pytree_dataclass
+from jaxvox._core.checks import check_int, check_number, refuse
+from jaxvox._core.pytree import pytree_dataclass
 from jaxvox.mesh import Mesh
 from jaxvox.points.index import MeshIndex, mesh_index
 from jaxvox.points.queries import query_points
@@ -159,8 +159,8 @@ def sample_meshes(
     """
     from tqdm import tqdm
 
-    from jaxvox._errors import JaxvoxError
-    from jaxvox.mesh import load_mesh
+    from jaxvox._core.errors import JaxvoxError
+    from jaxvox.io.meshes import load_mesh
 
     os.makedirs(out, exist_ok=True)
     report: dict[str, str] = {}

@@ -5,7 +5,7 @@ Query points are sorted along a Morton curve of the mesh's box and cut into bloc
 walks the tree from the root down, one level at a time, over (block, node) *pairs*: a
 pair is evaluated for the whole block at once, which shares each node's data among
 `BLOCK` points. What a level keeps opens into its children's pairs (count, prefix sum,
-emit: `jaxvox._shapes.expand_counts`), what must be evaluated per point goes into *rows*
+emit: `jaxvox._core.shapes.expand_counts`), what must be evaluated per point goes into *rows*
 of `ROW` nodes of one block, evaluated in chunks and reduced per block.
 
 Capacities are static: a level holds at most ``blocks * pairs_per_block`` pairs and
@@ -21,7 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxvox._shapes import expand_counts
+from jaxvox._core.shapes import expand_counts
 from jaxvox.points.index import FAN_OUT, MeshIndex
 
 BLOCK = 16  # points per block
@@ -233,6 +233,6 @@ def descend(select, nb: int, levels, pair_caps: tuple[int, ...]):
 def grown(caps: tuple[int, ...], needs) -> tuple[int, ...]:
     """Capacities after a run that needed `needs` (host ints): each at least its need with
     a quarter to spare, on the shape ladder; never smaller than before."""
-    from jaxvox._shapes import bucket
+    from jaxvox._core.shapes import bucket
 
     return tuple(max(c, bucket(int(n) + int(n) // 4)) for c, n in zip(caps, needs))

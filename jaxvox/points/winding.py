@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._geometry import solid_angle_parts
+from jaxvox._core.geometry import solid_angle_parts
 from jaxvox.points import search
 from jaxvox.points.index import MeshIndex
 
