@@ -331,3 +331,30 @@ def test_jaxvox_sample_command_skips_bad_meshes_and_resumes(tmp_path, sphere):
     again = np.load(out / "half.npz")
     assert again["points"].shape == (N, 3)
     assert not any(name.endswith(".partial.npz") for name in os.listdir(out))
+
+
+def test_split_over_two_devices_matches_one(tmp_path):
+    """A concrete query with two JAX devices (one program, half the points on each) gives
+    the one-device answer: the same closest triangles and signed distances; the fast
+    winding numbers (blocks differ, so their far fields do) within their error."""
+    import subprocess
+    import sys
+
+    code = """
+import sys, jax
+jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
+import numpy as np, trimesh, jaxvox as jv
+from jaxvox import points as jp
+tm = trimesh.creation.icosphere(subdivisions=2)
+keep = tm.triangles_center[:, 2] > -0.3
+index = jp.mesh_index(jv.Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces[keep], np.int32)), capacity=512)
+p = np.random.default_rng(0).uniform(-1.3, 1.3, (2 * jp.queries.SPLIT_MIN + 5, 3)).astype(np.float32)
+q = jp.query_points(index, p)
+np.savez(sys.argv[2], sd=np.asarray(q.signed_distance), tri=np.asarray(q.closest.triangle), w=np.asarray(q.winding))
+"""
+    for devices in (1, 2):
+        subprocess.run([sys.executable, "-c", code, str(devices), str(tmp_path / f"{devices}.npz")], check=True)
+    one, two = np.load(tmp_path / "1.npz"), np.load(tmp_path / "2.npz")
+    for key in ("sd", "tri"):
+        np.testing.assert_array_equal(one[key], two[key])
+    np.testing.assert_allclose(one["w"], two["w"], atol=0.02)
