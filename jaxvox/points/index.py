@@ -238,7 +238,8 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).tolist()
     rows = triangle_rows(padded_tris)
     rows[:3, ~valid] = FAR
-    leaf_major = lambda x: jnp.asarray(np.ascontiguousarray(x.reshape(len(x), -1, FAN_OUT).transpose(1, 0, 2)))
+    put = lambda x, dtype=np.float32: jax.device_put(np.ascontiguousarray(x, dtype))  # no conversion program
+    leaf_major = lambda x, dtype=np.float32: put(x.reshape(len(x), -1, FAN_OUT).transpose(1, 0, 2), dtype)
     table = lambda i: np.concatenate([level[i] for level in levels])
     frames = _oriented_boxes(padded_tris, valid, len(levels))
     faces = np.zeros((cap, 3), np.int32)
@@ -246,20 +247,20 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     vertices = np.zeros((bucket(len(v)), 3))
     vertices[: len(v)] = v  # padded to the ladder too: a program per vertex count would recompile
     return MeshIndex(
-        vertices=jnp.asarray(vertices, jnp.float32),
-        faces=jnp.asarray(faces),
-        order=jnp.asarray(slots, jnp.int32),
-        valid=jnp.asarray(valid),
-        centre=jnp.asarray(centre, jnp.float32),
+        vertices=put(vertices),
+        faces=put(faces, np.int32),
+        order=put(slots, np.int32),
+        valid=put(valid, bool),
+        centre=put(centre),
         leaf_rows=leaf_major(rows),
-        leaf_corners=leaf_major(padded_tris.reshape(cap, 9).T.astype(np.float32)),
-        leaf_faces=jnp.asarray(slots.reshape(-1, FAN_OUT).astype(np.int32)),
-        corners=jnp.asarray(padded_tris.reshape(cap, 9).T, jnp.float32),
-        normals=jnp.asarray(normals.reshape(cap, 21).T),
-        nodes=jnp.asarray(np.concatenate([table(0), table(1), np.concatenate(frames)], 1), jnp.float32),
-        dipole=jnp.asarray(table(2), jnp.float32),
-        num_faces=jnp.int32(len(f)),
-        closed=jnp.asarray(pseudonormal_sides_exact(v, f)),
+        leaf_corners=leaf_major(padded_tris.reshape(cap, 9).T),
+        leaf_faces=put(slots.reshape(-1, FAN_OUT), np.int32),
+        corners=put(padded_tris.reshape(cap, 9).T),
+        normals=put(normals.reshape(cap, 21).T),
+        nodes=put(np.concatenate([table(0), table(1), np.concatenate(frames)], 1)),
+        dipole=put(table(2)),
+        num_faces=put(len(f), np.int32),
+        closed=put(pseudonormal_sides_exact(v, f), bool),
         levels=tuple(zip(offsets, sizes)),
     )
 

@@ -115,16 +115,20 @@ def _as_index(what: str, mesh) -> MeshIndex:
     return mesh_index(mesh)
 
 
-def _points(what: str, points) -> jax.Array:
-    """Points as float32 [*b, 3] (refused when the last axis is not 3)."""
+def _points(what: str, points) -> tuple[tuple[int, ...], jax.Array]:
+    """The batch shape ``*b`` of points [*b, 3] and the points as float32 [n, 3] (refused
+    when they are not numbers or the last axis is not 3)."""
     if is_concrete(points):
         a = np.asarray(points)
         if a.dtype.kind not in "biuf":
             raise refuse(what, "must be numbers", a.dtype)
+        if a.ndim < 1 or a.shape[-1] != 3:
+            raise refuse(what, "must have shape [..., 3]", a.shape)
+        return a.shape[:-1], jax.device_put(np.ascontiguousarray(a.reshape(-1, 3), np.float32))  # no program
     p = jnp.asarray(points, jnp.float32)
     if p.ndim < 1 or p.shape[-1] != 3:
         raise refuse(what, "must have shape [..., 3]", p.shape)
-    return p
+    return p.shape[:-1], p.reshape(-1, 3)
 
 
 def _host(*trees) -> bool:
@@ -169,8 +173,8 @@ def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
         run = lambda caps: _program(body, index, jax.lax.stop_gradient(flat), caps=caps, **static)
     for _ in range(2 * len(caps) + 2):  # each retry fits at least one more level
         result, lost, needs = run(caps)
-        if not host or not bool(jnp.any(lost)):
-            return jax.tree_util.tree_map(lambda x: x[:n], (result, lost))
+        if not host or not np.asarray(lost).any():
+            return (result, lost) if parts == 1 else jax.tree_util.tree_map(lambda x: x[:n], (result, lost))
         caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0))
     raise JaxvoxError(f"{what} search: capacities {caps} still too small after growing them (a bug)")
 
@@ -269,9 +273,7 @@ def closest_points(mesh: Mesh | MeshIndex, points: Float32[ArrayLike, "*b 3"]) -
       JaxvoxError: not a mesh or index, a mesh without faces, points not [..., 3].
     """
     index = _as_index("closest_points mesh", mesh)
-    p = _points("closest_points points", points)
-    batch = p.shape[:-1]
-    flat = p.reshape(-1, 3)
+    batch, flat = _points("closest_points points", points)
     if flat.shape[0] == 0:
         return _empty_closest(batch)
     slot, finite, lost = _closest(index, flat)
@@ -337,11 +339,9 @@ def winding_number(
       JaxvoxError: bad mesh, points, mode or beta; exact mode on traced points.
     """
     index = _as_index("winding_number mesh", mesh)
-    p = _points("winding_number points", points)
+    batch, flat = _points("winding_number points", points)
     check_choice("winding_number mode", mode, ("fast", "exact"))
     beta = check_number("winding_number beta", beta, above=1.0)
-    batch = p.shape[:-1]
-    flat = p.reshape(-1, 3)
     if flat.shape[0] == 0:
         z = jnp.zeros(batch, jnp.float32)
         return (z, z) if return_bound else z
@@ -378,11 +378,9 @@ def query_points(
       the index's vertices (`signed_distance`).
     """
     index = _as_index("query_points mesh", mesh)
-    p = _points("query_points points", points)
+    batch, flat = _points("query_points points", points)
     check_choice("query_points sign", sign, SIGNS)
     margin = check_number("query_points margin", margin, minimum=0.0)
-    batch = p.shape[:-1]
-    flat = p.reshape(-1, 3)
     if flat.shape[0] == 0:
         z = jnp.zeros(batch, jnp.float32)
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
@@ -463,12 +461,10 @@ def occupancy(
       [*b] bool (False for non-finite points).
     """
     index = _as_index("occupancy mesh", mesh)
-    p = _points("occupancy points", points)
+    batch, flat = _points("occupancy points", points)
     check_choice("occupancy sign", sign, SIGNS)
     if sign == "pseudonormal":
-        return query_points(index, p, sign=sign).inside
-    batch = p.shape[:-1]
-    flat = p.reshape(-1, 3)
+        return query_points(index, flat, sign=sign).inside.reshape(batch)
     if flat.shape[0] == 0:
         return jnp.zeros(batch, bool)
     finite = jnp.all(jnp.isfinite(flat), -1)
