@@ -148,3 +148,15 @@ def rows_dist2(p, r, o):
     s, t, h = dot(q, u), dot(q, v), dot(q, n)
     inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
     return jnp.where(inside, jnp.minimum(h * h, edges), edges)
+
+
+def morton_order(points: np.ndarray) -> np.ndarray:
+    """Indices sorting points [n, 3] (host) along a 10-bit-per-axis Morton curve of their
+    bounding box, stably: the order of the triangle trees (winding numbers, point queries)."""
+    lo, hi = points.min(0), points.max(0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.uint64)
+    code = np.zeros(len(points), np.uint64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float32, Int32
 
-from jaxvox._core.geometry import triangle_rows
+from jaxvox._core.geometry import morton_order, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket
 from jaxvox.distance.band_sign import pseudo_normals, pseudonormal_sides_exact
@@ -100,17 +100,6 @@ class MeshIndex:
     def capacity(self) -> int:
         """The face capacity F (static)."""
         return self.faces.shape[-2]
-
-
-def _morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting points [n, 3] along a 10-bit-per-axis Morton curve of their box (stable)."""
-    lo, hi = points.min(0), points.max(0)
-    q = ((points - lo) / np.maximum(hi - lo, 1e-300) * 1023).astype(np.uint64)
-    code = np.zeros(len(points), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
 
 
 def _group(x: np.ndarray, fill) -> np.ndarray:
@@ -228,7 +217,7 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     lo, hi = v[f.ravel()].min(0), v[f.ravel()].max(0)
     centre = (lo + hi) / 2
     tris = v[f] - centre
-    order = _morton_order(tris.mean(1))
+    order = morton_order(tris.mean(1))
     slots = np.concatenate([order, np.arange(len(f), cap)])
     valid = slots < len(f)
     padded_tris = np.concatenate([tris, np.repeat(tris[:1, :1], cap - len(f), 0).repeat(3, 1)])[slots]
