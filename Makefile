@@ -37,7 +37,11 @@ $(VENV)/.bench-installed: $(STAMP)
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq python3-openvdb; \
 	  else echo "experiments/sparse_distance.py compares with OpenVDB: run 'sudo apt-get install python3-openvdb'" >&2; fi; \
 	fi
-	$(PY) -m pip install --quiet -e ".[test,bench]"
+	@if [ ! -f /usr/include/eigen3/Eigen/Core ]; then \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libeigen3-dev; \
+	  else echo "pysdf (experiments/bench_points.py) builds against Eigen: run 'sudo apt-get install libeigen3-dev'" >&2; fi; \
+	fi
+	CPATH=/usr/include/eigen3 $(PY) -m pip install --quiet -e ".[test,bench]"
 	touch $@
 
 bench: $(VENV)/.bench-installed  ## voxelization against Open3D and trimesh (R=128..2048, bunny at 8192^3); traversal against Embree
