@@ -79,7 +79,7 @@ class CompileCounter:
 
 @pytest.fixture(scope="module")
 def batch(meshes_dir):
-    """Four shared meshes (geometry only), their grids, rays, capacities and host results."""
+    """Four test meshes (geometry only), their grids, rays, capacities and host results."""
     meshes = [jv.load_mesh(meshes_dir / f"{name}.obj") for name in NAMES]
     meshes = [jv.Mesh(m.vertices, m.faces) for m in meshes]
     grids = [pow2_grid(m, RESOLUTION) for m in meshes]

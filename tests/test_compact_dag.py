@@ -84,7 +84,7 @@ def test_voxel_index_and_occupancy(scene, trees):
 
 
 @pytest.mark.parametrize("name", ["cow", "fandisk", "woody"])
-def test_shared_meshes(meshes_dir, name):
+def test_data_meshes(meshes_dir, name):
     """Shared meshes at 64^3 (Grid.fit): rays through the box, both layouts, every cell indexed."""
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
     vox = jv.voxelize(mesh, jv.Grid.fit(mesh, 64))

@@ -81,7 +81,7 @@ def _check_closed_surface(mesh: jv.Mesh, ijk: np.ndarray, grid: jv.Grid) -> trim
 
 @pytest.fixture(scope="module")
 def spot(meshes_dir):
-    """(mesh, conservative voxels at 32^3) of the shared watertight `spot` mesh."""
+    """(mesh, conservative voxels at 32^3) of the watertight test `spot` mesh."""
     mesh = jv.load_mesh(meshes_dir / "spot.obj")
     return mesh, jv.voxelize(mesh, jv.Grid.fit(mesh, 32))
 

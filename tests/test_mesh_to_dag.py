@@ -1,5 +1,5 @@
 """`mesh_to_dag`: the region-by-region DAG equals ``build_dag(voxelize(...))`` table for
-table (shared meshes, both modes, many small regions, empty regions and meshes, one
+table (the test meshes, both modes, many small regions, empty regions and meshes, one
 region), the host-side row unique orders as the build's, bad input is refused, and
 ``jaxvox build`` writes the same file through it."""
 
@@ -44,7 +44,7 @@ def _tetra(scale=1.0, shift=(0.0, 0.0, 0.0)):
 
 
 @pytest.mark.parametrize("name", MESHES)
-def test_shared_meshes_in_many_regions(meshes_dir, name):
+def test_data_meshes_in_many_regions(meshes_dir, name):
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
     tree = _check(mesh, 32, 8)  # up to 64 regions, 3 levels each, 2 above
     assert int(tree.voxel_count) > 0

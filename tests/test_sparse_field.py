@@ -109,8 +109,8 @@ def test_primitives(make):
     check_field(mesh, grid, field)
 
 
-# Every shared mesh and its R (the bunny's 70 K faces: the float64 references take 39 s at 16^3)
-SHARED = {
+# Every test mesh (tests/data) and its R (the bunny's 70 K faces: the float64 references take 39 s at 16^3)
+TEST_MESHES = {
     "beetle": 16,
     "cow": 16,
     "fandisk": 16,
@@ -122,9 +122,9 @@ SHARED = {
 }
 
 
-@pytest.mark.parametrize("name, resolution", SHARED.items())
-def test_shared_meshes(meshes_dir, name, resolution):
-    """Every shared mesh against the float64 reference: values, signs (winding numbers),
+@pytest.mark.parametrize("name, resolution", TEST_MESHES.items())
+def test_every_test_mesh(meshes_dir, name, resolution):
+    """Every test mesh (tests/data) against the float64 reference: values, signs (winding numbers),
     completeness. Watertight ones are signed by pseudo-normals (spot), the others by
     winding numbers of components (woody, the bunny: open edges; teapot, cow: crossing
     triangles). (16^3 or less: the float64 references loop over points.)"""

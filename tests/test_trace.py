@@ -112,8 +112,8 @@ def test_trace_matches_brute_force(scene, trees, kind, method):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["cow", "stanford-bunny"])
-def test_shared_meshes_against_brute_force(meshes_dir, name):
-    """Every shared mesh's DAG at 128^3 (64^3 unless JAXVOX_SLOW_SCALE=full), 2000 rays each."""
+def test_data_meshes_against_brute_force(meshes_dir, name):
+    """Every test mesh's DAG at 128^3 (64^3 unless JAXVOX_SLOW_SCALE=full), 2000 rays each."""
     resolution = 128 if FULL else 64
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
     v = np.asarray(mesh.vertices)

@@ -366,8 +366,7 @@ def _rotation(seed: int = 20240601) -> np.ndarray:
 @functools.cache
 def _rotated_mesh(meshes_dir, name: str):
     path = meshes_dir / f"{name}.obj"
-    if not path.is_file():
-        pytest.skip(f"test mesh {path} not found (expected in ../shared/meshes)")
+    assert path.is_file(), f"test mesh {path} missing from tests/data"
     m = trimesh.load(path, process=False, force="mesh")
     v = np.asarray(m.vertices, np.float64)
     centre = v.mean(0)

@@ -22,7 +22,7 @@ def _centres(grid: jv.Grid) -> np.ndarray:
 
 
 @pytest.mark.parametrize("name, block", [("spot", 4), ("stanford-bunny", 2), ("suzanne", 1)])
-def test_shared_meshes_against_brute_force(meshes_dir, name, block):
+def test_data_meshes_against_brute_force(meshes_dir, name, block):
     """Every voxel (spot, suzanne) or a sample (the bunny) at 16^3: within TOLERANCE, and
     the same inside/outside decision wherever the exact value is not that close to 1/2."""
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")

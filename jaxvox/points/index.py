@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float32, Int32
 
+from jaxvox._core.checks import check_int, refuse
 from jaxvox._core.geometry import morton_order, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket
@@ -203,8 +204,6 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     Raises:
       JaxvoxError: a malformed mesh, a mesh without faces, or a capacity below the face count.
     """
-    from jaxvox._core.checks import check_int, refuse
-
     validate_mesh(mesh)
     v = np.asarray(mesh.vertices, np.float64)
     f = np.asarray(mesh.faces, np.int64)
@@ -263,8 +262,6 @@ def stack_indices(indices: list[MeshIndex]) -> MeshIndex:
     Raises:
       JaxvoxError: an empty list or indices of different face capacities.
     """
-    from jaxvox._core.checks import refuse
-
     if not indices:
         raise refuse("stack_indices indices", "must hold at least one MeshIndex", indices)
     if len({i.levels for i in indices}) > 1:

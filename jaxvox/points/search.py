@@ -8,9 +8,10 @@ pair is evaluated for the whole block at once, which shares each node's data amo
 emit: `jaxvox._core.shapes.expand_counts`), what must be evaluated per point goes into *rows*
 of `ROW` nodes of one block, evaluated in chunks and reduced per block.
 
-Capacities are static: a level holds at most ``blocks * pairs_per_block`` pairs and
-``blocks * pairs_per_block / ROW + blocks`` rows. A block whose pairs or rows did not fit
-is reported per point (``lost``); the host API retries with more (`search_capacity`).
+Capacities are static: each level's pairs and each set of rows have a capacity chosen by
+the caller (`descend`, `make_rows`), which are told what was needed. A block whose pairs or rows did not fit
+is reported per point (``lost``); the host API (`jaxvox.points.queries`) runs the search
+again with the capacities the lost blocks needed.
 """
 
 from __future__ import annotations
