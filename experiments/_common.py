@@ -29,10 +29,13 @@ os.environ.setdefault("JAX_NUM_CPU_DEVICES", str(os.cpu_count() or 1))
 
 # Every experiment (and its workers, which inherit the environment) runs with glibc's
 # malloc asking for transparent huge pages, as the `jaxvox` command does: see
-# `jaxvox.cli.ask_for_huge_pages` (the script starts again once, before any work).
-from jaxvox.cli import ask_for_huge_pages  # noqa: E402
+# `jaxvox.cli.ask_for_huge_pages` (the script starts again once, before any work). A
+# worker started by `run_worker(..., plain=True)` does not: it measures what a plain
+# `python` process or a notebook gets.
+from jaxvox.cli import HUGE_PAGES, ask_for_huge_pages  # noqa: E402
 
-ask_for_huge_pages()
+if os.environ.get("JAXVOX_BENCH_PLAIN") != "1":
+    ask_for_huge_pages()
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
@@ -81,16 +84,27 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_worker(script: str | Path, spec: dict, *, timeout: float) -> dict:
+def environment() -> str:
+    """How this process was started: ``"plain"`` (no special environment, as a user's
+    `python` or notebook) or ``"huge pages"`` (``GLIBC_TUNABLES`` asking for them)."""
+    return "huge pages" if HUGE_PAGES in os.environ.get("GLIBC_TUNABLES", "") else "plain"
+
+
+def run_worker(script: str | Path, spec: dict, *, timeout: float, plain: bool = False) -> dict:
     """Runs `python script --worker '<spec as JSON>'` in a fresh process and returns its result.
+    With `plain`, the worker starts without the huge-page setting (`environment`).
 
     The worker must print its result as one JSON object on the last line of stdout; its
     stderr goes straight to ours. A crash, a kill (e.g. out of memory) or a timeout is
     returned as ``{"error": "..."}`` so that one failed case does not end a long sweep.
     """
     cmd = [sys.executable, str(script), "--worker", json.dumps(spec)]
+    env = dict(os.environ)
+    if plain:
+        tunables = [t for t in env.pop("GLIBC_TUNABLES", "").split(":") if t and t != HUGE_PAGES]
+        env.update(JAXVOX_BENCH_PLAIN="1", **({"GLIBC_TUNABLES": ":".join(tunables)} if tunables else {}))
     try:
-        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout)
+        proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
         return {"error": f"timed out after {timeout:.0f} s"}
     lines = proc.stdout.strip().splitlines()

@@ -17,10 +17,15 @@ For each mesh and resolution R, in one fresh subprocess per case:
 * at R <= ``--naive-max`` the naive baseline: a plain vmapped dense-grid DDA
   (`jv.trace_dense` with ``lanes=None``) on 256x256 of the primary rays.
 
-Primary rays are passed as the [H, W, 3] image with the beam start on (``beam=True``:
-8 x 8 tiles); the DAG is also timed without it (the default). ``--devices`` sets the number of JAX CPU
-devices the workers start with (default: one per core; `jaxvox.trace` shards concrete
-rays over them); ``--device gpu`` runs on JAX's GPU backend with lanes sized for it.
+Primary rays are passed as the [H, W, 3] image: the default call ``jv.trace(dag, o, d)``
+(which takes the beam start for image-shaped rays: 8 x 8 tiles), the same with each
+traversal and tree (``beam=True``), and the DAG without the beam (``beam=False``).
+Each case runs in two workers (``--environments``): a plain process, as a user's
+`python` or notebook starts (``plain``), and one with glibc's malloc asking for huge pages
+(``huge pages``, `jaxvox.cli.ask_for_huge_pages`), with the same number of JAX devices.
+``--devices`` sets the number of JAX CPU devices the workers start with (default: one
+per core; `jaxvox.trace` shards concrete rays over them); ``--device gpu`` runs on JAX's
+GPU backend with lanes sized for it.
 
 Timings are the median of ``--repeats`` calls after a warm-up call (its excess over the
 median is reported as compile time), with `jax.block_until_ready`.
@@ -92,7 +97,9 @@ def worker(spec: dict) -> dict:
     o, d = (jnp.reshape(x, (-1, 3)) for x in (o_img, d_img))
     # lanes sized for the device: a few thousand per CPU device, a million on a GPU
     lanes = 8192 if jax.default_backend() == "cpu" else 1 << 20
-    result.update(backend=jax.default_backend(), devices=len(jax.devices()), lanes=lanes)
+    result.update(
+        backend=jax.default_backend(), devices=len(jax.devices()), lanes=lanes, environment=_common.environment()
+    )
     rng = np.random.default_rng(0)
     lo, hi = np.asarray(grid.origin), np.asarray(grid.origin) + R * h
     centre, radius = (lo + hi) / 2, 1.5 * np.linalg.norm(hi - lo)
@@ -120,8 +127,10 @@ def worker(spec: dict) -> dict:
         hits[name] = jax.tree.map(
             lambda x: x.reshape((-1,) + x.shape[2:]), timed(f"primary/{name}", trace, width * height)
         )
-    no_beam = lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img, lanes=lanes))  # the default
+    no_beam = lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img, lanes=lanes, beam=False))
     timed("primary/dag-esvo-no-beam", no_beam, width * height)
+    if jax.default_backend() == "cpu":  # the call with every default (its lanes are the CPU's)
+        timed("primary/default", lambda: jax.block_until_ready(jv.trace(trees["dag"], o_img, d_img)), width * height)
     hit = hits["dag-esvo"]
     o_np, d_np = np.asarray(o), np.asarray(d)
     t_mesh = timed("primary/embree", lambda: embree(o_np, d_np), width * height)
@@ -241,6 +250,13 @@ def main():
         "--devices", type=int, default=os.cpu_count(), help="JAX CPU devices (rays are sharded over them)"
     )
     parser.add_argument("--device", default=None, help="cpu or gpu (JAX_PLATFORMS); default: JAX's default backend")
+    parser.add_argument(
+        "--environments",
+        nargs="+",
+        choices=("plain", "huge pages"),
+        default=["plain", "huge pages"],
+        help="run each case in a plain process, with huge pages, or both",
+    )
     parser.add_argument("--update", action="store_true", help="merge into the existing JSON instead of replacing it")
     parser.add_argument("--out", type=Path, default=_common.RESULTS_DIR)
     parser.add_argument("--plot-only", action="store_true", help="redraw the table and chart from the JSON")
@@ -256,40 +272,50 @@ def main():
     stem = "bench_trace" + ("_smoke" if args.smoke else "")
     path = args.out / f"{stem}.json"
     rows = json.loads(path.read_text())["rows"] if (args.update or args.plot_only) and path.exists() else []
-    for mesh in _common.progress(args.meshes if not args.plot_only else [], desc="meshes"):
-        for R in resolutions:
-            spec = dict(
-                mesh=mesh,
-                resolution=R,
-                width=width,
-                height=height,
-                incoherent=n_inc,
-                repeats=args.repeats,
-                naive_max=args.naive_max,
-                svo_max=args.svo_max,
-            )
-            row = _common.run_worker(__file__, spec, timeout=3600)
-            if "error" in row:
-                print(f"{mesh} {R}: {row['error']}", file=sys.stderr)
-                continue
-            key = lambda r: (r["mesh"], r["resolution"], r.get("devices", 1), r.get("backend", "cpu"))
-            rows = [r for r in rows if key(r) != key(row)] + [row]
-            t = row["timings"]
-            print(
-                f"{mesh} {R}^3: DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
-                f"{t['primary/dag-stack']['mrays_s']:.2f}, "
-                f"SVO esvo {t.get('primary/svo-esvo', {}).get('mrays_s', 0):.2f}, "
-                f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
-                f"{row['agreement']['pixels_agree']:.4f}",
-                flush=True,
-            )
-            _common.write_json(path, dict(machine=_common.machine_info(["jax", "embreex", "numpy"]), rows=rows))
-    rows.sort(key=lambda r: (r["mesh"], r["resolution"]))
+    cases = [(m, R, e) for m in args.meshes for R in resolutions for e in args.environments]
+    for mesh, R, env in _common.progress(cases if not args.plot_only else [], desc="cases"):
+        spec = dict(
+            mesh=mesh,
+            resolution=R,
+            width=width,
+            height=height,
+            incoherent=n_inc,
+            repeats=args.repeats,
+            naive_max=args.naive_max,
+            svo_max=args.svo_max,
+        )
+        row = _common.run_worker(__file__, spec, timeout=3600, plain=env == "plain")
+        if "error" in row:
+            print(f"{mesh} {R} ({env}): {row['error']}", file=sys.stderr)
+            continue
+        key = lambda r: (
+            r["mesh"],
+            r["resolution"],
+            r.get("devices", 1),
+            r.get("backend", "cpu"),
+            r.get("environment", "huge pages"),
+        )
+        rows = [r for r in rows if key(r) != key(row)] + [row]
+        t = row["timings"]
+        print(
+            f"{mesh} {R}^3 ({env}): default call {t.get('primary/default', {}).get('mrays_s', 0):.2f}, "
+            f"DAG esvo {t['primary/dag-esvo']['mrays_s']:.2f}, stack "
+            f"{t['primary/dag-stack']['mrays_s']:.2f}, "
+            f"SVO esvo {t.get('primary/svo-esvo', {}).get('mrays_s', 0):.2f}, "
+            f"Embree {t['primary/embree']['mrays_s']:.2f} Mrays/s; agree "
+            f"{row['agreement']['pixels_agree']:.4f}",
+            flush=True,
+        )
+        _common.write_json(path, dict(machine=_common.machine_info(["jax", "embreex", "numpy"]), rows=rows))
+    rows.sort(key=lambda r: (r["mesh"], r["resolution"], r.get("environment", "huge pages")))
     columns = [
         ("mesh", "mesh"),
         ("resolution", "R"),
         ("devices", "devices"),
-        ("dag_esvo", "DAG esvo Mrays/s"),
+        ("environment", "process"),
+        ("default", "default call Mrays/s (first s)"),
+        ("of_embree", "of Embree"),
+        ("dag_esvo", "DAG esvo beam"),
         ("no_beam", "without beam"),
         ("dag_stack", "DAG stack"),
         ("svo_esvo", "SVO esvo"),
@@ -312,6 +338,11 @@ def main():
                 mesh=r["mesh"],
                 resolution=r["resolution"],
                 devices=r.get("devices", 1),
+                environment=r.get("environment", "huge pages"),
+                default=f"{rate('primary/default'):.2f} ({t['primary/default']['first_s']:.1f})"
+                if "primary/default" in t
+                else "-",
+                of_embree=f"{rate('primary/default') / rate('primary/embree'):.2f}" if "primary/default" in t else "-",
                 dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
                 no_beam=f"{rate('primary/dag-esvo-no-beam'):.2f}" if "primary/dag-esvo-no-beam" in t else "-",
                 dag_stack=f"{rate('primary/dag-stack'):.2f}",

@@ -50,10 +50,19 @@ def test_a_new_mesh_of_a_familiar_size_compiles_nothing(meshes_dir):
             dag, hit = _pipeline(mesh, 64)
         assert int(dag.voxel_count) > 0 and (np.asarray(hit.status) == jv.HIT).any()
         assert n[0] == 0, f"{n[0]} programs compiled for a mesh in the warmed-up buckets"
-    # Another image size with a ray count in the same bucket (1,200 rays against 1,536).
+    # Another image size with a ray count in the same bucket (1,200 rays against 1,536):
+    # the beam start's program, keyed by the image shape, compiles once; without the beam
+    # the rays are padded to their bucket and nothing compiles.
     origins, directions = jv.pinhole_rays(*jv.look_at_view(others[0]), width=40, height=30)
     with count_compiles() as n:
         hit = jv.trace(dag, origins, directions)
+    assert hit.t.shape == (30, 40) and n[0] == 1
+    with count_compiles() as n:
+        jv.trace(dag, origins, directions)
+    assert n[0] == 0
+    jv.trace(dag, *jv.pinhole_rays(*jv.look_at_view(others[0]), width=48, height=32), beam=False)
+    with count_compiles() as n:
+        hit = jv.trace(dag, origins, directions, beam=False)
     assert hit.t.shape == (30, 40) and n[0] == 0
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import os
 import subprocess
 import sys
@@ -370,6 +371,32 @@ def test_beam_start_changes_no_hit(scene, trees):
     assert_same(jitted, plain)
     away = jv.trace(trees["dag"], *_camera_rays((-20.0, -15.0, 40.0), (-60.0, -45.0, 80.0), 16, 16), beam=True)
     assert (np.asarray(away.status) == MISS).all()
+
+
+def test_beam_by_default_for_camera_rays(scene, trees, monkeypatch):
+    """The default `beam=None` takes the beam start for image-shaped rays (a camera's
+    [H, W, 3], a stack of images) and the plain loop for a list of rays or thin batches;
+    ``beam=False`` and ``beam=True`` override it. Hits are the same either way."""
+    api = importlib.import_module("jaxvox.trace.api")  # (`jaxvox.trace` is also the function)
+    chosen = []
+    layout = api.beam_layout
+    monkeypatch.setattr(api, "beam_layout", lambda batch, n: chosen.append(batch) or layout(batch, n))
+    o, d = _camera_rays((-20.0, -15.0, 40.0), scene[1].mean(0), 9, 10)
+    cases = [
+        ((o, d), {}, True),  # a camera image
+        ((o[None], d), {}, True),  # a stack of one image (origins broadcast)
+        ((o.reshape(-1, 3), d.reshape(-1, 3)), {}, False),  # the same rays as a list
+        ((o[:4], d[:4]), {}, False),  # 4 x 10: too thin for 8 x 8 tiles
+        ((o, d), dict(beam=False), False),
+        ((o.reshape(-1, 3), d.reshape(-1, 3)), dict(beam=True), True),
+    ]
+    for (a, b), options, beam in cases:
+        chosen.clear()
+        hit = jv.trace(trees["dag"], a, b, **options)
+        assert bool(chosen) == beam, (np.shape(a), options)
+        flat = jax.tree.map(lambda x: np.asarray(x).reshape((-1,) + np.shape(x)[hit.t.ndim :]), hit)
+        b_full = np.broadcast_to(b, np.broadcast_shapes(np.shape(a), np.shape(b)))
+        assert_matches(flat, scene[1], np.broadcast_to(a, b_full.shape).reshape(-1, 3), b_full.reshape(-1, 3))
 
 
 def test_beam_groups_round_trip():

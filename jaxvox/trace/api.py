@@ -17,7 +17,7 @@ from jaxvox._core.shapes import bucket
 from jaxvox.grid import Grid
 from jaxvox.octree import MISSING, CompactDag, Octree, voxel_index
 from jaxvox.octree.queries import check_indexed
-from jaxvox.trace.beam import beam_layout
+from jaxvox.trace.beam import beam_layout, image_shaped
 from jaxvox.trace.dda import DenseGrid
 from jaxvox.trace.driver import trace_rays
 from jaxvox.trace.ray import default_max_steps
@@ -77,7 +77,7 @@ def _check_rays(caller: str, origins, directions, t_max, lanes) -> None:
         if name != "t_max" and (np.ndim(a) < 1 or np.shape(a)[-1] != 3):
             raise refuse(f"{caller} {name}", "must have shape [..., 3]", np.shape(a))
     try:
-        np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
+        _batch_shape(origins, directions, t_max)
     except ValueError:
         raise refuse(
             f"{caller} origins, directions, t_max",
@@ -133,14 +133,15 @@ def trace(
     max_steps: int | None = None,
     lanes: int | None = 8192,
     shard: bool | None = None,
-    beam: bool = False,
+    beam: bool | None = None,
 ) -> Hit:
     """First voxel hit along each ray, front to back, in an SVO or a DAG (same code).
 
     Jittable and usable inside a caller's `jax.jit`; `method`, `max_steps`, `lanes` and
-    `shard` are static. Called on concrete rays without the beam, it pads the flattened
-    rays to the shape ladder first, so that similar ray counts (image sizes) share one
-    compiled program.
+    `shard` are static. Image-shaped rays (a camera's [H, W, 3]) take the beam start by
+    default, in a program keyed by their batch shape. Other concrete rays are flattened
+    and padded to the shape ladder first, so that similar ray counts share one compiled
+    program.
 
     Args:
       tree: an `Octree` from `build_octree` or `build_dag`, or a `CompactDag`
@@ -165,9 +166,14 @@ def trace(
         proves free (Laine and Karras' beam optimization; `jaxvox.trace.beam`). The
         groups are 8 x 8 tiles of the last two batch axes (so an image's rays, [H, W, 3],
         form coherent groups) or runs of 64 rays of a one-axis batch. Hits are the same
-        with and without it; incoherent groups simply gain nothing. Off by default: it
-        adds a program to a first compile and that program is keyed by the batch shape
-        (a new image size compiles, even with a ray count in a familiar bucket).
+        with and without it; incoherent groups simply gain nothing. Its program is keyed
+        by the batch shape: a new image size compiles once, even with a ray count in a
+        familiar bucket. The default None takes it for image-shaped rays
+        (`jaxvox.trace.beam.image_shaped`: at least two batch axes, the last two at
+        least 8 long, what `pinhole_rays` gives), where it pays and the rays go to the
+        devices without host copies (docs/benchmarks.md, ray traversal), and leaves it
+        off for other batches (a list of rays, [N, 3]), whose groups need not be
+        coherent and whose programs are shared by ray counts of one bucket.
 
     Returns:
       A `Hit` with the batch shape of the rays. With ``beam=True`` on concrete rays and
@@ -192,8 +198,13 @@ def trace(
         directions,
         t_max,
         shard,
-        beam=bool(beam),
+        beam=image_shaped(_batch_shape(origins, directions, t_max)) if beam is None else bool(beam),
     )
+
+
+def _batch_shape(origins, directions, t_max) -> tuple[int, ...]:
+    """The batch shape of rays (checked by `_check_rays` to broadcast)."""
+    return np.broadcast_shapes(np.shape(origins)[:-1], np.shape(directions)[:-1], np.shape(t_max))
 
 
 def _dense_index(dense, hit: Hit):

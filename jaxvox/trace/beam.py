@@ -114,6 +114,13 @@ def beam_layout(batch: tuple, n: int) -> tuple:
     return (1, 1, n, 1, BEAM_RAYS)
 
 
+def image_shaped(batch: tuple) -> bool:
+    """Whether rays of batch shape `batch` look like a camera's: at least two axes, the last
+    two at least `BEAM_SIDE` long (an image's [H, W] rays, or a stack of images). `trace`
+    uses the beam start for these unless told otherwise."""
+    return len(batch) >= 2 and min(batch[-2:]) >= BEAM_SIDE
+
+
 def slice_layout(layout: tuple, n: int) -> tuple:
     """The layout for a slice of `n` consecutive rays of a batch with `layout` (one
     device's share): rows of the same width from wherever the slice starts, the rays
