@@ -142,28 +142,25 @@ def test_octree_tracing_matches_plain(trees, name):
     assert np.asarray(fast_steps).mean() < np.asarray(plain_steps).mean()
 
 
-def test_gathering_the_slow_rays_changes_no_ray(trees):
-    """Rays run in stages: those still running are gathered into a batch `SHRINK` times
-    smaller, down to `MIN_BATCH` (`jaxvox._core.stages`). Staged (4096 -> 512 -> 64 rays) or
-    not, every ray ends with the same status, leaf and index, and the same distance and
-    normal up to float32 rounding (the stages are programs for other batch sizes, which
-    XLA may fuse differently; so may the refinement's evaluation count, by at most 2),
-    for the octree and for plain sphere tracing. Grazing rays on the csg scene take the
-    most steps."""
+def test_the_lane_count_changes_no_ray(trees):
+    """Rays run on persistent lanes fed from a queue (`jaxvox._core.lanes`). On 64 lanes
+    (each refilled as its ray ends) or one lane per ray, every ray ends with the same
+    status, leaf and index, and the same distance and normal up to float32 rounding (the
+    lane counts give programs of other sizes, which XLA may fuse differently; so may the
+    refinement's evaluation count, by at most 2), for the octree and for plain sphere
+    tracing. Grazing rays on the csg scene take the most steps."""
     import importlib
 
-    stages = importlib.import_module("jaxvox._core.stages")
     octree_module = importlib.import_module("jaxvox.sphere_tracing.octree")
     plain_module = importlib.import_module("jaxvox.sphere_tracing.analytic")
     n = 4096
-    assert stages.batch_sizes(n, 64) == [4096, 512, 64]
     scene, tree = SCENES["csg"], trees["csg"]
     o, d = _camera_rays(n, np.random.default_rng(7))
     o, d = jnp.asarray(o), jnp.asarray(d)
     args = (scene, tree, o, d, jnp.float32(6.0), jnp.float32(1e-4), jnp.float32(1.0))
     kw = dict(max_steps=512, max_leaves=256, method="esvo")
-    staged, staged_steps = octree_module._sphere_trace_octree(*args, **kw, min_batch=64)
-    whole, whole_steps = octree_module._sphere_trace_octree(*args, **kw, min_batch=n + 1)
+    staged, staged_steps = octree_module._sphere_trace_octree(*args, **kw, lanes=64)
+    whole, whole_steps = octree_module._sphere_trace_octree(*args, **kw, lanes=n)
     for field in ("status", "voxel", "index"):
         np.testing.assert_array_equal(np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)))
     for field in ("t", "normal"):
@@ -171,14 +168,14 @@ def test_gathering_the_slow_rays_changes_no_ray(trees):
             np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)), rtol=1e-6, atol=1e-6
         )
     moved = np.abs(np.asarray(staged_steps) - np.asarray(whole_steps))
-    assert moved.max() <= 2 and (moved > 0).mean() < 0.01, (moved.max(), moved.mean())
-    # The last stage did run: more than 64 rays take over 3x the median's rounds.
+    assert moved.max() <= 2 and (moved > 0).mean() < 0.03, (moved.max(), moved.mean())
+    # The lanes were refilled many times: more than 64 rays take over 3x the median's rounds.
     assert (np.asarray(whole_steps) > 3 * np.median(np.asarray(whole_steps))).sum() > 64
     # Plain sphere tracing: the loop's state ray for ray.
     u = o * 0 + d / jnp.linalg.norm(d, axis=-1, keepdims=True)
     plain = (scene, o, u, jnp.float32(0.0), jnp.float32(6.0), jnp.float32(1e-4), jnp.float32(1.0), 512)
-    staged = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=64))()
-    whole = jax.jit(lambda: plain_module.march_rays(*plain, min_batch=n + 1))()
+    staged = jax.jit(lambda: plain_module.march_rays(*plain, lanes=64))()
+    whole = jax.jit(lambda: plain_module.march_rays(*plain, lanes=n))()
     for field in ("status", "steps"):
         np.testing.assert_array_equal(np.asarray(getattr(staged, field)), np.asarray(getattr(whole, field)))
     hits = np.asarray(whole.status) == jv.HIT  # a miss's last t (past t_max) is not reported

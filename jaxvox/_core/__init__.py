@@ -7,7 +7,7 @@
 * `geometry`: kernels used by several modules (point-triangle distance, solid angle,
   safe norms);
 * `scan`: prefix sums and the compaction of marked rows (`cumsum`, `on_marked`);
-* `stages`: the staged batch loop whose slow rows are gathered into smaller batches;
+* `lanes`: the scheduler of the per-ray loops (persistent lanes fed from a queue);
 * `hit`: the `Hit` record every tracer returns and its statuses;
 * `buffers`: page-aligned and reserved host buffers, row joins, progress bars;
 * `devices`: work split over the JAX devices and tables shared by all of them;

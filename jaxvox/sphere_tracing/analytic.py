@@ -10,11 +10,10 @@ would end past ``t_max`` (the ray's, or an octree leaf's exit) is never checked,
 is taken as a plain step (and ``omega = 1``) instead: a ray that leaves
 ``[t_min, t_max]`` ends at a ``t`` its last sphere vouches for.
 
-Each ray steps a `NamedTuple` state with a step cap, the flattened batch at once; rays
-still running are gathered into smaller batches as the others end (`jaxvox._core.stages`:
-under `vmap` a `while_loop` stepped every ray until the slowest ended, 72-127 steps
-against a mean of 5-10 on the CSG scenes of `experiments/sdf_stability.py`). Rays that
-reach the cap report `STEP_CAP`, never a hit or a miss.
+Each ray steps a `NamedTuple` state with a step cap, on persistent lanes fed from a
+queue of the rays (`jaxvox._core.lanes`: under `vmap` a `while_loop` steps every ray
+until the slowest ends, and grazing rays take many times the mean). Rays that reach the
+cap report `STEP_CAP`, never a hit or a miss.
 
 **Hit refinement.** The loop stops where ``|f| < epsilon * max(t, 1)``, which at an
 incidence ``a`` (from the tangent plane) lies up to ``epsilon * max(t, 1) / sin(a)`` short
@@ -49,7 +48,7 @@ from jaxvox._core.checks import is_concrete
 from jaxvox._core.errors import JaxvoxError
 from jaxvox._core.geometry import safe_norm
 from jaxvox._core.hit import RUNNING
-from jaxvox._core.stages import MIN_BATCH, run_in_stages
+from jaxvox._core.lanes import run_states_in_lanes
 from jaxvox.sdf import SDF
 from jaxvox.trace import HIT, INVALID, MISS, STEP_CAP, Hit
 
@@ -111,11 +110,16 @@ def march_ray(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps):
     return jax.lax.while_loop(lambda s: s.status == RUNNING, step, _ray_start(o, u, t_min, t_max, relaxation))
 
 
-def march_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min_batch: int = MIN_BATCH):
+# Lanes of the sphere-tracing loops (`jaxvox._core.lanes`): rays stepped at once (on the
+# CPU, more lanes step more ended rays between refills; fewer pay more refills).
+LANES = 1024
+
+
+def march_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, lanes: int = LANES):
     """Sphere traces rays [n, 3] (unit directions) with scalar bounds; returns the final
-    `_State` [n]. Rays still running are gathered into smaller batches as the others end
-    (`jaxvox._core.stages`): a vmapped `march_ray` stepped every ray until the slowest ended.
-    """
+    `_State` [n]. The rays run on `lanes` persistent lanes fed from a queue
+    (`jaxvox._core.lanes`; a vmapped `march_ray` would step every ray until the slowest
+    ended)."""
 
     def step(oo, uu, s: _State) -> _State:
         return _ray_step(scene, oo, uu, t_min, t_max, epsilon, max_steps)(s)
@@ -127,7 +131,7 @@ def march_rays(scene, o, u, t_min, t_max, epsilon, relaxation, max_steps, *, min
         return jax.tree.map(lambda old, new: jnp.where(keep, old, new), s, stepped)
 
     start = jax.vmap(_ray_start, in_axes=(0, 0, None, None, None))(o, u, t_min, t_max, relaxation)
-    return run_in_stages(body, (o, u), start, idle=MISS, min_batch=min_batch)
+    return run_states_in_lanes(body, (o, u), start, lanes=lanes, idle=MISS, steps_per_refill=4)
 
 
 # Hit refinement, in units of |f| at the hit (see the module docstring).

@@ -17,8 +17,8 @@ sphere-traced only inside that leaf's box, and if it leaves the box without a hi
 traversal resumes where sphere tracing stopped. Empty space costs octree steps instead
 of scene evaluations. One traversal of the whole batch first ends the rays that enter
 no leaf; the loop then runs in rounds (one traversal and a leaf march of at most `MARCH`
-evaluations per round), over the whole batch while more than 1/8 of it runs, then over
-the rays still running gathered into smaller batches (`jaxvox._core.stages.run_in_stages`).
+evaluations per round) on persistent lanes fed from a queue of the rays that remain
+(`jaxvox._core.lanes`).
 """
 
 from __future__ import annotations
@@ -34,13 +34,14 @@ import numpy as np
 
 from jaxvox._core.checks import check_choice, check_int, check_number, check_type, refuse
 from jaxvox._core.hit import RUNNING
+from jaxvox._core.lanes import run_states_in_lanes
 from jaxvox._core.shapes import bucket
-from jaxvox._core.stages import MIN_BATCH, run_in_stages
 from jaxvox.grid import Grid
 from jaxvox.octree import Octree, build_dag, build_octree, voxel_index
 from jaxvox.sdf import SDF, lipschitz_bound
 from jaxvox.sdf.base import check_scene
 from jaxvox.sphere_tracing.analytic import (
+    LANES,
     checked_rays,
     march_ray,
     refine_hits,
@@ -157,8 +158,8 @@ def _exit_distance(grid: Grid, voxel, o, u):
 MARCH = 4
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps", "max_leaves", "method", "min_batch"))
-def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, max_leaves, method, min_batch):
+@functools.partial(jax.jit, static_argnames=("max_steps", "max_leaves", "method", "lanes"))
+def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, max_leaves, method, lanes):
     n = o.shape[0]
     nudge = 1e-4 * tree.grid.voxel_size  # past a leaf's exit face, so the next round leaves it
     bad = jnp.any(jnp.isnan(o), -1) | jnp.any(jnp.isnan(u), -1) | jnp.all(u == 0, -1)
@@ -213,9 +214,9 @@ def _octree_trace(scene, tree, o, u, t_max, epsilon, relaxation, *, max_steps, m
         t=jnp.where(entered, jnp.maximum(leaf.t - nudge, 0.0), state.t),
         status=jnp.where(running & ~entered, leaf.status, state.status).astype(jnp.int32),
     )
-    # Grazing rays enter tens of leaves where most stop in one or two: the running rays
-    # are gathered into smaller batches (`jaxvox._core.stages`).
-    return run_in_stages(body, (o, u), state, idle=MISS, min_batch=min_batch)
+    # Grazing rays enter tens of leaves where most stop in one or two: the rounds run on
+    # persistent lanes refilled after every round (`jaxvox._core.lanes`).
+    return run_states_in_lanes(body, (o, u), state, lanes=lanes, idle=MISS, steps_per_refill=1)
 
 
 def sphere_trace_octree(
@@ -287,12 +288,12 @@ def sphere_trace_octree(
     return (hit, steps.reshape(batch)) if return_steps else hit
 
 
-@functools.partial(jax.jit, static_argnames=("max_steps", "max_leaves", "method", "min_batch"))
+@functools.partial(jax.jit, static_argnames=("max_steps", "max_leaves", "method", "lanes"))
 def _sphere_trace_octree(
-    scene, tree, o, directions, t_max, epsilon, relaxation, *, max_steps, max_leaves, method, min_batch=MIN_BATCH
+    scene, tree, o, directions, t_max, epsilon, relaxation, *, max_steps, max_leaves, method, lanes=LANES
 ):
     """Flat [n] rays (any batch shape of the same size shares this compiled program);
-    `min_batch` is the smallest stage of `run_in_stages` (the tests compare stagings)."""
+    `lanes` is the lane count of `run_states_in_lanes` (the tests compare lane counts)."""
     u = unit_directions(directions)
     frozen = jax.lax.stop_gradient((scene, tree, o, u))
     final = _octree_trace(
@@ -303,7 +304,7 @@ def _sphere_trace_octree(
         max_steps=max_steps,
         max_leaves=max_leaves,
         method=method,
-        min_batch=min_batch,
+        lanes=lanes,
     )
     is_hit = final.status == HIT
     t, extra = refine_hits(frozen[0], frozen[2], frozen[3], final.t, final.d, is_hit & final.on_surface, 0.0, t_max)

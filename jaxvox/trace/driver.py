@@ -7,14 +7,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
 from jaxvox._core.devices import on_each_device
 from jaxvox._core.hit import HIT, MISS, RUNNING, STEP_CAP, Hit
-from jaxvox._core.scan import compact_indices
+from jaxvox._core.lanes import run_in_lanes
 from jaxvox.trace.beam import beam_starts, slice_layout
 from jaxvox.trace.dda import dda_init, dda_step, dda_voxel
 from jaxvox.trace.esvo import esvo_init, esvo_step, esvo_voxel
@@ -44,82 +43,23 @@ def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
     return jax.vmap(one)(rays, status)
 
 
-def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int, steps_per_refill: int = 8):
-    """Persistent lanes fed from a queue of the rays that enter the grid box; each round of
-    the loop runs `steps_per_refill` steps, then refills the lanes if enough have ended.
-
-    Returns (status [N], voxel [N, 3] mirrored).
-    """
+def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int):
+    """Persistent lanes fed from a queue of the rays that enter the grid box
+    (`jaxvox._core.lanes.run_in_lanes`). Returns (status [N], voxel [N, 3] mirrored)."""
     init, step, voxel = _METHODS[method]
-    n = status.shape[0]
-    running = status == RUNNING
-    queue = compact_indices(running, n)  # the rays that enter the grid box, in order
-    queued = jnp.sum(running)
-    lane_init = jax.vmap(lambda ray, st: init(structure, ray, st))
-    lane_step = jax.vmap(lambda ray, s: step(structure, ray, s))
-    take = lambda ids: jax.tree.map(lambda a: a[ids], (rays, status))
-
-    def fetch(ids, valid):
-        ray, st = take(jnp.where(valid, ids, 0))
-        return ray, lane_init(ray, jnp.where(valid, st, MISS))
-
-    class Carry(NamedTuple):
-        ids: jax.Array  # [W] int32 ray of each lane, n when idle
-        ray: Ray  # [W]
-        state: NamedTuple  # [W]
-        steps: jax.Array  # [W] int32
-        next: jax.Array  # [] int32 queue position of the next ray
-        out_status: jax.Array  # [N] int32
-        out_voxel: jax.Array  # [N, 3] int32
-
-    first = jnp.arange(lanes, dtype=jnp.int32)
-    valid = first < queued
-    ids0 = queue[jnp.minimum(first, n - 1)]
-    ray0, state0 = fetch(ids0, valid)
-    carry = Carry(
-        jnp.where(valid, ids0, n),
-        ray0,
-        state0,
-        jnp.zeros(lanes, jnp.int32),
-        jnp.minimum(queued, lanes),
-        jnp.where(running, RUNNING, status),
-        jnp.full((n, 3), -1, jnp.int32),
+    finish = jax.vmap(lambda s: (s.status, jnp.stack(voxel(structure, s))))
+    out = (status, jnp.full((status.shape[0], 3), -1, jnp.int32))
+    return run_in_lanes(
+        jax.vmap(lambda ray, st: init(structure, ray, st)),
+        jax.vmap(lambda ray, s: step(structure, ray, s)),
+        finish,
+        rays,
+        status,
+        out,
+        lanes=lanes,
+        idle=MISS,
+        max_steps=max_steps,
     )
-
-    def body(c: Carry) -> Carry:
-        # a loop, not unrolled: XLA would fuse consecutive steps and recompute each one
-        state = jax.lax.fori_loop(0, steps_per_refill, lambda _, s: lane_step(c.ray, s), c.state)
-        steps = c.steps + steps_per_refill
-        state = state._replace(
-            status=jnp.where((state.status == RUNNING) & (steps >= max_steps), STEP_CAP, state.status)
-        )
-        done = (state.status != RUNNING) & (c.ids < n)
-        # Refilling costs about two steps; it waits until an eighth of the lanes are done
-        # (ended rays keep their state meanwhile) or the queue is empty.
-        refill_now = (jnp.sum(done) * 8 >= lanes) | (c.next >= queued)
-        return jax.lax.cond(refill_now, refill, lambda c, s, t, _: c._replace(state=s, steps=t), c, state, steps, done)
-
-    def refill(c: Carry, state, steps, done) -> Carry:
-        slot = jnp.where(done, c.ids, n)
-        out_status = c.out_status.at[slot].set(state.status, mode="drop")
-        out_voxel = c.out_voxel.at[slot].set(jax.vmap(lambda s: jnp.stack(voxel(structure, s)))(state), mode="drop")
-        pos = c.next + jnp.cumsum(done) - 1
-        fresh = done & (pos < queued)
-        new_ids = queue[jnp.clip(pos, 0, n - 1)]
-        new_ray, new_state = fetch(new_ids, fresh)
-        refill = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
-        return Carry(
-            jnp.where(fresh, new_ids, jnp.where(done, n, c.ids)),
-            jax.tree.map(refill, new_ray, c.ray),
-            jax.tree.map(refill, new_state, state),
-            jnp.where(done, 0, steps),
-            c.next + jnp.sum(done),
-            out_status,
-            out_voxel,
-        )
-
-    c = jax.lax.while_loop(lambda c: jnp.any(c.ids < n), body, carry)
-    return c.out_status, c.out_voxel
 
 
 def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
