@@ -313,7 +313,7 @@ def main():
         ("resolution", "R"),
         ("devices", "devices"),
         ("environment", "process"),
-        ("default", "default call Mrays/s (first s)"),
+        ("default", "default call Mrays/s"),
         ("of_embree", "of Embree"),
         ("dag_esvo", "DAG esvo beam"),
         ("no_beam", "without beam"),
@@ -339,9 +339,7 @@ def main():
                 resolution=r["resolution"],
                 devices=r.get("devices", 1),
                 environment=r.get("environment", "huge pages"),
-                default=f"{rate('primary/default'):.2f} ({t['primary/default']['first_s']:.1f})"
-                if "primary/default" in t
-                else "-",
+                default=f"{rate('primary/default'):.2f}" if "primary/default" in t else "-",
                 of_embree=f"{rate('primary/default') / rate('primary/embree'):.2f}" if "primary/default" in t else "-",
                 dag_esvo=f"{rate('primary/dag-esvo'):.2f}",
                 no_beam=f"{rate('primary/dag-esvo-no-beam'):.2f}" if "primary/dag-esvo-no-beam" in t else "-",
