@@ -75,7 +75,8 @@ class Grid:
           padding: extra margin on each side, as a fraction of the largest extent (>= 0).
 
         Raises:
-          JaxvoxError: bad resolution or padding, empty or non-finite vertices.
+          JaxvoxError: bad resolution or padding, empty or non-finite vertices, or a
+            box beyond float32's range.
         """
         resolution = check_resolution(resolution)
         padding = check_number("Grid.fit padding", padding, minimum=0.0)
@@ -91,8 +92,10 @@ class Grid:
         lo, hi = v.min(0), v.max(0)
         extent = float((hi - lo).max())
         extent = extent * (1.0 + 2.0 * padding) if extent > 0 else 1.0
-        h = np.float32(extent / resolution)
         origin = (lo + hi) / 2 - extent / 2
+        if max(np.abs(origin).max(), np.abs(origin + extent).max(), extent / resolution) > np.finfo(np.float32).max:
+            raise refuse("Grid.fit mesh", "has coordinates beyond float32's range", (lo, hi))
+        h = np.float32(extent / resolution)
         return cls(origin=origin.astype(np.float32), voxel_size=h, resolution=resolution)
 
     def to_grid_units(self, points: jax.Array) -> jax.Array:

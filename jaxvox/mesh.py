@@ -89,6 +89,10 @@ def _numeric(what: str, value, dtype) -> jax.Array:
             raise refuse(what, "must hold integer vertex indices", a[~whole].ravel()[0])
     if dtype == jnp.int32 and a.size and (a.min() < np.iinfo(np.int32).min or a.max() > np.iinfo(np.int32).max):
         raise refuse(what, "vertex indices must fit in int32", a.max() if a.max() > 0 else a.min())
+    if dtype == jnp.float32 and a.dtype.kind == "f" and a.size:
+        finite = a[np.isfinite(a)]
+        if finite.size and np.abs(finite).max() > np.finfo(np.float32).max:
+            raise refuse(what, "has values beyond float32's range", np.abs(finite).max())
     return jnp.asarray(a, dtype)
 
 
