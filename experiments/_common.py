@@ -42,6 +42,24 @@ MESH_DIR = REPO_ROOT.parent / "shared" / "meshes"
 RESULTS_DIR = REPO_ROOT / "experiments" / "results"
 
 
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_compiled: list[float] | None = None
+
+
+def compile_count() -> int:
+    """XLA compilations in this process so far (counted from the first call on, through
+    `jax.monitoring`; call it once before the work to count)."""
+    global _compiled
+    if _compiled is None:
+        import jax
+
+        _compiled = []
+        jax.monitoring.register_event_duration_secs_listener(
+            lambda name, secs, **kw: _compiled.append(secs) if name == COMPILE_EVENT else None
+        )
+    return len(_compiled)
+
+
 def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[dict, Any]:
     """Times a warm-up call and then `repeats` further calls of `fn`.
 
@@ -50,12 +68,16 @@ def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[dict, Any]:
 
     Returns:
       (timing, result): timing holds `first_s` (the warm-up call, which includes any
-      compilation), `times_s` (the repeats), `median_s`, and `compile_s` = first call
-      minus median (clipped at 0); result is the last call's return value.
+      compilation), `times_s` (the repeats), `median_s`, `compile_s` = first call
+      minus median (clipped at 0), and `compiles_first` and `compiles_warm`, the XLA
+      compilations in the first call and in the repeats (`compile_count`); result is
+      the last call's return value.
     """
+    compiled = compile_count()
     start = time.perf_counter()
     result = fn()
     first = time.perf_counter() - start
+    compiles_first, compiled = compile_count() - compiled, compile_count()
     times = []
     for _ in range(repeats):
         result = None  # free the previous result first: peak memory is one call's
@@ -63,7 +85,14 @@ def time_calls(fn: Callable[[], Any], repeats: int) -> tuple[dict, Any]:
         result = fn()
         times.append(time.perf_counter() - start)
     median = statistics.median(times) if times else first
-    timing = dict(first_s=first, times_s=times, median_s=median, compile_s=max(first - median, 0.0))
+    timing = dict(
+        first_s=first,
+        times_s=times,
+        median_s=median,
+        compile_s=max(first - median, 0.0),
+        compiles_first=compiles_first,
+        compiles_warm=compile_count() - compiled,
+    )
     return timing, result
 
 

@@ -51,7 +51,6 @@ import numpy as np
 from _point_methods import METHODS, inside_of
 
 SUMMARY = ("first_s", "warm_s", "sign_disagree_pct", "max_dist_err_rel")
-COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 PACKAGES = ["jax", "jaxlib", "numpy", "libigl", "open3d", "warp-lang", "fcpw", "pysdf", "mesh-to-sdf", "trimesh"]
 
 
@@ -77,10 +76,10 @@ def accuracy(kind, values, ref) -> dict:
     return out
 
 
-def run_method(name, V, F, P, ref, repeats, count=None):
+def run_method(name, V, F, P, ref, repeats):
     """First call (build + query), warm queries (median), build alone; accuracy. In this process."""
     setup, query = METHODS[name]
-    compiles = (lambda: len(count)) if count is not None else (lambda: 0)
+    compiles = _common.compile_count if name.startswith("jaxvox") else (lambda: 0)
     c0, t0 = compiles(), time.perf_counter()
     state = setup(V, F)
     build_first = time.perf_counter() - t0
@@ -108,22 +107,11 @@ def run_method(name, V, F, P, ref, repeats, count=None):
     return row
 
 
-def compile_listener():
-    import jax
-
-    events = []
-    jax.monitoring.register_event_duration_secs_listener(
-        lambda n, s, **kw: events.append(s) if n == COMPILE_EVENT else None
-    )
-    return events
-
-
 def worker(spec: dict) -> dict:
     data = dict(np.load(spec["data"]))
     ref = dict(sub=data["sub"], w=data["w"], dsub=data["dsub"], d=data["d"], diag=float(data["diag"]))
-    count = compile_listener() if spec["method"].startswith("jaxvox") else None
     try:
-        return run_method(spec["method"], data["V"], data["F"], data["P"], ref, spec["repeats"], count)
+        return run_method(spec["method"], data["V"], data["F"], data["P"], ref, spec["repeats"])
     except Exception as e:
         return dict(method=spec["method"], unavailable=f"{type(e).__name__}: {e}"[:400])
 
@@ -135,20 +123,19 @@ def compile_check(spec: dict) -> dict:
     import jaxvox as jv
     import jaxvox.points as jp
 
-    count = compile_listener()
     rng = np.random.default_rng(1)
     out = dict(meshes=spec["compile_check"], points=spec["points"])
     for mesh_name in spec["compile_check"]:
         mesh = jv.load_mesh(_common.MESH_DIR / f"{mesh_name}.obj")
         P = box_points(np.asarray(mesh.vertices), spec["points"], rng)
-        c0 = len(count)
+        c0 = _common.compile_count()
         idx = jax.block_until_ready(jp.mesh_index(mesh))
         out[f"{mesh_name}_faces"] = int(np.asarray(mesh.faces).shape[0])
-        out[f"compiles/{mesh_name}/mesh_index"] = len(count) - c0
+        out[f"compiles/{mesh_name}/mesh_index"] = _common.compile_count() - c0
         for name in [m for m in METHODS if m.startswith("jaxvox")]:
-            c0 = len(count)
+            c0 = _common.compile_count()
             METHODS[name][1](idx, P)
-            out[f"compiles/{mesh_name}/{name}"] = len(count) - c0
+            out[f"compiles/{mesh_name}/{name}"] = _common.compile_count() - c0
     return out
 
 
