@@ -226,7 +226,8 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).tolist()
     rows = triangle_rows(padded_tris)
     rows[:3, ~valid] = FAR
-    put = lambda x, dtype=np.float32: jax.device_put(np.ascontiguousarray(x, dtype))  # no conversion program
+    # no conversion program; (ascontiguousarray makes scalars [1])
+    put = lambda x, dtype=np.float32: jax.device_put(np.ascontiguousarray(x, dtype).reshape(np.shape(x)))
     leaf_major = lambda x, dtype=np.float32: put(x.reshape(len(x), -1, FAN_OUT).transpose(1, 0, 2), dtype)
     table = lambda i: np.concatenate([level[i] for level in levels])
     frames = _oriented_boxes(padded_tris, valid, len(levels))

@@ -47,7 +47,7 @@ from jaxvox._core.errors import JaxvoxError
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket
 from jaxvox.mesh import Mesh
-from jaxvox.points import closest, search, winding
+from jaxvox.points import closest, search, sides, winding
 from jaxvox.points.index import MeshIndex, mesh_index
 
 Sign = Literal["winding", "pseudonormal"]
@@ -57,6 +57,7 @@ DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
 SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
+GRID_MIN = 1 << 16  # points per call at least for sides from cells (`jaxvox.points.sides`)
 
 
 class PointStatus(enum.IntEnum):
@@ -311,6 +312,32 @@ def _settled_winding(index: MeshIndex, flat):
     return jnp.asarray(w, jnp.float32), lost
 
 
+def _grid_winding(index: MeshIndex, flat):
+    """Stand-ins for winding numbers [n] float32 (host, finite points [n, 3]) that give each
+    point's side: 1 or 0 where `jaxvox.points.sides` certifies it (then ``|w - 1/2| >
+    sides.MARGIN``), the settled winding number elsewhere; and lost [n] bool."""
+    points = np.asarray(flat, np.float32)
+    side = sides.grid_sides(index, points)
+    w = side.astype(np.float32)
+    lost = np.zeros(len(points), bool)
+    again = np.flatnonzero((side < 0) & np.all(np.isfinite(points), -1))
+    if len(again):
+        subset = np.repeat(points[again[:1]], bucket(len(again)), 0)  # padded: programs per bucket
+        subset[: len(again)] = points[again]
+        w_again, lost_again = _settled_winding(index, jax.device_put(subset))
+        w[again] = np.asarray(w_again)[: len(again)]
+        lost[again] = np.asarray(lost_again)[: len(again)]
+    return jnp.asarray(w), jnp.asarray(lost)
+
+
+def _sides_winding(index: MeshIndex, flat):
+    """Winding numbers, or stand-ins with the same sides (`_grid_winding`) for many
+    concrete points, and lost [n]: for answers that need the side only."""
+    if _host(index, flat) and flat.shape[0] >= GRID_MIN:
+        return _grid_winding(index, flat)
+    return _settled_winding(index, flat)
+
+
 def winding_number(
     mesh: Mesh | MeshIndex,
     points: Float32[ArrayLike, "*b 3"],
@@ -381,6 +408,12 @@ def query_points(
     batch, flat = _points("query_points points", points)
     check_choice("query_points sign", sign, SIGNS)
     margin = check_number("query_points margin", margin, minimum=0.0)
+    return _query(index, flat, batch, sign=sign, margin=margin, winding_numbers=True)
+
+
+def _query(index: MeshIndex, flat, batch, *, sign: str, margin: float, winding_numbers: bool) -> PointQuery:
+    """`query_points` of flattened points; without `winding_numbers` the ``winding`` field
+    only has the right side of 1/2 (`_sides_winding`)."""
     if flat.shape[0] == 0:
         z = jnp.zeros(batch, jnp.float32)
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
@@ -388,7 +421,7 @@ def query_points(
     w = jnp.zeros(flat.shape[0], jnp.float32)
     by_sides = sign == "winding" and _host(index) and bool(index.closed)
     if sign == "winding" and not by_sides:
-        w, lost_w = _settled_winding(index, flat)
+        w, lost_w = _settled_winding(index, flat) if winding_numbers else _sides_winding(index, flat)
         lost = lost | lost_w
     answer = _answer(index, flat, slot, finite, lost, w, jnp.asarray(by_sides), sign=sign, margin=margin)
     return _unflatten(answer, batch)
@@ -444,7 +477,10 @@ def signed_distance(
     Returns:
       [*b] float32 (NaN for non-finite points). `query_points` also gives statuses.
     """
-    return query_points(mesh, points, sign=sign).signed_distance
+    index = _as_index("signed_distance mesh", mesh)
+    batch, flat = _points("signed_distance points", points)
+    check_choice("signed_distance sign", sign, SIGNS)
+    return _query(index, flat, batch, sign=sign, margin=0.01, winding_numbers=False).signed_distance
 
 
 def occupancy(
@@ -468,5 +504,5 @@ def occupancy(
     if flat.shape[0] == 0:
         return jnp.zeros(batch, bool)
     finite = jnp.all(jnp.isfinite(flat), -1)
-    w, _ = _settled_winding(index, jnp.where(finite[:, None], flat, index.centre))
+    w, _ = _sides_winding(index, jnp.where(finite[:, None], flat, index.centre))
     return ((w > 0.5) & finite).reshape(batch)
