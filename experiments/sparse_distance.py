@@ -97,7 +97,7 @@ def worker(spec: dict) -> dict:
     mesh = jv.load_mesh(spec["mesh"])
     grid = jv.Grid.fit(mesh, resolution=spec["resolution"])
     kw = dict(band=spec["band"], signed=spec["signed"])
-    field_bytes = lambda f: sum(x.nbytes for x in jax.tree.leaves(f))
+    field_bytes = lambda f: f.memory()["total"]
     if spec["stream"]:  # region by region, each region's field dropped once counted
 
         def run():
@@ -119,6 +119,7 @@ def worker(spec: dict) -> dict:
             voxels=n,
             value_bytes=4 * n,
             field_mib=total / 2**20,
+            memory=None if field is None else field.memory(),  # bytes by part (SparseField.memory)
             peak_rss_mib=_common.peak_rss_mib(),
             streamed=spec["stream"],
         ),

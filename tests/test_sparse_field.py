@@ -153,6 +153,20 @@ def test_open_meshes_signed_by_winding_numbers():
     field = jv.sparse_distance_field(cut, grid, band=2)
     check_field(cut, grid, field)
     assert (np.asarray(field.values[: int(field.count)]) < 0).any()
+    _check_memory(field)
+
+
+def _check_memory(field):
+    """`SparseField.memory` accounts for every byte of the pytree, part by part."""
+    memory = field.memory()
+    capacity = field.voxels.capacity
+    assert memory["coords"] == 12 * capacity and memory["values"] == 4 * capacity
+    assert memory["triangles"] == 4 * capacity  # the closest triangle per slot
+    assert memory["topology"] == field.tree.nbytes > 0
+    leaves = jax.tree_util.tree_leaves(field)
+    assert memory["total"] == sum(x.nbytes for x in leaves)
+    assert 0 <= memory["other"] < 1024  # counts, flags, the grid
+    assert memory["per_voxel"] == memory["total"] / int(field.count) >= 20  # coords + value + triangle
 
 
 def test_large_triangles_are_tiled():

@@ -112,6 +112,23 @@ class SparseField:
         """[] int32 number of band voxels."""
         return self.voxels.count
 
+    def memory(self) -> dict[str, float]:
+        """Bytes the field holds, by part (host ints; buffers at their capacity, padding
+        included): ``coords`` (int32 ijk per slot), ``triangles`` (int32 closest triangle
+        per slot, if kept), ``values`` (float32 per slot), ``topology`` (the DAG's tables:
+        `Octree.nbytes`), ``other`` (counts, flags and the grid), ``total`` (every array
+        leaf of the pytree), and ``per_voxel`` (total over the band voxels)."""
+        parts = {
+            "coords": self.voxels.coords.nbytes,
+            "triangles": 0 if self.voxels.triangle is None else self.voxels.triangle.nbytes,
+            "values": self.values.nbytes,
+            "topology": self.tree.nbytes,
+        }
+        total = sum(x.nbytes for x in jax.tree_util.tree_leaves(self))
+        out: dict[str, float] = dict(parts, other=total - sum(parts.values()), total=total)
+        out["per_voxel"] = total / max(int(self.count), 1)
+        return out
+
 
 # --------------------------------------------------------------------------------------
 # Jitted core (static shapes: SLOTS, UNITS, TILE^3, bucketed face counts)

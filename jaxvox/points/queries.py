@@ -58,6 +58,7 @@ REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host AP
 WINDING_BLOCK = 32  # points per block of the winding-number search
 SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
 GRID_MIN = 1 << 16  # points per call at least for sides from cells (`jaxvox.points.sides`)
+EXACT_BUDGET = 1 << 27  # (points x faces) that the cells leave open, summed exactly at most
 
 
 class PointStatus(enum.IntEnum):
@@ -293,13 +294,6 @@ def _fast_winding(index: MeshIndex, flat, beta: float):
     return _searched("winding", _winding_body, index, flat, WINDING_BLOCK, beta=beta)
 
 
-def _exact_winding(index: MeshIndex, flat) -> np.ndarray:
-    """Exact winding numbers [n] float64 (host) of points [n, 3] (float64 near 1/2)."""
-    from jaxvox.distance.winding import exact_winding_numbers
-
-    return exact_winding_numbers(winding.tree_triangles(index), np.asarray(flat, np.float64))
-
-
 def _settled_winding(index: MeshIndex, flat):
     """Winding numbers [n] and lost [n]: fast, then on concrete inputs refined near 1/2."""
     (w, _), lost = _fast_winding(index, flat, 2.0)
@@ -308,20 +302,24 @@ def _settled_winding(index: MeshIndex, flat):
     w = np.array(w, np.float64)
     again = np.flatnonzero(np.abs(w - 0.5) < REFINE)
     if len(again):
-        w[again] = _exact_winding(index, np.asarray(flat)[again])
+        w[again] = winding.exact_winding(index, np.asarray(flat)[again])
     return jnp.asarray(w, jnp.float32), lost
 
 
 def _grid_winding(index: MeshIndex, flat):
     """Stand-ins for winding numbers [n] float32 (host, finite points [n, 3]) that give each
     point's side: 1 or 0 where `jaxvox.points.sides` certifies it (then ``|w - 1/2| >
-    sides.MARGIN``), the settled winding number elsewhere; and lost [n] bool."""
+    sides.MARGIN``), elsewhere the exact winding number (up to `EXACT_BUDGET` point-face
+    pairs: one compiled program per face capacity, where the tree walk would add its own)
+    or the settled one; and lost [n] bool."""
     points = np.asarray(flat, np.float32)
     side = sides.grid_sides(index, points)
     w = side.astype(np.float32)
     lost = np.zeros(len(points), bool)
     again = np.flatnonzero((side < 0) & np.all(np.isfinite(points), -1))
-    if len(again):
+    if len(again) and len(again) * index.capacity <= EXACT_BUDGET:  # a few: summed exactly
+        w[again] = winding.exact_winding(index, points[again])
+    elif len(again):
         subset = np.repeat(points[again[:1]], bucket(len(again)), 0)  # padded: programs per bucket
         subset[: len(again)] = points[again]
         w_again, lost_again = _settled_winding(index, jax.device_put(subset))
@@ -377,7 +375,7 @@ def winding_number(
         if not _host(index, flat):
             raise refuse("winding_number mode", "'exact' runs on the host: not inside jit", mode)
         safe = np.where(np.asarray(finite)[:, None], np.asarray(flat), 0.0)
-        w = jnp.asarray(_exact_winding(index, safe), jnp.float32)
+        w = jnp.asarray(winding.exact_winding(index, safe), jnp.float32)
         bound = jnp.zeros_like(w)
     else:
         (w, bound), _ = _fast_winding(index, flat, beta)

@@ -14,18 +14,33 @@ computed at one cell centre of each (exact winding sums). At a point in a free c
 caps' winding number is bounded by area over squared distance,
 ``|W_caps(x)| <= sum_g A_g / (4 pi d_g(x)^2)`` over groups ``g`` of caps inside balls
 (``d_g`` the distance to the ball), so where that bound is below ``|W - 1/2| - MARGIN``
-the side is ``W``'s (inside iff ``W >= 1``) and ``|w - 1/2| > MARGIN``. Every other point
-(in or next to a surface cell, close to a cap, in a component whose ``W`` did not come out
-an integer) is left to the winding-number path (`jaxvox.points.queries`).
+the side is ``W``'s (inside iff ``W >= 1``) and ``|w - 1/2| > MARGIN``.
 
-Cost: voxelizing mesh and caps at ``R^3`` and labelling ``R^3`` cells on the host, once per
-(index, R) and cached beside the index; then per point a cell lookup and the cap bound (one
-compiled program per (R, point count bucket)). Memory: one int8 per cell.
+**Next to the surface** (`_walked_sides`, for the points the cells left open): each
+uncertain cell keeps the shortest walk along an axis (at most `RUN` cells) to a certain
+cell, and the triangles whose boxes meet it. ``W`` at the point is the certain cell's
+plus the signed crossings of the axis-parallel segment from the point to that cell (a
+triangle crossed along its normal adds 1): a 2D point-in-triangle test in the plane
+across the axis, each crossing counted in the one cell that holds it. A crossing within
+`TOLERANCE` of a triangle edge, of a cell face or of the point itself, a nearly edge-on
+triangle, or a crowded cell (more than `PER_CELL` triangles) leaves the point uncertain.
+There the caps' winding number is summed exactly (up to `CAP_EXACT` cap triangles), so
+``w = W - W_caps`` decides wherever it is `MARGIN` away from 1/2. What is still open (on
+the surface, a walk that failed, a mesh with thousands of holes) is left to the
+winding-number path (`jaxvox.points.queries`).
+
+Cost: voxelizing mesh and caps at ``R^3``, labelling ``R^3`` cells and listing the
+triangles of the uncertain cells on the host, once per (index, R) and cached beside the
+index; then per point a cell lookup and the cap bound, and for the points next to the
+surface (a few percent) ``RUN x PER_CELL`` crossing tests and the caps' solid angles; one
+compiled program each per (R, point count bucket). Memory: an int8 and an int32 per cell,
+plus the uncertain cells' walks and triangle lists.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import weakref
 
 import jax
@@ -36,21 +51,24 @@ from jaxvox._core.geometry import morton_order, solid_angle
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket
 from jaxvox.distance.topology import boundary_chain, connected_components, welded_faces
-from jaxvox.distance.winding import exact_winding_numbers, host_winding_numbers
+from jaxvox.distance.winding import host_winding_numbers
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
 from jaxvox.points.index import MeshIndex
-from jaxvox.points.winding import tree_triangles
+from jaxvox.points.winding import exact_winding
 
 UNKNOWN = -128  # int8 cell value: a surface cell, one next to it, or a component without a certain W
 MARGIN = 0.05  # certified points have |w - 1/2| above this
-CAP_GROUPS = 64  # at most this many balls bound the caps (loops grouped along a Morton curve)
+CAP_GROUPS = 16  # balls bounding the caps (loops grouped along a Morton curve when more)
 PAD_CELLS = 2  # free cells around the mesh's box on each side
 RESOLUTION = 128  # cells per axis
 RUN = 4  # the longest walk from an uncertain cell to a certain one
 PER_CELL = 16  # triangles per cell on a walk; a cell with more leaves the point uncertain
 CAP_EXACT = 4096  # the most cap triangles summed exactly per point
 MAX_PAIRS = 1 << 25  # (cell, triangle) pairs listed at most
+# the smallest table sizes (then the ladder): meshes up to about these sizes share programs
+FLOORS = {"walks": 1 << 18, "lists": 1 << 20, "corners": 1 << 17, "caps": 256}
+WALK_CHUNK = 1 << 16  # points per call of the walk
 TOLERANCE = 1e-3  # crossings this close (in cells, or relative) to an edge, a cell face or the point are uncertain
 
 
@@ -121,8 +139,8 @@ def _welded_positions(v: np.ndarray) -> np.ndarray:
 
 
 def _cap_balls(tris: np.ndarray, loop: np.ndarray) -> np.ndarray:
-    """[G, 5] float32 balls (centre, radius, area / 4 pi) bounding the caps, G <= `CAP_GROUPS`
-    groups of whole loops, padded to the ladder with area 0."""
+    """[CAP_GROUPS, 5] float32 balls (centre, radius, area / 4 pi) bounding the caps, each
+    a group of whole loops; unused rows have area 0."""
     loops = int(loop.max()) + 1 if len(loop) else 0
     area = 0.5 * np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
     centre = tris[:, 2]  # each loop's centroid o: every cap triangle lies in the ball about it
@@ -136,7 +154,7 @@ def _cap_balls(tris: np.ndarray, loop: np.ndarray) -> np.ndarray:
     if loops > CAP_GROUPS:
         group[morton_order(loop_centre)] = np.arange(loops) * CAP_GROUPS // loops
     groups = int(group.max()) + 1 if loops else 0
-    out = np.zeros((bucket(groups, 1), 5))
+    out = np.zeros((CAP_GROUPS, 5))
     for g in range(groups):
         members = group == g
         c = loop_centre[members].mean(0)
@@ -193,7 +211,7 @@ def _component_windings(index: MeshIndex, caps: np.ndarray, grid: Grid, free: np
     first = _first_cells(labels, components)
     ijk = np.stack(np.unravel_index(first, labels.shape), 1)
     centres = np.asarray(grid.origin, np.float64) + (ijk + 0.5) * float(grid.voxel_size)
-    total = exact_winding_numbers(tree_triangles(index), centres)
+    total = exact_winding(index, centres)
     if len(caps):
         total += host_winding_numbers(caps, centres)
     w = np.round(total)
@@ -274,16 +292,20 @@ def _build(index: MeshIndex, resolution: int) -> SideGrid:
     slot, walk = _walks(winding, resolution)
     tris = np.concatenate([vertices[faces], caps]) - origin
     first, triangles = _cell_triangles(tris, slot, cell, resolution)
-    exact_caps = np.zeros((bucket(len(caps), 1) if len(caps) <= CAP_EXACT else 0, 9), np.float32)
+    exact_caps = np.zeros((bucket(len(caps), FLOORS["caps"]) if len(caps) <= CAP_EXACT else 0, 9), np.float32)
     exact_caps[: len(caps) if len(exact_caps) else 0] = (caps - origin).reshape(-1, 9)[: len(exact_caps)]
     put = jax.device_put
+    # tables padded to the ladder (one program for meshes of any size); the last walk row
+    # (zeros: no walk) is for points without a slot
+    rows = bucket(len(walk) + 1, FLOORS["walks"])
+    pad = lambda x, n, fill=0: np.concatenate([x, np.full((n - len(x),) + x.shape[1:], fill, x.dtype)])
     return SideGrid(
         winding=put(winding),
         slot=put(slot),
-        walk=put(np.concatenate([walk, np.zeros((1, 4), np.int32)])),  # a row for no slot
-        first=put(first),
-        triangles=put(triangles),
-        corners=put(tris.reshape(-1, 9).astype(np.float32)),
+        walk=put(pad(walk, rows)),
+        first=put(pad(first, rows + 1, first[-1])),
+        triangles=put(pad(triangles, bucket(len(triangles), FLOORS["lists"]))),
+        corners=put(pad(tris.reshape(-1, 9).astype(np.float32), bucket(len(tris), FLOORS["corners"]))),
         caps=put(exact_caps),
         balls=put(_cap_balls(caps - origin, loop)),
         origin=put(np.asarray(grid.origin, np.float32)),
@@ -292,32 +314,33 @@ def _build(index: MeshIndex, resolution: int) -> SideGrid:
     )
 
 
-def _cell_of(g: SideGrid, rel):
-    """(ijk [n, 3] int32 clipped, flat [n] int32, in_grid [n] bool) of positions rel [n, 3]."""
-    r = g.resolution
-    ijk = jnp.floor(rel / g.cell)
+def _cell_of(cell, r: int, rel):
+    """(ijk [n, 3] int32 clipped, flat [n] int32, in_grid [n] bool) of positions rel [n, 3]
+    in R = `r` cells of edge `cell` per axis."""
+    ijk = jnp.floor(rel / cell)
     in_grid = jnp.all((ijk >= 0) & (ijk < r), -1)
     ijk = jnp.clip(ijk, 0, r - 1).astype(jnp.int32)
     return ijk, (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], in_grid
 
 
-def _cap_bound(g: SideGrid, rel):
-    """[n] float32 upper bound on |W_caps| at positions rel [n, 3] (inf inside a ball)."""
-    b = g.balls
+def _cap_bound(b, rel):
+    """[n] float32 upper bound on |W_caps| at positions rel [n, 3] (inf inside a ball) from
+    the balls b [G, 5] (`SideGrid.balls`)."""
     d = jnp.sqrt(jnp.sum((rel[:, None, :] - b[None, :, :3]) ** 2, -1)) - b[None, :, 3]
     term = jnp.where(d > 0, b[None, :, 4] / jnp.where(d > 0, d * d, 1.0), jnp.inf)
     return jnp.sum(jnp.where(b[None, :, 4] > 0, term, 0.0), -1)
 
 
-@jax.jit
-def _cell_sides(g: SideGrid, points):
-    """[n] int8 sides of points [n, 3] (world) from their cells: 1 inside, 0 outside, -1
+@functools.partial(jax.jit, static_argnames="resolution")
+def _cell_sides(winding, balls, origin, cell, points, *, resolution: int):
+    """[n] int8 sides of points [n, 3] (world) from their cells (`SideGrid` fields; not the
+    whole grid, whose other tables' sizes would key the program): 1 inside, 0 outside, -1
     not certain (non-finite points too)."""
-    rel = points - g.origin
-    _, flat, in_grid = _cell_of(g, rel)
-    w = jnp.where(in_grid, g.winding[flat], 0).astype(jnp.int32)
+    rel = points - origin
+    _, flat, in_grid = _cell_of(cell, resolution, rel)
+    w = jnp.where(in_grid, winding[flat], 0).astype(jnp.int32)
     finite = jnp.all(jnp.isfinite(points), -1)
-    certain = finite & (w != UNKNOWN) & (_cap_bound(g, rel) < jnp.abs(w - 0.5) - MARGIN)
+    certain = finite & (w != UNKNOWN) & (_cap_bound(balls, rel) < jnp.abs(w - 0.5) - MARGIN)
     return jnp.where(certain, (w >= 1).astype(jnp.int8), jnp.int8(-1))
 
 
@@ -349,7 +372,7 @@ def _walked_sides(g: SideGrid, rel):
     """[m] int8 sides (1, 0, -1 not certain) of finite positions rel [m, 3] (relative to the
     grid's origin): ``W`` of their cell, or of the end of their cell's walk plus the signed
     crossings on the way; then ``w = W - W_caps`` with the caps summed exactly."""
-    ijk, flat, in_grid = _cell_of(g, rel)
+    ijk, flat, in_grid = _cell_of(g.cell, g.resolution, rel)
     w_cell = jnp.where(in_grid, g.winding[flat], 0).astype(jnp.int32)
     s = jnp.where(in_grid, g.slot[flat], -1)
     walk = g.walk[jnp.where(s >= 0, s, g.walk.shape[0] - 1)]
@@ -393,7 +416,7 @@ def _walked_sides(g: SideGrid, rel):
     if exact:
         add = lambda i, acc: acc - solid_angle(rel, caps[i].reshape(3, 3)[None])
         value = jax.lax.fori_loop(0, caps.shape[0], add, value)
-    bound = _cap_bound(g, rel)
+    bound = _cap_bound(g.balls, rel)
     certain = known & (jnp.abs(value - 0.5) > MARGIN) & (exact | (bound < jnp.abs(w - 0.5) - MARGIN))
     return jnp.where(certain, (value > 0.5).astype(jnp.int8), jnp.int8(-1))
 
@@ -405,10 +428,12 @@ def grid_sides(index: MeshIndex, points: np.ndarray, resolution: int = RESOLUTIO
     n = len(points)
     padded = np.zeros((bucket(n), 3), np.float32)
     padded[:n] = points
-    sides = np.array(_cell_sides(g, padded))[:n]
+    sides = np.array(_cell_sides(g.winding, g.balls, g.origin, g.cell, padded, resolution=resolution))[:n]
     again = np.flatnonzero((sides < 0) & np.all(np.isfinite(points), -1))
-    if len(again):
-        rel = np.zeros((bucket(len(again)), 3), np.float32)
-        rel[: len(again)] = np.asarray(points[again], np.float64) - np.asarray(g.origin, np.float64)
-        sides[again] = np.asarray(_walked_sides(g, rel))[: len(again)]
+    rel = np.asarray(points[again], np.float64) - np.asarray(g.origin, np.float64)
+    for start in range(0, len(again), WALK_CHUNK):  # fixed chunks: one program
+        chunk = np.zeros((WALK_CHUNK, 3), np.float32)
+        part = rel[start : start + WALK_CHUNK]
+        chunk[: len(part)] = part
+        sides[again[start : start + WALK_CHUNK]] = np.asarray(_walked_sides(g, chunk))[: len(part)]
     return sides

@@ -30,6 +30,7 @@ from jaxvox.points import search
 from jaxvox.points.index import MeshIndex
 
 FLOAT_MARGIN = 1e-4  # float32 rounding allowance added to every error bound
+EXACT_MIN = 256  # points per exact sum (padded): one program per face capacity
 
 
 def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tuple[int, ...]):
@@ -120,3 +121,21 @@ def tree_triangles(index: MeshIndex) -> np.ndarray:
     on the capacity only."""
     corners = np.asarray(index.corners, np.float64).T.reshape(-1, 3, 3)
     return corners + np.asarray(index.centre, np.float64)
+
+
+def exact_winding(index: MeshIndex, points) -> np.ndarray:
+    """Exact winding numbers [n] float64 (host) of points [n, 3] over every triangle of the
+    index (`jaxvox.distance.winding.exact_winding_numbers`: float64 near 1/2), in padded
+    chunks of `EXACT_MIN` points: sets of any size share one compiled program per face
+    capacity."""
+    from jaxvox.distance.winding import exact_winding_numbers
+
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    tris = tree_triangles(index)
+    out = []
+    for start in range(0, len(p), EXACT_MIN):
+        chunk = np.repeat(p[start : start + 1], EXACT_MIN, 0)
+        part = p[start : start + EXACT_MIN]
+        chunk[: len(part)] = part
+        out.append(exact_winding_numbers(tris, chunk)[: len(part)])
+    return np.concatenate(out) if out else np.zeros(0)
