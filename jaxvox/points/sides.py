@@ -23,7 +23,7 @@ plus the signed crossings of the axis-parallel segment from the point to that ce
 triangle crossed along its normal adds 1): a 2D point-in-triangle test in the plane
 across the axis, each crossing counted in the one cell that holds it. A crossing within
 `TOLERANCE` of a triangle edge, of a cell face or of the point itself, a nearly edge-on
-triangle, or a crowded cell (more than `PER_CELL` triangles) leaves the point uncertain.
+triangle, or a crowded cell (more triangles than a pass takes, `PASSES`) leaves the point uncertain.
 There the caps' winding number is summed exactly (up to `CAP_EXACT` cap triangles), so
 ``w = W - W_caps`` decides wherever it is `MARGIN` away from 1/2. What is still open (on
 the surface, a walk that failed, a mesh with thousands of holes) is left to the
@@ -32,7 +32,7 @@ winding-number path (`jaxvox.points.queries`).
 Cost: voxelizing mesh and caps at ``R^3``, labelling ``R^3`` cells and listing the
 triangles of the uncertain cells on the host, once per (index, R) and cached beside the
 index; then per point a cell lookup and the cap bound, and for the points next to the
-surface (a few percent) ``RUN x PER_CELL`` crossing tests and the caps' solid angles; one
+surface (a few percent) 64 crossing tests (a second pass with more for a few) and the caps' solid angles; one
 compiled program each per (R, point count bucket). Memory: an int8 and an int32 per cell,
 plus the uncertain cells' walks and triangle lists.
 """
@@ -58,17 +58,19 @@ from jaxvox.points.index import MeshIndex
 from jaxvox.points.winding import exact_winding
 
 UNKNOWN = -128  # int8 cell value: a surface cell, one next to it, or a component without a certain W
-MARGIN = 0.05  # certified points have |w - 1/2| above this
+MARGIN = 0.05  # sides from a cell or a bound have |w - 1/2| above this
+EXACT_MARGIN = 1e-3  # sides from a walk with the caps summed exactly: |w - 1/2| above this
 CAP_GROUPS = 16  # balls bounding the caps (loops grouped along a Morton curve when more)
 PAD_CELLS = 2  # free cells around the mesh's box on each side
 RESOLUTION = 128  # cells per axis
-RUN = 4  # the longest walk from an uncertain cell to a certain one
-PER_CELL = 16  # triangles per cell on a walk; a cell with more leaves the point uncertain
+# the walks: (longest walk in cells, most triangles per cell on it, points per call), a
+# short pass for every point the cells left open, then a long one for those still open
+PASSES = ((4, 16, 1 << 16), (16, 64, 1 << 10))
+RUN = PASSES[-1][0]  # walks are kept up to this length
 CAP_EXACT = 4096  # the most cap triangles summed exactly per point
 MAX_PAIRS = 1 << 25  # (cell, triangle) pairs listed at most
 # the smallest table sizes (then the ladder): meshes up to about these sizes share programs
 FLOORS = {"walks": 1 << 18, "lists": 1 << 20, "corners": 1 << 17, "caps": 256}
-WALK_CHUNK = 1 << 16  # points per call of the walk
 TOLERANCE = 1e-3  # crossings this close (in cells, or relative) to an edge, a cell face or the point are uncertain
 
 
@@ -367,24 +369,25 @@ def _crossing(p, t, axis, tol):
     return inside & ~thin, q[:, 2] + along, jnp.where(area > 0, 1, -1), ambiguous
 
 
-@jax.jit
-def _walked_sides(g: SideGrid, rel):
-    """[m] int8 sides (1, 0, -1 not certain) of finite positions rel [m, 3] (relative to the
-    grid's origin): ``W`` of their cell, or of the end of their cell's walk plus the signed
-    crossings on the way; then ``w = W - W_caps`` with the caps summed exactly."""
+@functools.partial(jax.jit, static_argnames=("run", "per_cell"))
+def _walked_sides(g: SideGrid, rel, *, run: int, per_cell: int):
+    """[m] int8 sides (1, 0, -1 not certain) and [m] float32 values (`grid_sides`) of
+    finite positions rel [m, 3] (relative to the grid's origin): ``W`` of their cell, or of
+    the end of their cell's walk (at most `run` cells, `per_cell` triangles a cell) plus
+    the signed crossings on the way; then ``w = W - W_caps`` with the caps summed exactly."""
     ijk, flat, in_grid = _cell_of(g.cell, g.resolution, rel)
     w_cell = jnp.where(in_grid, g.winding[flat], 0).astype(jnp.int32)
     s = jnp.where(in_grid, g.slot[flat], -1)
     walk = g.walk[jnp.where(s >= 0, s, g.walk.shape[0] - 1)]
     axis, step, length = walk[:, 0], walk[:, 1], walk[:, 2]
-    offsets = jnp.arange(RUN)[None, :] * step[:, None]  # [m, RUN]
+    offsets = jnp.arange(run)[None, :] * step[:, None]  # [m, run]
     along_cell = jnp.take_along_axis(ijk, axis[:, None], 1) + offsets  # cell index along the axis
     onehot = jax.nn.one_hot(axis, 3, dtype=jnp.int32)
     cells = ijk[:, None, :] + offsets[:, :, None] * onehot[:, None, :]
     r = g.resolution
     cells = jnp.clip(cells, 0, r - 1)
     slots = g.slot[(cells[..., 0] * r + cells[..., 1]) * r + cells[..., 2]]
-    on_walk = (jnp.arange(RUN)[None, :] < length[:, None]) & (slots >= 0)
+    on_walk = (jnp.arange(run)[None, :] < length[:, None]) & (slots >= 0)
     start = g.first[jnp.maximum(slots, 0)]
     count = jnp.where(on_walk, g.first[jnp.maximum(slots, 0) + 1] - start, 0)
     x_along = jnp.take_along_axis(rel, axis[:, None], 1)[:, 0]
@@ -392,7 +395,7 @@ def _walked_sides(g: SideGrid, rel):
 
     def body(i, state):
         total, ambiguous = state
-        k, j = i // PER_CELL, i % PER_CELL
+        k, j = i // per_cell, i % per_cell
         use = j < count[:, k]
         t = g.corners[g.triangles[jnp.where(use, start[:, k] + j, 0)]]
         hit, at, sign, unsure = _crossing(rel, t, axis, TOLERANCE)
@@ -404,9 +407,9 @@ def _walked_sides(g: SideGrid, rel):
         return total, ambiguous | (use & (unsure | (hit & edge)))
 
     total, ambiguous = jax.lax.fori_loop(
-        0, RUN * PER_CELL, body, (jnp.zeros(rel.shape[0], jnp.int32), jnp.zeros(rel.shape[0], bool))
+        0, run * per_cell, body, (jnp.zeros(rel.shape[0], jnp.int32), jnp.zeros(rel.shape[0], bool))
     )
-    overflow = jnp.any(count > PER_CELL, 1)
+    overflow = jnp.any(count > per_cell, 1) | (length > run)
     walked = (s >= 0) & (length > 0) & (walk[:, 3] != UNKNOWN) & ~ambiguous & ~overflow
     w = jnp.where(s >= 0, walk[:, 3] + total, w_cell)
     known = jnp.where(s >= 0, walked, w_cell != UNKNOWN)
@@ -416,24 +419,36 @@ def _walked_sides(g: SideGrid, rel):
     if exact:
         add = lambda i, acc: acc - solid_angle(rel, caps[i].reshape(3, 3)[None])
         value = jax.lax.fori_loop(0, caps.shape[0], add, value)
-    bound = _cap_bound(g.balls, rel)
-    certain = known & (jnp.abs(value - 0.5) > MARGIN) & (exact | (bound < jnp.abs(w - 0.5) - MARGIN))
-    return jnp.where(certain, (value > 0.5).astype(jnp.int8), jnp.int8(-1))
+    if exact:  # w itself, to the float32 rounding of the caps' sum
+        certain = known & (jnp.abs(value - 0.5) > EXACT_MARGIN)
+    else:  # W alone: the caps' bound must leave it on its side
+        certain = known & (_cap_bound(g.balls, rel) < jnp.abs(value - 0.5) - MARGIN)
+    return jnp.where(certain, (value > 0.5).astype(jnp.int8), jnp.int8(-1)), value
 
 
-def grid_sides(index: MeshIndex, points: np.ndarray, resolution: int = RESOLUTION) -> np.ndarray:
-    """[n] int8 sides of points [n, 3] (host float32, world): 1 inside, 0 outside, -1 not
-    certain (for the winding-number path). Programs per point-count bucket."""
+def grid_sides(index: MeshIndex, points: np.ndarray, resolution: int = RESOLUTION) -> tuple[np.ndarray, np.ndarray]:
+    """Sides [n] int8 of points [n, 3] (host float32, world): 1 inside, 0 outside, -1 not
+    certain (for the winding-number path); and stand-ins [n] float32 for their winding
+    numbers, on the same side of 1/2: 1 or 0 for a side from a cell (``|w - 1/2| >
+    MARGIN``), ``w`` itself for one from a walk with the caps summed exactly (NaN where
+    not certain). Programs per point-count bucket and walk pass."""
     g = side_grid(index, resolution)
     n = len(points)
     padded = np.zeros((bucket(n), 3), np.float32)
     padded[:n] = points
     sides = np.array(_cell_sides(g.winding, g.balls, g.origin, g.cell, padded, resolution=resolution))[:n]
+    w = np.where(sides >= 0, sides, np.nan).astype(np.float32)
     again = np.flatnonzero((sides < 0) & np.all(np.isfinite(points), -1))
     rel = np.asarray(points[again], np.float64) - np.asarray(g.origin, np.float64)
-    for start in range(0, len(again), WALK_CHUNK):  # fixed chunks: one program
-        chunk = np.zeros((WALK_CHUNK, 3), np.float32)
-        part = rel[start : start + WALK_CHUNK]
-        chunk[: len(part)] = part
-        sides[again[start : start + WALK_CHUNK]] = np.asarray(_walked_sides(g, chunk))[: len(part)]
-    return sides
+    for run, per_cell, size in PASSES:  # fixed chunks: one program per pass
+        for start in range(0, len(again), size):
+            chunk = np.zeros((size, 3), np.float32)
+            part = rel[start : start + size]
+            chunk[: len(part)] = part
+            side, value = _walked_sides(g, chunk, run=run, per_cell=per_cell)
+            rows = again[start : start + size]
+            sides[rows] = np.asarray(side)[: len(part)]
+            w[rows] = np.where(sides[rows] >= 0, np.asarray(value)[: len(part)], np.nan)
+        still = sides[again] < 0
+        again, rel = again[still], rel[still]
+    return sides, w
