@@ -9,6 +9,7 @@ they share the compiled programs.
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import trimesh
 
@@ -115,3 +116,8 @@ def test_many_points_take_the_cells_and_agree_with_the_per_point_path(meshes_dir
     np.testing.assert_array_equal(inside[certain], np.asarray(full.inside)[certain])
     np.testing.assert_array_equal(sd, np.asarray(full.signed_distance))
     assert not inside[:3].any() and np.isnan(sd[:3]).all()
+    # the sampler (near-surface points mostly) takes the cells too: the same answers and statuses
+    samples = jv.sample_sdf(mesh, queries.GRID_MIN, jax.random.key(0), index=index)
+    again = jp.query_points(index, np.asarray(samples.points))
+    np.testing.assert_array_equal(np.asarray(samples.status), np.asarray(again.status))
+    np.testing.assert_array_equal(np.asarray(samples.sdf), np.asarray(again.signed_distance))
