@@ -405,12 +405,15 @@ def query_points(
     batch, flat = _points("query_points points", points)
     check_choice("query_points sign", sign, SIGNS)
     margin = check_number("query_points margin", margin, minimum=0.0)
-    return _query(index, flat, batch, sign=sign, margin=margin, winding_numbers=True)
+    return query_flat(index, flat, batch, sign=sign, margin=margin, winding_numbers=True)
 
 
-def _query(index: MeshIndex, flat, batch, *, sign: str, margin: float, winding_numbers: bool) -> PointQuery:
-    """`query_points` of flattened points; without `winding_numbers` the ``winding`` field
-    only has the right side of 1/2 (`_sides_winding`)."""
+def query_flat(index: MeshIndex, flat, batch, *, sign: str, margin: float, winding_numbers: bool) -> PointQuery:
+    """`query_points` of flattened points [n, 3] (`index` a `MeshIndex`, `batch` the shape
+    to give the answers); without `winding_numbers` (`signed_distance`, the sampler) the
+    ``winding`` field only stands in for the winding number: on its side of 1/2, and equal
+    to it within `jaxvox.points.sides.MARGIN` of 1/2, so statuses hold for margins up to
+    that (`_sides_winding`)."""
     if flat.shape[0] == 0:
         z = jnp.zeros(batch, jnp.float32)
         return PointQuery(_empty_closest(batch), z, z > 0, z, z.astype(jnp.int32))
@@ -477,7 +480,7 @@ def signed_distance(
     index = _as_index("signed_distance mesh", mesh)
     batch, flat = _points("signed_distance points", points)
     check_choice("signed_distance sign", sign, SIGNS)
-    return _query(index, flat, batch, sign=sign, margin=0.01, winding_numbers=False).signed_distance
+    return query_flat(index, flat, batch, sign=sign, margin=0.01, winding_numbers=False).signed_distance
 
 
 def occupancy(

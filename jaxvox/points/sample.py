@@ -38,7 +38,7 @@ from jaxvox._core.checks import check_int, check_number, refuse
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox.mesh import Mesh
 from jaxvox.points.index import MeshIndex, mesh_index
-from jaxvox.points.queries import _query
+from jaxvox.points.queries import query_flat
 
 
 @pytree_dataclass
@@ -127,7 +127,7 @@ def sample_sdf(
     points = np.concatenate([surface + scale * rng.standard_normal((near, 3)), uniform]).astype(np.float32)
     # the side is all a sample needs: sides from cells for many points (statuses stay exact
     # for margins up to `jaxvox.points.sides.MARGIN`)
-    q = _query(index, jax.device_put(points), (len(points),), sign="winding", margin=0.01, winding_numbers=False)
+    q = query_flat(index, jax.device_put(points), (len(points),), sign="winding", margin=0.01, winding_numbers=False)
     kind = np.repeat(np.arange(3, dtype=np.int8), counts)
     return SdfSamples(jnp.asarray(points), q.signed_distance, q.inside, q.status, jnp.asarray(kind))
 
