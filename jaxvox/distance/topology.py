@@ -10,14 +10,22 @@ from __future__ import annotations
 import numpy as np
 
 
-def welded_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Faces [F, 3] int64 re-indexed so that vertices [V, 3] at equal positions share one id."""
+def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(positions [V', 3], faces [F, 3] int64): the distinct positions of vertices [V, 3]
+    (in sorted order) and the faces re-indexed into them, so that vertices at equal
+    positions share one id."""
     v = np.asarray(vertices)
     order = np.lexsort(v.T[::-1])  # numeric sorts, no row unique
     new_group = np.concatenate([[True], np.any(v[order[1:]] != v[order[:-1]], axis=1)])
-    weld = np.empty(len(v), np.int64)
-    weld[order] = np.cumsum(new_group) - 1
-    return weld[np.asarray(faces, np.int64)]
+    ids = np.empty(len(v), np.int64)
+    ids[order] = np.cumsum(new_group) - 1
+    return v[order[new_group]], ids[np.asarray(faces, np.int64)]
+
+
+def welded_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Faces [F, 3] int64 re-indexed so that vertices [V, 3] at equal positions share one id
+    (`weld`)."""
+    return weld(vertices, faces)[1]
 
 
 def irregular_edge_faces(faces: np.ndarray) -> np.ndarray:

@@ -357,28 +357,27 @@ def point_winding_numbers(
     return out
 
 
-def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
+def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
-    [F, 3, 3] (host arrays), at most `POINT_CHUNK` points per call."""
+    [F, 3, 3] (host arrays), `chunk` points per call (default: at most `POINT_CHUNK`, fewer
+    for a few points; a fixed chunk keeps one compiled program per triangle count)."""
     parts = triangle_blocks(np.asarray(tris, np.float64), 0.0)  # zero-area padding
     out = []
-    size = min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
+    size = chunk or min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):
-        part = points[s : s + size]
-        chunk = np.zeros((size, 3), np.float32)
-        chunk[: len(part)] = part
-        out.append(np.asarray(_brute_force(parts, jnp.asarray(chunk)))[: len(part)])
+        part = np.asarray(points[s : s + size], np.float32)
+        out.append(np.asarray(_brute_force(parts, jnp.asarray(pad_rows(part, size))))[: len(part)])
     return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 
-def exact_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
+def exact_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
     """Winding numbers [P] float64 at points [P, 3] of triangles [F, 3, 3] (host arrays):
     `brute_force_winding_numbers`, then the sum again in float64 on the host where that
     lands within ``F32_CLOSE + F * F32_CLOSE_PER_TRIANGLE`` of 1/2, so that the side of
     1/2 is that of the float64 sum. (The float32 sum of F / `BRUTE_FORCE_BLOCK` block sums
     of order 1 can be off by that many float32 roundings, about F * 2.3e-10: 1.6e-5 for
-    the bunny's 69 K triangles.)"""
-    w = brute_force_winding_numbers(tris, points).astype(np.float64)
+    the bunny's 69 K triangles.) `chunk` as in `brute_force_winding_numbers`."""
+    w = brute_force_winding_numbers(tris, points, chunk=chunk).astype(np.float64)
     close = np.flatnonzero(np.abs(w - 0.5) < F32_CLOSE + len(tris) * F32_CLOSE_PER_TRIANGLE)
     w[close] = host_winding_numbers(tris, np.asarray(points, np.float64)[close])
     return w

@@ -309,9 +309,9 @@ def _settled_winding(index: MeshIndex, flat):
 def _grid_winding(index: MeshIndex, flat):
     """Stand-ins for winding numbers [n] float32 (host, finite points [n, 3]) that give each
     point's side: where `jaxvox.points.sides` certifies it, its stand-in (1 or 0, or the
-    winding number from a walk; `sides.grid_sides`), elsewhere the exact winding number (up to `EXACT_BUDGET` point-face
-    pairs: one compiled program per face capacity, where the tree walk would add its own)
-    or the settled one; and lost [n] bool."""
+    winding number from a walk; `sides.grid_sides`); elsewhere the exact winding number
+    (up to `EXACT_BUDGET` point-face pairs: one compiled program per face capacity, where
+    the tree walk would add its own) or the settled one; and lost [n] bool."""
     points = np.asarray(flat, np.float32)
     side, w = sides.grid_sides(index, points)
     lost = np.zeros(len(points), bool)

@@ -49,8 +49,8 @@ import numpy as np
 
 from jaxvox._core.geometry import morton_order, solid_angle
 from jaxvox._core.pytree import pytree_dataclass
-from jaxvox._core.shapes import bucket
-from jaxvox.distance.topology import boundary_chain, connected_components, welded_faces
+from jaxvox._core.shapes import bucket, pad_rows
+from jaxvox.distance.topology import boundary_chain, connected_components, weld
 from jaxvox.distance.winding import host_winding_numbers
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
@@ -116,11 +116,10 @@ def cap_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     their loop ids [C] int64 (0..L-1): for each boundary edge a -> b of the chain
     (`jaxvox.distance.topology.boundary_chain`), the triangle (b, a, o) with o the centroid of
     the loop's vertices."""
-    v = np.asarray(vertices, np.float64)
-    edges = boundary_chain(welded_faces(v, faces))
+    weld_v, welded = weld(np.asarray(vertices, np.float64), faces)
+    edges = boundary_chain(welded)
     if len(edges) == 0:
         return np.zeros((0, 3, 3)), np.zeros(0, np.int64)
-    weld_v = _welded_positions(v)
     used, local = np.unique(edges, return_inverse=True)
     local = local.reshape(edges.shape)
     label = connected_components(len(used), local[:, 0], local[:, 1])
@@ -131,13 +130,6 @@ def cap_triangles(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     loop = loop_of_vertex[local[:, 0]]
     tris = np.stack([weld_v[edges[:, 1]], weld_v[edges[:, 0]], centroid[loop]], 1)
     return tris, loop
-
-
-def _welded_positions(v: np.ndarray) -> np.ndarray:
-    """Positions [V', 3] of the welded vertex ids of `welded_faces` (ids by sorted position)."""
-    order = np.lexsort(v.T[::-1])
-    new_group = np.concatenate([[True], np.any(v[order[1:]] != v[order[:-1]], axis=1)])
-    return v[order[new_group]]
 
 
 def _cap_balls(tris: np.ndarray, loop: np.ndarray) -> np.ndarray:
@@ -238,10 +230,7 @@ def _walks(winding: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray
                 q = ijk.copy()
                 q[:, axis] += length * step
                 ok = (q[:, axis] >= 0) & (q[:, axis] < resolution)
-                flat = (
-                    np.clip(q[:, 0], 0, resolution - 1) * resolution + np.clip(q[:, 1], 0, resolution - 1)
-                ) * resolution
-                flat = flat + np.clip(q[:, 2], 0, resolution - 1)
+                flat = np.ravel_multi_index(q.T, (resolution,) * 3, mode="clip")
                 found = ok & certain[flat]
                 run = np.where(found, length, run)
                 target = np.where(found, winding[flat], target)
@@ -294,20 +283,19 @@ def _build(index: MeshIndex, resolution: int) -> SideGrid:
     slot, walk = _walks(winding, resolution)
     tris = np.concatenate([vertices[faces], caps]) - origin
     first, triangles = _cell_triangles(tris, slot, cell, resolution)
-    exact_caps = np.zeros((bucket(len(caps), FLOORS["caps"]) if len(caps) <= CAP_EXACT else 0, 9), np.float32)
-    exact_caps[: len(caps) if len(exact_caps) else 0] = (caps - origin).reshape(-1, 9)[: len(exact_caps)]
+    cap_rows = (caps - origin).reshape(-1, 9).astype(np.float32)
+    exact_caps = pad_rows(cap_rows, bucket(len(caps), FLOORS["caps"])) if len(caps) <= CAP_EXACT else cap_rows[:0]
     put = jax.device_put
     # tables padded to the ladder (one program for meshes of any size); the last walk row
     # (zeros: no walk) is for points without a slot
     rows = bucket(len(walk) + 1, FLOORS["walks"])
-    pad = lambda x, n, fill=0: np.concatenate([x, np.full((n - len(x),) + x.shape[1:], fill, x.dtype)])
     return SideGrid(
         winding=put(winding),
         slot=put(slot),
-        walk=put(pad(walk, rows)),
-        first=put(pad(first, rows + 1, first[-1])),
-        triangles=put(pad(triangles, bucket(len(triangles), FLOORS["lists"]))),
-        corners=put(pad(tris.reshape(-1, 9).astype(np.float32), bucket(len(tris), FLOORS["corners"]))),
+        walk=put(pad_rows(walk, rows)),
+        first=put(pad_rows(first, rows + 1, first[-1])),
+        triangles=put(pad_rows(triangles, bucket(len(triangles), FLOORS["lists"]))),
+        corners=put(pad_rows(tris.reshape(-1, 9).astype(np.float32), bucket(len(tris), FLOORS["corners"]))),
         caps=put(exact_caps),
         balls=put(_cap_balls(caps - origin, loop)),
         origin=put(np.asarray(grid.origin, np.float32)),
@@ -434,18 +422,15 @@ def grid_sides(index: MeshIndex, points: np.ndarray, resolution: int = RESOLUTIO
     not certain). Programs per point-count bucket and walk pass."""
     g = side_grid(index, resolution)
     n = len(points)
-    padded = np.zeros((bucket(n), 3), np.float32)
-    padded[:n] = points
+    padded = pad_rows(np.asarray(points, np.float32), bucket(n))
     sides = np.array(_cell_sides(g.winding, g.balls, g.origin, g.cell, padded, resolution=resolution))[:n]
     w = np.where(sides >= 0, sides, np.nan).astype(np.float32)
     again = np.flatnonzero((sides < 0) & np.all(np.isfinite(points), -1))
     rel = np.asarray(points[again], np.float64) - np.asarray(g.origin, np.float64)
     for run, per_cell, size in PASSES:  # fixed chunks: one program per pass
         for start in range(0, len(again), size):
-            chunk = np.zeros((size, 3), np.float32)
             part = rel[start : start + size]
-            chunk[: len(part)] = part
-            side, value = _walked_sides(g, chunk, run=run, per_cell=per_cell)
+            side, value = _walked_sides(g, pad_rows(part.astype(np.float32), size), run=run, per_cell=per_cell)
             rows = again[start : start + size]
             sides[rows] = np.asarray(side)[: len(part)]
             w[rows] = np.where(sides[rows] >= 0, np.asarray(value)[: len(part)], np.nan)

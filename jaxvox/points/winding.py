@@ -131,11 +131,8 @@ def exact_winding(index: MeshIndex, points) -> np.ndarray:
     from jaxvox.distance.winding import exact_winding_numbers
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    tris = tree_triangles(index)
-    out = []
-    for start in range(0, len(p), EXACT_MIN):
-        chunk = np.repeat(p[start : start + 1], EXACT_MIN, 0)
-        part = p[start : start + EXACT_MIN]
-        chunk[: len(part)] = part
-        out.append(exact_winding_numbers(tris, chunk)[: len(part)])
-    return np.concatenate(out) if out else np.zeros(0)
+    if len(p) == 0:
+        return np.zeros(0)
+    padded = np.repeat(p[:1], -(-len(p) // EXACT_MIN) * EXACT_MIN, 0)  # padding repeats a point
+    padded[: len(p)] = p
+    return exact_winding_numbers(tree_triangles(index), padded, chunk=EXACT_MIN)[: len(p)]
