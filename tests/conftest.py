@@ -18,19 +18,27 @@ REPO_ROOT = pathlib.Path(__file__).resolve().parents[1]
 # run of the suite is warm; the command line and the notebooks (subprocesses) inherit
 # the folder through $JAXVOX_CACHE_DIR. CI starts cold.
 os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
-# Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already
-# keep the cores busy, and a thread pool per worker on top only oversubscribes them
-# (about 10% of the suite's time on two cores). Read when the backend starts, which is
-# after this module runs.
+# XLA flags, read when the backend starts (after this module runs):
+# * The suite compiles about 2,800 programs, and compiling is most of its time. XLA's
+#   loop emitters (``--xla_cpu_use_fusion_emitters=false``) compile them in about two
+#   thirds of the time of its default fusion emitters, whose code runs faster (what users
+#   get, and what the benchmarks time). The tests marked ``codegen`` also run with the
+#   default emitters (`tests/test_codegen.py`, ``JAXVOX_TEST_EMITTERS=default``), so the
+#   code users run is checked against the references too.
+# * Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already
+#   keep the cores busy, and a thread pool per worker on top only oversubscribes them.
+DEFAULT_EMITTERS = os.environ.get("JAXVOX_TEST_EMITTERS") == "default"
+_flags = [] if DEFAULT_EMITTERS else ["--xla_cpu_use_fusion_emitters=false"]
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
-    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_cpu_multi_thread_eigen=false"]).strip()
+    _flags.append("--xla_cpu_multi_thread_eigen=false")
+os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_flags]).strip()
 jaxvox.enable_compilation_cache()
 TEST_DATA = REPO_ROOT / "tests" / "data"  # the test meshes, with their sources (SOURCES.md)
 
 
 # The modules whose tests take longest run first, so that with pytest-xdist no worker
 # starts a long test when the others have run out of work.
-LONGEST_FIRST = ("test_notebooks", "test_clipmap", "test_render", "test_sparse_field", "test_distance")
+LONGEST_FIRST = ("test_codegen", "test_notebooks", "test_clipmap", "test_render", "test_sparse_field", "test_distance")
 
 
 def pytest_collection_modifyitems(items):

@@ -71,6 +71,7 @@ def spot(meshes_dir):
     return mesh, grid, exact
 
 
+@pytest.mark.codegen
 def test_exact_matches_float64_on_hard_cases():
     """Brute force against the float64 reference: a closed sphere, an open fan with a
     degenerate (zero-area) triangle and a point, and a mesh half outside the grid."""

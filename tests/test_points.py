@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import pathlib
 
 import jax
 import jax.numpy as jnp
@@ -87,6 +88,7 @@ def _diagonal(mesh) -> float:
     return float(np.linalg.norm(v.max(0) - v.min(0)))
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping"])
 def test_closest_points_match_float64(name, request):
     mesh = request.getfixturevalue(name)
@@ -132,6 +134,7 @@ def test_winding_numbers_fast_within_bound_and_exact(hemisphere, overlapping):
         np.testing.assert_allclose(exact[off_surface], ref[off_surface], atol=1e-5)
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping"])
 def test_signs_follow_the_exact_winding_number(name, request):
     mesh = request.getfixturevalue(name)
@@ -334,27 +337,34 @@ def test_jaxvox_sample_command_skips_bad_meshes_and_resumes(tmp_path, sphere):
     assert not any(name.endswith(".partial.npz") for name in os.listdir(out))
 
 
+def _half_sphere_query(path) -> None:
+    """Queries 2 * SPLIT_MIN + 5 points around an open icosphere; saves signed distances,
+    closest triangles and winding numbers to `path` (.npz)."""
+    tm = trimesh.creation.icosphere(subdivisions=2)
+    keep = tm.triangles_center[:, 2] > -0.3
+    mesh = jv.Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces[keep], np.int32))
+    index = jp.mesh_index(mesh, capacity=512)
+    p = np.random.default_rng(0).uniform(-1.3, 1.3, (2 * jp.queries.SPLIT_MIN + 5, 3)).astype(np.float32)
+    q = jp.query_points(index, p)
+    np.savez(path, sd=np.asarray(q.signed_distance), tri=np.asarray(q.closest.triangle), w=np.asarray(q.winding))
+
+
 def test_split_over_two_devices_matches_one(tmp_path):
     """A concrete query with two JAX devices (one program, half the points on each) gives
-    the one-device answer: the same closest triangles and signed distances; the fast
-    winding numbers (blocks differ, so their far fields do) within their error."""
+    the one-device answer (this process's): the same closest triangles and signed
+    distances; the fast winding numbers (blocks differ, so their far fields do) within
+    their error."""
     import subprocess
     import sys
 
-    code = """
-import sys, jax
-jax.config.update("jax_num_cpu_devices", int(sys.argv[1]))
-import numpy as np, trimesh, jaxvox as jv
-from jaxvox import points as jp
-tm = trimesh.creation.icosphere(subdivisions=2)
-keep = tm.triangles_center[:, 2] > -0.3
-index = jp.mesh_index(jv.Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces[keep], np.int32)), capacity=512)
-p = np.random.default_rng(0).uniform(-1.3, 1.3, (2 * jp.queries.SPLIT_MIN + 5, 3)).astype(np.float32)
-q = jp.query_points(index, p)
-np.savez(sys.argv[2], sd=np.asarray(q.signed_distance), tri=np.asarray(q.closest.triangle), w=np.asarray(q.winding))
-"""
-    for devices in (1, 2):
-        subprocess.run([sys.executable, "-c", code, str(devices), str(tmp_path / f"{devices}.npz")], check=True)
+    code = (
+        "import sys, jax; jax.config.update('jax_num_cpu_devices', 2)\n"
+        "from tests.test_points import _half_sphere_query; _half_sphere_query(sys.argv[1])"
+    )
+    root = pathlib.Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, "-c", code, str(tmp_path / "2.npz")], check=True, cwd=root)
+    assert jax.device_count() == 1
+    _half_sphere_query(tmp_path / "1.npz")
     one, two = np.load(tmp_path / "1.npz"), np.load(tmp_path / "2.npz")
     for key in ("sd", "tri"):
         np.testing.assert_array_equal(one[key], two[key])

@@ -245,6 +245,7 @@ def _shell_rays(rng, n):
     return o, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("shape", ["sphere", "box"])
 def test_sphere_trace_matches_analytic_intersections(shape):
     rng = np.random.default_rng(5)
@@ -293,6 +294,7 @@ def test_sphere_trace_single_rays_property(target, jitter):
         assert int(hit.status[0]) == MISS and np.isinf(float(hit.t[0]))
 
 
+@pytest.mark.codegen
 def test_sphere_trace_edge_cases():
     ball = sdf.sphere(1.0)
     o = np.array(

@@ -100,6 +100,7 @@ def check_field(mesh: jv.Mesh, grid: jv.Grid, field: jv.SparseField, *, signed=T
     assert np.array_equal(np.asarray(jv.voxel_index(field.tree, ijk)), np.arange(n))
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("make", [icosphere, box], ids=["icosphere", "box"])
 def test_primitives(make):
     mesh = make()

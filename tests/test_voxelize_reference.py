@@ -391,6 +391,7 @@ def _mesh_params():
     return out
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("mode", MODES)
 @pytest.mark.parametrize("name,resolution", _mesh_params())
 def test_mesh_matches_reference(meshes_dir, name, resolution, mode):

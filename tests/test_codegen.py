@@ -1,0 +1,27 @@
+"""The reference checks marked ``codegen`` again, compiled as users' programs are.
+
+The suite compiles with XLA's loop emitters, which compile faster (`tests/conftest.py`);
+users' programs are compiled by XLA's default fusion emitters. This runs the tests marked
+``codegen`` (traversal against brute force, voxelization against its reference, closest
+points and signs against float64, sphere tracing against analytic hits, exact distances,
+sparse fields) in a pytest of their own with the default emitters.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from tests.conftest import DEFAULT_EMITTERS, REPO_ROOT
+
+
+def test_reference_checks_pass_with_the_default_emitters():
+    if DEFAULT_EMITTERS:  # (this is the inner run)
+        return
+    flags = os.environ.get("XLA_FLAGS", "").replace("--xla_cpu_use_fusion_emitters=false", "").strip()
+    env = dict(os.environ, JAXVOX_TEST_EMITTERS="default", XLA_FLAGS=flags)
+    command = [sys.executable, "-m", "pytest", "-q", "-n", "0", "-m", "codegen", "-p", "no:cacheprovider", "tests"]
+    run = subprocess.run(command, cwd=REPO_ROOT, env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+    assert " passed" in run.stdout and " failed" not in run.stdout, run.stdout[-2000:]
