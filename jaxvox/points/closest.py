@@ -78,7 +78,7 @@ def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound,
     ub = jnp.where(used, search.far_corner2(box, node[:, 6:9]), jnp.inf)
     bound = jnp.minimum(bound, jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True))
     found = None
-    if depth == 1:  # exact distances to the leaves of each block's most promising node
+    if depth == 1:  # exact distances to the leaves of each block's most promising nodes
         found = _seed(index, blocks, pairs, ub)
         bound = jnp.minimum(bound, found[1].max(1))
         u = found[1]
@@ -92,18 +92,24 @@ def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound,
 
 
 def _seed(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, ub):
-    """Rows [nb, ROW] of the leaves of each block's pair of smallest ``ub`` [capacity] (a
-    level-1 node) and the exact squared distances [nb, BLOCK] of the block's points to
-    them: a tight bound for the rest of the search."""
+    """Rows [nb, ROW] of the leaves of each block's ROW / FAN_OUT pairs of smallest ``ub``
+    [capacity] (level-1 nodes) and the exact squared distances [nb, BLOCK] of the block's
+    points to them: a tight bound for the rest of the search."""
     nb = blocks.p.shape[1]
-    best = jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True)
     b = jnp.minimum(pairs.block, nb - 1)
-    first = jnp.where((ub == best[b]) & (pairs.block < nb), jnp.arange(ub.shape[0]), ub.shape[0])
-    pick = jax.ops.segment_min(first, pairs.block, nb, indices_are_sorted=True)
+    slots = jnp.arange(ub.shape[0])
+    picks = []
+    for _ in range(search.ROW // FAN_OUT):
+        best = jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True)
+        first = jnp.where((ub == best[b]) & (pairs.block < nb) & (ub < jnp.inf), slots, ub.shape[0])
+        picks.append(jax.ops.segment_min(first, pairs.block, nb, indices_are_sorted=True))
+        ub = jnp.where(slots == picks[-1][b], jnp.inf, ub)  # the next pick is another pair
+    pick = jnp.stack(picks, 1)  # [nb, ROW / FAN_OUT]
     node = pairs.node[jnp.clip(pick, 0, ub.shape[0] - 1)]
-    leaves = node[:, None] * FAN_OUT + jnp.arange(search.ROW) % FAN_OUT
-    ok = (jnp.arange(search.ROW) < FAN_OUT) & (leaves < index.levels[0][1]) & (pick < ub.shape[0])[:, None]
-    rows = search.Rows(jnp.where(ok, leaves, -1), jnp.arange(nb, dtype=jnp.int32), jnp.int32(nb), jnp.int32(nb))
+    leaves = node[:, :, None] * FAN_OUT + jnp.arange(FAN_OUT)  # [nb, ROW / FAN_OUT, FAN_OUT]
+    ok = (leaves < index.levels[0][1]) & (pick < ub.shape[0])[:, :, None]
+    table = jnp.where(ok, leaves, -1).reshape(nb, search.ROW)
+    rows = search.Rows(table, jnp.arange(nb, dtype=jnp.int32), jnp.int32(nb), jnp.int32(nb))
     minima = lambda p, leaves: _leaf_minima(index, p, leaves)
     return rows, search.eval_rows(rows, blocks, minima, (jnp.inf, _NO_FACE))[0]
 
