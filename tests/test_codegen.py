@@ -4,7 +4,8 @@ The suite compiles with XLA's loop emitters, which compile faster (`tests/confte
 users' programs are compiled by XLA's default fusion emitters. This runs the tests marked
 ``codegen`` (traversal against brute force, voxelization against its reference, closest
 points and signs against float64, sphere tracing against analytic hits, exact distances,
-sparse fields) in a pytest of their own with the default emitters.
+sparse fields) in a pytest of their own with the default emitters; when this test is
+collected, the marked tests run only there (`tests/conftest.py`).
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ from jaxvox import points as jp
 from jaxvox.points import queries, sides
 
 from . import reference
+from .test_points import thin_plate
 
 CAP = 16384  # face capacity
 N = 4096  # points per mesh and kind
@@ -42,6 +43,7 @@ def _meshes(meshes_dir):
     yield "spot (closed)", jv.load_mesh(meshes_dir / "spot.obj")
     yield "fandisk damaged", _damaged(load("fandisk"), rng)
     yield "overlapping spheres", jv.Mesh(np.asarray(overlap.vertices, np.float32), np.asarray(overlap.faces, np.int32))
+    yield "thin plate (open, thinner than a cell)", thin_plate()
 
 
 def _points(mesh: jv.Mesh, grid: sides.SideGrid, rng) -> np.ndarray:

@@ -46,6 +46,18 @@ def hemisphere():
     return jv.Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces[keep], np.int32))
 
 
+def thin_plate() -> jv.Mesh:
+    """A thin part: a plate 1 x 0.6 x 0.003, open at one end (its +x side faces removed)."""
+    tm = trimesh.creation.box(extents=(1.0, 0.6, 0.003))
+    keep = tm.face_normals[:, 0] < 0.5
+    return jv.Mesh(np.asarray(tm.vertices, np.float32), np.asarray(tm.faces[keep], np.int32))
+
+
+@pytest.fixture(scope="module")
+def thin():
+    return thin_plate()
+
+
 @pytest.fixture(scope="module")
 def overlapping():
     """Self-intersecting: two overlapping spheres in one mesh, plus degenerate triangles
@@ -89,7 +101,7 @@ def _diagonal(mesh) -> float:
 
 
 @pytest.mark.codegen
-@pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping"])
+@pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping", "thin"])
 def test_closest_points_match_float64(name, request):
     mesh = request.getfixturevalue(name)
     p = _points(mesh)
@@ -135,7 +147,7 @@ def test_winding_numbers_fast_within_bound_and_exact(hemisphere, overlapping):
 
 
 @pytest.mark.codegen
-@pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping"])
+@pytest.mark.parametrize("name", ["sphere", "hemisphere", "overlapping", "thin"])
 def test_signs_follow_the_exact_winding_number(name, request):
     mesh = request.getfixturevalue(name)
     index = jp.mesh_index(mesh, capacity=CAP)

@@ -601,6 +601,17 @@ def test_huge_triangles_match_up_to_near_ties(tri):
     _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
 
 
+@pytest.mark.parametrize("axes", [(0, 1, 2), (1, 2, 0), (2, 0, 1), (1, 0, 2)])
+@pytest.mark.parametrize("offset", [2.0**-52, 1e-30, -(2.0**-40)])
+def test_a_corner_offset_lost_in_float32_keeps_every_projection_inward(axes, offset):
+    """A corner whose tiny offset rounds away in the edge differences (found by
+    hypothesis): the 3D normal's component along that axis rounds to 0, while the
+    projected edges keep the offset; the projection's half-planes must still point
+    inwards (here voxel (1, 0, 0) was missing, 0.45 voxel inside the triangle)."""
+    tri = np.array([[2.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, offset, 1.0]])[:, list(axes)]
+    _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
+
+
 @pytest.mark.parametrize("voxel_size", [1.0, 1.28125, 0.3])
 def test_six_separating_repeated_vertex_sets_nothing(voxel_size):
     """A triangle with a repeated vertex has zero area in any arithmetic: no 6-separating voxel.

@@ -60,11 +60,43 @@ def solid_angle(p, t):
 def solid_angle_parts(a, b, c):
     """`solid_angle` from the corners relative to the point, each a tuple of its (x, y, z)
     arrays (broadcast): no [..., 3] axis, which XLA's CPU code handles slowly."""
+    det, den, _ = _atan2_arguments(a, b, c)
+    return atan2(det, den) / (2 * jnp.pi)
+
+
+def _atan2_arguments(a, b, c):
+    """(det, den) of Van Oosterom & Strackee for corners a, b, c relative to the point
+    (tuples of x, y, z arrays), and the magnitude of the terms each sums (for
+    `solid_angle_rounding`, computed lazily by XLA when unused)."""
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
-    det = a[0] * (b[1] * c[2] - b[2] * c[1]) + a[1] * (b[2] * c[0] - b[0] * c[2]) + a[2] * (b[0] * c[1] - b[1] * c[0])
-    den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
-    return atan2(det, den) / (2 * jnp.pi)
+    # det = a . (b x c) = a . ((b - a) x (c - a)): the edges' cross product (the plane's
+    # normal) dotted with a keeps its relative rounding near the point's distance to the
+    # plane over |a|, where a . (b x c) rounds at |a| |b| |c| (points near the triangle)
+    e = tuple(bi - ai for ai, bi in zip(a, b))
+    f = tuple(ci - ai for ai, ci in zip(a, c))
+    det = a[0] * (e[1] * f[2] - e[2] * f[1]) + a[1] * (e[2] * f[0] - e[0] * f[2]) + a[2] * (e[0] * f[1] - e[1] * f[0])
+    ab, bc, ca = dot(a, b), dot(b, c), dot(c, a)
+    den = la * lb * lc + ab * lc + bc * la + ca * lb
+    terms = la * jnp.sqrt(dot(e, e) * dot(f, f)) + la * lb * lc + jnp.abs(ab) * lc + jnp.abs(bc) * la + jnp.abs(ca) * lb
+    return det, den, terms
+
+
+ROUNDING = 16 * 2.0**-24  # float32 unit roundoffs allowed per term of `solid_angle_rounding`
+
+
+def solid_angle_rounding(p, t):
+    """`solid_angle` (same arguments) and a bound on its float32 rounding ([...] each).
+
+    The arguments of its atan2 are sums of products: each is off by a few unit roundoffs
+    of its terms' magnitudes (``|a| |e| |f|`` for det, with e, f the edges from a; the four
+    products for den), and the angle moves by at most their error over the length of
+    (det, den). Large only close to the triangle, where the arguments cancel.
+    """
+    det, den, terms = _atan2_arguments(*(tuple(t[..., i, k] - p[..., k] for k in range(3)) for i in range(3)))
+    length = jnp.sqrt(det * det + den * den)
+    bound = jnp.where(length > 0, ROUNDING * terms / jnp.where(length > 0, length, 1.0), jnp.inf)
+    return atan2(det, den) / (2 * jnp.pi), bound / (2 * jnp.pi)
 
 
 _TAN_PI_8 = np.float32(np.sqrt(2.0) - 1.0)

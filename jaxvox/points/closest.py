@@ -138,20 +138,32 @@ class Feature(NamedTuple):
 
 
 def closest_on_triangles(p, a, b, c) -> Feature:
-    """Closest points on triangles (a, b, c) [n, 3] to points p [n, 3] (Ericson's regions;
-    a degenerate or needle triangle's closest point on its edges)."""
+    """Closest points on triangles (a, b, c) [n, 3] to points p [n, 3]: the projection
+    onto the plane where it falls inside, else the nearest point of the three edges (a
+    degenerate or needle triangle's closest point is on its edges).
+
+    The projection is computed in the frame of the triangle's longest edge e (from corner
+    r0, the third corner r2 = r0 + f): with n = e x f and w = n x e (in the plane,
+    perpendicular to e by construction), the coefficients of ``p - r0 = beta e + gamma f``
+    are ``gamma = (p - r0) . w / |n|^2`` and ``beta = ((p - r0) . e - gamma f . e) / |e|^2``.
+    On a sliver (Ericson's Gram-matrix form divides by |n|^2 after subtracting products
+    of |e|^2 |f|^2 size) this keeps the point, and the corners weighted by the
+    barycentric coordinates, within float32 rounding of the exact projection.
+    """
     dot = lambda x, y: jnp.sum(x * y, -1)
-    ab, ac, ap = b - a, c - a, p - a
-    bp, cp = p - b, p - c
-    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
-    den = va + vb + vc
-    # den is |ab x ac|^2 up to rounding (fused multiply-adds leave a degenerate triangle's
-    # den slightly nonzero): the face counts only for a triangle of clear area
-    proper = jnp.sum(jnp.cross(ab, ac) ** 2, -1) > 1e-10 * dot(ab, ab) * dot(ac, ac)
-    inside = (va >= 0) & (vb >= 0) & (vc >= 0) & (den > 0) & proper
-    safe = jnp.where(den > 0, den, 1.0)
-    face_bary = jnp.stack([va, vb, vc], -1) / safe[..., None]
+    k = jnp.argmax(jnp.stack([dot(b - a, b - a), dot(c - b, c - b), dot(a - c, a - c)], -1), -1)
+    pick = lambda x, y, z: jnp.where(k == 0, x, jnp.where(k == 1, y, z))  # by k, per point
+    pick3 = lambda x, y, z: jnp.where((k == 0)[..., None], x, jnp.where((k == 1)[..., None], y, z))
+    r0, r1, r2 = pick3(a, b, c), pick3(b, c, a), pick3(c, a, b)  # r0 r1: the longest edge
+    e, f, q = r1 - r0, r2 - r0, p - r0
+    n = jnp.cross(e, f)
+    nn, ee = dot(n, n), dot(e, e)
+    proper = nn > 1e-10 * ee * dot(f, f)  # a triangle of clear area
+    gamma = dot(q, jnp.cross(n, e)) / jnp.where(proper, nn, 1.0)
+    beta = (dot(q, e) - gamma * dot(f, e)) / jnp.where(ee > 0, ee, 1.0)
+    inside = proper & (beta >= 0) & (gamma >= 0) & (beta + gamma <= 1)
+    t0, t1, t2 = 1.0 - beta - gamma, beta, gamma  # barycentric on r0, r1, r2
+    face_bary = jnp.stack([pick(t0, t2, t1), pick(t1, t0, t2), pick(t2, t1, t0)], -1)  # on a, b, c
 
     def segment(x0, x1, i, j):
         e = x1 - x0
@@ -168,5 +180,7 @@ def closest_on_triangles(p, a, b, c) -> Feature:
     corner = jnp.where(s_e <= 0.0, 4 + best, jnp.where(s_e >= 1.0, 4 + (best + 1) % 3, 1 + best))
     bary = jnp.where(inside[..., None], face_bary, bary_e)
     region = jnp.where(inside, 0, corner).astype(jnp.int32)
-    point = bary[..., :1] * a + bary[..., 1:2] * b + bary[..., 2:] * c
+    on_face = r0 + beta[..., None] * e + gamma[..., None] * f
+    on_edge = bary_e[..., :1] * a + bary_e[..., 1:2] * b + bary_e[..., 2:] * c
+    point = jnp.where(inside[..., None], on_face, on_edge)
     return Feature(point, bary, region)

@@ -25,7 +25,9 @@ across the axis, each crossing counted in the one cell that holds it. A crossing
 `TOLERANCE` of a triangle edge, of a cell face or of the point itself, a nearly edge-on
 triangle, or a crowded cell (more triangles than a pass takes, `PASSES`) leaves the point uncertain.
 There the caps' winding number is summed exactly (up to `CAP_EXACT` cap triangles), so
-``w = W - W_caps`` decides wherever it is `MARGIN` away from 1/2. What is still open (on
+``w = W - W_caps`` decides wherever it is `EXACT_MARGIN` plus a bound on the float32
+rounding of that sum away from 1/2 (`jaxvox._core.geometry.solid_angle_rounding`: large
+only for points next to a cap). What is still open (on
 the surface, a walk that failed, a mesh with thousands of holes) is left to the
 winding-number path (`jaxvox.points.queries`).
 
@@ -47,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._core.geometry import morton_order, solid_angle
+from jaxvox._core.geometry import morton_order, solid_angle_rounding
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket, pad_rows
 from jaxvox.distance.topology import boundary_chain, connected_components, weld
@@ -404,11 +406,14 @@ def _walked_sides(g: SideGrid, rel, *, run: int, per_cell: int):
     caps = g.caps
     exact = caps.shape[0] > 0
     value = w.astype(jnp.float32)
-    if exact:
-        add = lambda i, acc: acc - solid_angle(rel, caps[i].reshape(3, 3)[None])
-        value = jax.lax.fori_loop(0, caps.shape[0], add, value)
-    if exact:  # w itself, to the float32 rounding of the caps' sum
-        certain = known & (jnp.abs(value - 0.5) > EXACT_MARGIN)
+    if exact:  # w itself, to the float32 rounding of the caps' sum (bounded per term)
+
+        def add(i, acc):
+            angle, rounding = solid_angle_rounding(rel, caps[i].reshape(3, 3)[None])
+            return acc[0] - angle, acc[1] + rounding
+
+        value, rounding = jax.lax.fori_loop(0, caps.shape[0], add, (value, jnp.zeros_like(value)))
+        certain = known & (jnp.abs(value - 0.5) > EXACT_MARGIN + rounding)
     else:  # W alone: the caps' bound must leave it on its side
         certain = known & (_cap_bound(g.balls, rel) < jnp.abs(value - 0.5) - MARGIN)
     return jnp.where(certain, (value > 0.5).astype(jnp.int8), jnp.int8(-1)), value

@@ -34,12 +34,18 @@ class _Triangles(NamedTuple):
     base: jax.Array  # [F, 6] int32 base cell (x, y, z) and the axes u, v, w (w dominant)
 
 
-def _half_planes(qa, qb, sigma, six_sep, tol):
+def _half_planes(qa, qb, six_sep, tol):
     """Edge (and diamond) half-planes of one 2D projection of a triangle.
+
+    The edge normals point inwards by the projected triangle's orientation, taken from
+    the same float32 edges: the pair of consecutive edges whose 2D cross product is
+    largest in magnitude (the three are equal in exact arithmetic). The 3D normal's
+    component can round to zero or to the other sign where the projection is a sliver
+    (a corner's tiny offset lost beside a large one), which would turn the short edge's
+    half-plane outwards.
 
     Args:
       qa, qb: [3] float32 projected corner coordinates (local grid units).
-      sigma: orientation, +1 or -1, so that edge normals point inwards.
       six_sep: static bool, diamond constants instead of box-corner constants.
       tol: widening distance in voxels.
 
@@ -50,6 +56,8 @@ def _half_planes(qa, qb, sigma, six_sep, tol):
     """
     ea = jnp.roll(qa, -1) - qa
     eb = jnp.roll(qb, -1) - qb
+    cross = ea * jnp.roll(eb, -1) - eb * jnp.roll(ea, -1)  # [3] 2D cross of consecutive edges
+    sigma = jnp.where(cross[jnp.argmax(jnp.abs(cross))] >= 0, 1.0, -1.0)
     na, nb = -eb * sigma, ea * sigma
     l1 = jnp.abs(na) + jnp.abs(nb)
     if six_sep:
@@ -163,13 +171,12 @@ def _setup_triangle(p, region_lo, region_hi, six_sep):
     normal, delta = _plane_normal(q)
     d = jnp.argmax(jnp.abs(normal))
     perm = (d + jnp.arange(1, 4)) % 3  # (u, v, w) = (d+1, d+2, d): a rotation of (x, y, z)
-    qp, npl, nt = q[:, perm], normal[perm], n_true[perm]
+    qp, npl = q[:, perm], normal[perm]
     lo_i = (box_lo - base)[perm]
     hi_i = (box_hi - base)[perm]
-    sign = lambda x: jnp.where(x >= 0, 1.0, -1.0)
-    dom = _half_planes(qp[:, 0], qp[:, 1], sign(nt[2]), six_sep, tol)  # (u, v): alpha u + beta v
-    vw = _half_planes(qp[:, 1], qp[:, 2], sign(nt[0]), six_sep, tol)  # (v, w): alpha v + beta w
-    wu = _half_planes(qp[:, 2], qp[:, 0], sign(nt[1]), six_sep, tol)  # (w, u): alpha w + beta u
+    dom = _half_planes(qp[:, 0], qp[:, 1], six_sep, tol)  # (u, v): alpha u + beta v
+    vw = _half_planes(qp[:, 1], qp[:, 2], six_sep, tol)  # (v, w): alpha v + beta w
+    wu = _half_planes(qp[:, 2], qp[:, 0], six_sep, tol)  # (w, u): alpha w + beta u
     v_of_u, u_only_a = _linear_bounds(dom[1], dom[0], dom[2])
     w_of_v, v_only = _linear_bounds(vw[1], vw[0], vw[2])
     w_of_u, u_only_b = _linear_bounds(wu[0], wu[1], wu[2])
