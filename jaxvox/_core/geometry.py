@@ -67,7 +67,7 @@ def solid_angle_parts(a, b, c):
 def _atan2_arguments(a, b, c):
     """(det, den) of Van Oosterom & Strackee for corners a, b, c relative to the point
     (tuples of x, y, z arrays), and the magnitude of the terms each sums (for
-    `solid_angle_rounding`, computed lazily by XLA when unused)."""
+    `solid_angle_rounding`; XLA drops it where it is unused)."""
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
     # det = a . (b x c) = a . ((b - a) x (c - a)): the edges' cross product (the plane's

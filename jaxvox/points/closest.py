@@ -152,9 +152,9 @@ def closest_on_triangles(p, a, b, c) -> Feature:
     """
     dot = lambda x, y: jnp.sum(x * y, -1)
     k = jnp.argmax(jnp.stack([dot(b - a, b - a), dot(c - b, c - b), dot(a - c, a - c)], -1), -1)
-    pick = lambda x, y, z: jnp.where(k == 0, x, jnp.where(k == 1, y, z))  # by k, per point
-    pick3 = lambda x, y, z: jnp.where((k == 0)[..., None], x, jnp.where((k == 1)[..., None], y, z))
-    r0, r1, r2 = pick3(a, b, c), pick3(b, c, a), pick3(c, a, b)  # r0 r1: the longest edge
+    pick = lambda k, x, y, z: jnp.where(k == 0, x, jnp.where(k == 1, y, z))  # x, y or z by k
+    k3 = k[..., None]
+    r0, r1, r2 = pick(k3, a, b, c), pick(k3, b, c, a), pick(k3, c, a, b)  # r0 r1: the longest edge
     e, f, q = r1 - r0, r2 - r0, p - r0
     n = jnp.cross(e, f)
     nn, ee = dot(n, n), dot(e, e)
@@ -163,7 +163,7 @@ def closest_on_triangles(p, a, b, c) -> Feature:
     beta = (dot(q, e) - gamma * dot(f, e)) / jnp.where(ee > 0, ee, 1.0)
     inside = proper & (beta >= 0) & (gamma >= 0) & (beta + gamma <= 1)
     t0, t1, t2 = 1.0 - beta - gamma, beta, gamma  # barycentric on r0, r1, r2
-    face_bary = jnp.stack([pick(t0, t2, t1), pick(t1, t0, t2), pick(t2, t1, t0)], -1)  # on a, b, c
+    face_bary = jnp.stack([pick(k, t0, t2, t1), pick(k, t1, t0, t2), pick(k, t2, t1, t0)], -1)  # on a, b, c
 
     def segment(x0, x1, i, j):
         e = x1 - x0

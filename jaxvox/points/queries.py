@@ -45,7 +45,7 @@ from jaxvox._core.checks import check_choice, check_number, check_type, is_concr
 from jaxvox._core.devices import on_all_devices, on_each_device
 from jaxvox._core.errors import JaxvoxError
 from jaxvox._core.pytree import pytree_dataclass
-from jaxvox._core.shapes import bucket
+from jaxvox._core.shapes import bucket, pad_rows
 from jaxvox.mesh import Mesh
 from jaxvox.points import closest, search, sides, winding
 from jaxvox.points.index import MeshIndex, mesh_index
@@ -319,8 +319,7 @@ def _grid_winding(index: MeshIndex, flat):
     if len(again) and len(again) * index.capacity <= EXACT_BUDGET:  # a few: summed exactly
         w[again] = winding.exact_winding(index, points[again])
     elif len(again):
-        subset = np.repeat(points[again[:1]], bucket(len(again)), 0)  # padded: programs per bucket
-        subset[: len(again)] = points[again]
+        subset = pad_rows(points[again], bucket(len(again)))  # padded: programs per bucket
         w_again, lost_again = _settled_winding(index, jax.device_put(subset))
         w[again] = np.asarray(w_again)[: len(again)]
         lost[again] = np.asarray(lost_again)[: len(again)]

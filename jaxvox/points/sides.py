@@ -33,8 +33,8 @@ winding-number path (`jaxvox.points.queries`).
 
 Cost: voxelizing mesh and caps at ``R^3``, labelling ``R^3`` cells and listing the
 triangles of the uncertain cells on the host, once per (index, R) and cached beside the
-index; then per point a cell lookup and the cap bound, and for the points next to the
-surface (a few percent) 64 crossing tests (a second pass with more for a few) and the caps' solid angles; one
+index; then per point a cell lookup and the cap bound, and for the points in cells next
+to the surface 64 crossing tests (a second pass with more for a few) and the caps' solid angles; one
 compiled program each per (R, point count bucket). Memory: an int8 and an int32 per cell,
 plus the uncertain cells' walks and triangle lists.
 """

@@ -125,14 +125,10 @@ def tree_triangles(index: MeshIndex) -> np.ndarray:
 
 def exact_winding(index: MeshIndex, points) -> np.ndarray:
     """Exact winding numbers [n] float64 (host) of points [n, 3] over every triangle of the
-    index (`jaxvox.distance.winding.exact_winding_numbers`: float64 near 1/2), in padded
-    chunks of `EXACT_MIN` points: sets of any size share one compiled program per face
-    capacity."""
+    index (`jaxvox.distance.winding.exact_winding_numbers`: float64 near 1/2), in chunks
+    of `EXACT_MIN` points (the last one padded there): sets of any size share one compiled
+    program per face capacity."""
     from jaxvox.distance.winding import exact_winding_numbers
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    if len(p) == 0:
-        return np.zeros(0)
-    padded = np.repeat(p[:1], -(-len(p) // EXACT_MIN) * EXACT_MIN, 0)  # padding repeats a point
-    padded[: len(p)] = p
-    return exact_winding_numbers(tree_triangles(index), padded, chunk=EXACT_MIN)[: len(p)]
+    return exact_winding_numbers(tree_triangles(index), p, chunk=EXACT_MIN)
