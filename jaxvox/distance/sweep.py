@@ -109,8 +109,12 @@ def _sweep_pair(u):
 def fast_sweep(u, free, iterations: int):
     """`iterations` rounds of fast sweeping in all 8 diagonal orders; only `free` voxels change."""
     u = jnp.where(free, u, -u)  # the sign bit marks fixed voxels (u >= 0; -0.0 has it too)
-    for _ in range(iterations):
+
+    def iteration(_, u):
         for axes in ((), (0,), (1,), (2,)):
             flip = lambda a: jnp.flip(a, axes) if axes else a
             u = flip(_sweep_pair(flip(u)))
-    return jnp.abs(u)
+        return u
+
+    # a loop, not unrolled: one iteration's code, compiled once whatever `iterations` is
+    return jnp.abs(jax.lax.fori_loop(0, iterations, iteration, u))
