@@ -7,13 +7,16 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
   first call in a fresh process (compilation included, with its number of XLA
   compilations), then the median of ``--repeats`` warmed-up calls; band voxels, bytes of
   the values and of the whole `SparseField` (voxels, values, triangles, tree), peak
-  resident memory. Resolutions listed in ``--stream`` take `jv.sparse_field_regions`
-  instead (each region's field counted and dropped: fields larger than memory). The
+  resident memory; each for the default field and for a compact one (``compact=True``:
+  values and tree only; ``--layouts``), each in a fresh process. Resolutions listed in
+  ``--stream`` take `jv.sparse_field_regions` instead (each region's field counted and
+  dropped: fields larger than memory). The
   bunny is open, so its sign takes components of mesh plus caps (`jaxvox.distance.band_sign`);
 * OpenVDB: ``FloatGrid.createLevelSetFromPolygons`` (meshToLevelSet, multi-threaded) with
   the same voxel size and half width, run by the system ``/usr/bin/python3`` (Debian
   ``python3-openvdb``) in a subprocess, timed there (first call and median of repeats);
-  its sign is a flood fill from the outside, not a winding number;
+  its sign is a flood fill from the outside, not a winding number; its bytes
+  (``memUsage``) and the subprocess's peak resident memory;
 * Open3D: ``RaycastingScene.compute_distance`` (exact unsigned distance through a BVH,
   multi-threaded) and ``compute_signed_distance`` at jaxvox's band voxel centres (the same
   set of points), scene construction included; the largest difference from jaxvox's
@@ -42,7 +45,7 @@ import _common
 SYSTEM_PYTHON = "/usr/bin/python3"
 _OPENVDB = textwrap.dedent(
     """
-    import json, sys, time
+    import json, resource, sys, time
     import numpy as np
     try:
         import pyopenvdb as vdb
@@ -67,7 +70,9 @@ _OPENVDB = textwrap.dedent(
         grid = vdb.FloatGrid.createLevelSetFromPolygons(v, triangles=f, transform=xform, halfWidth=spec["band"])
         times.append(time.perf_counter() - t)
     median = float(np.median(times[1:])) if len(times) > 1 else times[0]
-    print(json.dumps(dict(first_s=times[0], median_s=median, voxels=int(grid.activeVoxelCount()))))
+    voxels, nbytes = int(grid.activeVoxelCount()), int(grid.memUsage())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps(dict(first_s=times[0], median_s=median, voxels=voxels, bytes=nbytes, peak_rss_mib=peak)))
     """
 )
 
@@ -96,7 +101,7 @@ def worker(spec: dict) -> dict:
     )
     mesh = jv.load_mesh(spec["mesh"])
     grid = jv.Grid.fit(mesh, resolution=spec["resolution"])
-    kw = dict(band=spec["band"], signed=spec["signed"])
+    kw = dict(band=spec["band"], signed=spec["signed"], compact=spec["compact"])
     field_bytes = lambda f: f.memory()["total"]
     if spec["stream"]:  # region by region, each region's field dropped once counted
 
@@ -125,7 +130,7 @@ def worker(spec: dict) -> dict:
         ),
         voxel_size=float(grid.voxel_size),
     )
-    if field is None or spec["skip_open3d"]:
+    if field is None or spec["skip_open3d"] or spec["compact"]:  # (a compact field has the same values)
         return out
     try:
         import open3d as o3d
@@ -133,7 +138,7 @@ def worker(spec: dict) -> dict:
         out["open3d"] = {"error": str(e)}
         return out
     h = float(grid.voxel_size)
-    ijk = np.asarray(field.voxels.coords[:n], np.float64)
+    ijk = np.asarray(field.voxel_coords(), np.float64)
     points = (np.asarray(grid.origin, np.float64) + (ijk + 0.5) * h).astype(np.float32)
     values = np.asarray(field.values[:n], np.float64)
     del field
@@ -175,6 +180,13 @@ def main() -> None:
         help="resolutions handed out region by region (sparse_field_regions), each region dropped once counted",
     )
     parser.add_argument("--skip-open3d", action="store_true", help="no Open3D queries (slow and large at 4096^3)")
+    parser.add_argument(
+        "--layouts",
+        nargs="+",
+        choices=["full", "compact"],
+        default=["full", "compact"],
+        help="jaxvox's fields: full (the default call: voxels, triangles, values, tree) and compact (values and tree)",
+    )
     parser.add_argument("--update", action="store_true", help="replace only these resolutions' rows in the JSON")
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
@@ -183,16 +195,21 @@ def main() -> None:
     mesh = str(_common.MESH_DIR / "stanford-bunny.obj")
     cases = []
     for r in _common.progress(resolutions, desc="resolutions"):
-        spec = dict(
-            mesh=mesh,
-            resolution=r,
-            band=args.band,
-            repeats=args.repeats,
-            signed=not args.unsigned,
-            stream=r in args.stream,
-            skip_open3d=args.skip_open3d,
-        )
-        case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r, mesh="stanford-bunny")
+        case = dict(resolution=r, mesh="stanford-bunny")
+        for layout in args.layouts:  # each in a fresh process (its own peak memory)
+            spec = dict(
+                mesh=mesh,
+                resolution=r,
+                band=args.band,
+                repeats=args.repeats,
+                signed=not args.unsigned,
+                stream=r in args.stream,
+                skip_open3d=args.skip_open3d,
+                compact=layout == "compact",
+            )
+            run = _common.run_worker(__file__, spec, timeout=args.timeout)
+            case["jaxvox" if layout == "full" else "jaxvox_compact"] = run.get("jaxvox", run)  # (or its error)
+            case.update({name: run[name] for name in ("voxel_size", "open3d") if name in run})
         if "voxel_size" in case:
             peer = dict(mesh=mesh, voxel_size=case["voxel_size"], band=args.band, repeats=args.repeats)
             case["openvdb"] = _openvdb(peer, args.timeout)
@@ -200,9 +217,10 @@ def main() -> None:
         print(json.dumps(case))
     name = "sparse_distance" + ("_unsigned" if args.unsigned else "") + ("_smoke" if args.smoke else "")
     path = _common.RESULTS_DIR / f"{name}.json"
-    if args.update and path.exists():  # keep the other resolutions' rows of the last full run
-        kept = [c for c in json.loads(path.read_text())["cases"] if c["resolution"] not in resolutions]
-        cases = sorted(kept + cases, key=lambda c: c["resolution"])
+    if args.update and path.exists():  # keep the other rows of the last full run (other resolutions, layouts)
+        last = {c["resolution"]: c for c in json.loads(path.read_text())["cases"]}
+        cases = [dict(last.pop(c["resolution"], {}), **c) for c in cases]
+        cases = sorted(list(last.values()) + cases, key=lambda c: c["resolution"])
     result = dict(band=args.band, signed=not args.unsigned, cases=cases, machine=_common.machine_info(PACKAGES))
     _common.write_json(path, result)
     write_report(result, _common.RESULTS_DIR / name)
@@ -212,36 +230,57 @@ PACKAGES = ["jax", "jaxlib", "numpy", "open3d"]
 
 
 def _rows(case: dict) -> list[dict]:
-    j, vdb, o3d = case.get("jaxvox", {}), case.get("openvdb", {}), case.get("open3d", {})
+    vdb, o3d = case.get("openvdb", {}), case.get("open3d", {})
     fmt = lambda x: f"{x:.3g}" if isinstance(x, float) else "-"
-    return [
-        dict(
-            R=case["resolution"],
-            voxels=f"{j.get('voxels', 0):,}",
-            first=fmt(j.get("first_s")),
-            compiles=str(j.get("compiles", "-")),
-            warm=fmt(j.get("median_s")),
-            peak=fmt(j.get("peak_rss_mib")),
-            field=fmt(j.get("field_mib")) + (" (by regions)" if j.get("streamed") else ""),
-            vdb=fmt(vdb.get("median_s")) + (f" ({vdb['voxels']:,} voxels)" if "voxels" in vdb else ""),
-            o3d=fmt(o3d.get("signed", {}).get("median_s")) + " / " + fmt(o3d.get("unsigned", {}).get("median_s")),
-            diff=fmt(o3d.get("unsigned", {}).get("max_diff_voxels")),
-            signs=str(o3d.get("signed", {}).get("sign_disagreements", "-")),
+    per_voxel = lambda nbytes, voxels: fmt(nbytes / voxels) if nbytes and voxels else "-"
+    rows = []
+    for key, layout in (("jaxvox", "full (default)"), ("jaxvox_compact", "compact")):
+        if key not in case:
+            continue
+        j = case[key]
+        layout += f" ({j['error']})" if "error" in j else ""
+        memory = j.get("memory") or {}
+        rows.append(
+            dict(
+                R=case["resolution"],
+                layout=layout,
+                voxels=f"{j.get('voxels', 0):,}",
+                first=fmt(j.get("first_s")),
+                compiles=str(j.get("compiles", "-")),
+                warm=fmt(j.get("median_s")),
+                peak=fmt(j.get("peak_rss_mib")),
+                field=fmt(j.get("field_mib")) + (" (by regions)" if j.get("streamed") else ""),
+                per_voxel=per_voxel(j.get("field_mib", 0) * 2**20, j.get("voxels")),
+                topology=per_voxel(memory.get("topology"), j.get("voxels")),
+                vdb=fmt(vdb.get("median_s"))
+                + (f" ({vdb['voxels']:,} voxels)" if "voxels" in vdb else "")
+                + (f" ({vdb['error']})" if "error" in vdb else ""),
+                vdb_per_voxel=per_voxel(vdb.get("bytes"), vdb.get("voxels")),
+                vdb_peak=fmt(vdb.get("peak_rss_mib")),
+                o3d=fmt(o3d.get("signed", {}).get("median_s")) + " / " + fmt(o3d.get("unsigned", {}).get("median_s")),
+                diff=fmt(o3d.get("unsigned", {}).get("max_diff_voxels")),
+                signs=str(o3d.get("signed", {}).get("sign_disagreements", "-")),
+            )
         )
-    ]
+    return rows
 
 
 def write_report(result: dict, stem) -> None:
     """Markdown table and chart (time against resolution) next to the JSON."""
     columns = [
         ("R", "R"),
+        ("layout", "jaxvox field"),
         ("voxels", "band voxels"),
         ("first", "jaxvox first call (s)"),
         ("compiles", "compiles"),
         ("warm", "jaxvox warm (s)"),
         ("peak", "peak RSS (MiB)"),
         ("field", "field (MiB)"),
+        ("per_voxel", "bytes per voxel"),
+        ("topology", "of which the tree"),
         ("vdb", "OpenVDB warm (s)"),
+        ("vdb_per_voxel", "OpenVDB bytes per voxel (memUsage)"),
+        ("vdb_peak", "OpenVDB peak RSS (MiB)"),
         ("o3d", "Open3D signed / unsigned (s)"),
         ("diff", "max abs diff vs Open3D (voxels)"),
         ("signs", "sign disagreements with Open3D"),
@@ -252,6 +291,7 @@ def write_report(result: dict, stem) -> None:
     series = [
         ("jaxvox first call", lambda c: c.get("jaxvox", {}).get("first_s")),
         ("jaxvox warm", lambda c: c.get("jaxvox", {}).get("median_s")),
+        ("jaxvox warm, compact", lambda c: c.get("jaxvox_compact", {}).get("median_s")),
         ("OpenVDB meshToLevelSet", lambda c: c.get("openvdb", {}).get("median_s")),
         ("Open3D exact signed query", lambda c: c.get("open3d", {}).get("signed", {}).get("median_s")),
     ]

@@ -452,6 +452,45 @@ def test_regions_change_nothing(meshes_dir, name, resolution, monkeypatch):
     assert int(jv.voxel_index(last.tree, np.asarray(whole.voxels.coords[0]))) == -1
 
 
+def test_compact_field_is_the_field_without_its_coordinates(monkeypatch):
+    """``compact=True`` keeps the values and the tree only: the same values, the same
+    voxels out of the tree, the same samples and mesh; built whole, in regions, joined
+    (no reserved buffers) or handed out region by region; its memory is the values'
+    capacity and the DAG's tables, every byte accounted for."""
+    sphere = icosphere(2, 0.4)
+    tri = np.asarray(sphere.triangles())
+    cut = jv.Mesh(sphere.vertices, np.asarray(sphere.faces)[tri[:, :, 2].mean(1) < 0.8])  # open: winding signs
+    grid = jv.Grid(np.zeros(3), 1 / 16, 16)
+    full = jv.sparse_distance_field(cut, grid, band=2)
+    n = int(full.count)
+    points = np.random.default_rng(3).uniform(-0.6, 0.6, (500, 3)).astype(np.float32)
+    with monkeypatch.context() as patch:
+        patch.setattr(importlib.import_module("jaxvox.distance.sparse"), "reserved_empty", lambda shape, dtype: None)
+        joined = jv.sparse_distance_field(cut, grid, band=2, region=8, compact=True)
+    for field in (jv.sparse_distance_field(cut, grid, band=2, compact=True), joined):
+        assert field.voxels is None and int(field.count) == n > 0
+        np.testing.assert_array_equal(np.asarray(field.values), np.asarray(full.values))
+        np.testing.assert_array_equal(np.asarray(field.voxel_coords()), np.asarray(full.voxels.coords[:n]))
+        for got, want in zip(jv.sample(field, points), jv.sample(full, points)):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        faces = [np.asarray(jv.field_to_mesh(f).faces) for f in (field, full)]
+        np.testing.assert_array_equal(*faces)
+        memory = field.memory()
+        assert memory["coords"] == memory["triangles"] == 0
+        assert memory["values"] == 4 * field.values.shape[0] and memory["topology"] == field.tree.nbytes
+        assert memory["total"] == sum(x.nbytes for x in jax.tree_util.tree_leaves(field)) < full.memory()["total"]
+        assert memory["per_voxel"] == memory["total"] / n
+    whole = list(jv.sparse_field_regions(cut, grid, band=2, region=8))
+    parts = list(jv.sparse_field_regions(cut, grid, band=2, region=8, compact=True))
+    assert len(parts) == len(whole) > 1
+    for part, want in zip(parts, whole):
+        assert part.voxels is None
+        np.testing.assert_array_equal(np.asarray(part.voxel_coords()), np.asarray(want.voxel_coords()))
+        np.testing.assert_array_equal(np.asarray(part.values), np.asarray(want.values))
+    with pytest.raises(jv.JaxvoxError, match="sparse_distance_field compact: must be True or False"):
+        jv.sparse_distance_field(cut, grid, compact="yes")
+
+
 def test_bad_region():
     mesh = icosphere(1, 0.3)
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)

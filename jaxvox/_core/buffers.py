@@ -1,11 +1,14 @@
 """Host buffers for large results: page-aligned arrays that `jax.device_put` aliases
 instead of copying, address-space-only reservations whose pages cost memory once written,
-row joins that never hold the parts and the whole at once, and the progress-bar switch of
-the region loops. Used by the voxelizer, the sparse distance fields and the solid
-boundary."""
+row joins that never hold the parts and the whole at once, the return of freed heap
+memory between regions, and the progress-bar switch of the region loops. Used by the
+voxelizer, the sparse distance fields and the solid boundary."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import mmap
 import sys
 
@@ -15,6 +18,26 @@ import numpy as np
 def progress_off(progress: bool | None, regions: int) -> bool:
     """Whether the progress bar over `regions` regions is off (`progress` None: on for several)."""
     return regions < 2 if progress is None else not progress
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None (another C library, or none found)."""
+    name = ctypes.util.find_library("c") if sys.platform.startswith("linux") else None
+    try:
+        return ctypes.CDLL(name).malloc_trim if name else None
+    except (OSError, AttributeError):
+        return None
+
+
+def release_free_memory() -> None:
+    """Returns the heap memory freed so far to the system (glibc's ``malloc_trim(0)``;
+    nothing elsewhere). A region loop frees arrays of a few MiB to tens of MiB per region
+    on several threads; glibc keeps such freed chunks in its per-thread heaps, so
+    without this the resident memory grows region after region as if nothing were freed."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def aligned_empty(shape: tuple[int, ...], dtype) -> np.ndarray:

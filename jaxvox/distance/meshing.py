@@ -137,7 +137,7 @@ def _march(field: SparseField, level: float, block: int):
     target = level / h  # the level in voxel units (marching cubes sees voxel units)
     delta = NUDGE * band
     stride = r + 2  # vertex keys: (lower sample + 1) in [0, R + 1]^3, times 4 kinds
-    coords = np.asarray(field.voxels.coords[:n], np.int64)
+    coords = np.asarray(field.voxel_coords(), np.int64)
     lookup = _Band(coords, np.asarray(field.values[:n]), r)
     keys: list[np.ndarray] = []
     points: list[np.ndarray] = []

@@ -54,10 +54,10 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Bool, Float, Float32
+from jaxtyping import Array, ArrayLike, Bool, Float, Float32, Int32
 
 from jaxvox import morton
-from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, reserved_empty
+from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, release_free_memory, reserved_empty
 from jaxvox._core.checks import check_int, check_type, refuse
 from jaxvox._core.geometry import rows_dist2, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
@@ -65,7 +65,7 @@ from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
 from jaxvox.distance.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
-from jaxvox.octree import Octree, voxel_index
+from jaxvox.octree import Octree, expand, voxel_index
 from jaxvox.octree.stream import check_count, check_region, finish_dag, merge_all, push_region
 from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 
@@ -92,16 +92,19 @@ class SparseField:
     Attributes:
       voxels: the band voxels (`Voxels`, Morton order, mode "conservative"): every voxel
         whose centre lies within ``band * h`` of the surface. ``voxels.triangle`` holds
-        each voxel's closest triangle (ties to the lower id).
-      values: [capacity] float32 distances in world units aligned with ``voxels.coords``
-        (negative inside when signed); slots past `count` hold `UNUSED_VALUE` (+inf).
+        each voxel's closest triangle (ties to the lower id). None in a compact field
+        (``compact=True``): the tree alone stands for the voxels (`voxel_coords`).
+      values: [capacity] float32 distances in world units, in Morton order of the band
+        voxels (aligned with ``voxels.coords``; the value of voxel ijk is at
+        ``voxel_index(tree, ijk)``), negative inside when signed; slots past `count` hold
+        `UNUSED_VALUE` (+inf).
       tree: `Octree`, the DAG of the band voxels (`build_dag`'s layout), for `voxel_index`
         lookups.
       grid: the `Grid`.
       band: static int, the half width in voxels (changing it recompiles consumers).
     """
 
-    voxels: Voxels
+    voxels: Voxels | None
     values: Float32[Array, " capacity"]  # [capacity] float32
     tree: Octree
     grid: Grid
@@ -110,17 +113,25 @@ class SparseField:
     @property
     def count(self) -> jax.Array:
         """[] int32 number of band voxels."""
-        return self.voxels.count
+        return self.tree.voxel_count.astype(jnp.int32) if self.voxels is None else self.voxels.count
+
+    def voxel_coords(self) -> Int32[Array, "count 3"]:
+        """[count, 3] int32 voxel indices of the band voxels in Morton order (host-side):
+        ``voxels.coords``, or in a compact field the tree's voxels (`jaxvox.octree.expand`)."""
+        voxels = self.voxels if self.voxels is not None else expand(self.tree)
+        return voxels.coords[: int(self.count)]
 
     def memory(self) -> dict[str, float]:
         """Bytes the field holds, by part (host ints; buffers at their capacity, padding
-        included): ``coords`` (int32 ijk per slot), ``triangles`` (int32 closest triangle
-        per slot, if kept), ``values`` (float32 per slot), ``topology`` (the DAG's tables:
-        `Octree.nbytes`), ``other`` (counts, flags and the grid), ``total`` (every array
-        leaf of the pytree), and ``per_voxel`` (total over the band voxels)."""
+        included): ``coords`` (int32 ijk per slot, 0 in a compact field), ``triangles``
+        (int32 closest triangle per slot, 0 in a compact field), ``values`` (float32 per
+        slot), ``topology`` (the DAG's tables: `Octree.nbytes`), ``other`` (counts, flags
+        and the grid), ``total`` (every array leaf of the pytree), and ``per_voxel``
+        (total over the band voxels)."""
+        voxels = self.voxels
         parts = {
-            "coords": self.voxels.coords.nbytes,
-            "triangles": 0 if self.voxels.triangle is None else self.voxels.triangle.nbytes,
+            "coords": 0 if voxels is None else voxels.coords.nbytes,
+            "triangles": 0 if voxels is None or voxels.triangle is None else voxels.triangle.nbytes,
             "values": self.values.nbytes,
             "topology": self.tree.nbytes,
         }
@@ -226,8 +237,8 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
         change later: copy what is kept.
       out: (ijk int32 [m, 3], d2 float32 [m], tri int32 [m]) host arrays to write the
         results into, from their first row; m at least every cell of every tile that
-        holds a triangle within `band` (e.g. the box's volume, in whole tiles). Default:
-        new page-aligned arrays.
+        holds a triangle within `band` (e.g. the box's volume, in whole tiles). Default
+        (and for each part given as None): new page-aligned arrays.
 
     Returns:
       (ijk int32 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
@@ -263,15 +274,13 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
     # The outputs, at most every cell of every tile: pages past the band voxels are never
     # touched, so the bound costs address space only, and no parts are joined at the end.
     bound = len(starts) * _CELLS
-    if out is None:  # (page-aligned: a single region's outputs become the field's buffers, `_joined`)
-        out = (
-            aligned_empty((bound, 3), np.int32),
-            aligned_empty((bound,), np.float32),
-            aligned_empty((bound,), np.int32),
-        )
-    ijk, band_d2, band_tri = out
-    if len(ijk) < bound:
-        raise ValueError(f"band_pairs: out has {len(ijk)} rows, fewer than the {bound} cells of its tiles")
+    # (page-aligned: a single region's outputs become the field's buffers, `_joined`)
+    fresh = (((bound, 3), np.int32), ((bound,), np.float32), ((bound,), np.int32))
+    ijk, band_d2, band_tri = (
+        aligned_empty(*spec) if part is None else part for part, spec in zip(out or (None,) * 3, fresh)
+    )
+    if min(len(ijk), len(band_d2), len(band_tri)) < bound:
+        raise ValueError(f"band_pairs: out has fewer rows than the {bound} cells of its tiles")
     keys = np.empty(bound, np.int64)
     item_end = np.cumsum(counts)
 
@@ -338,6 +347,7 @@ def sparse_distance_field(
     signed: bool = True,
     region: int | None = None,
     progress: bool | None = None,
+    compact: bool = False,
 ) -> SparseField:
     """The narrow-band distance field of `mesh`: exact distances at the band voxels.
 
@@ -359,6 +369,10 @@ def sparse_distance_field(
       region: edge of the regions (a power of two up to `REGION_SIZE`, 1024, the
         default; capped at R). The field does not depend on it.
       progress: a progress bar over the regions (None: when there are several).
+      compact: keep the values and the tree only (``field.voxels`` is None): 4 bytes per
+        band voxel (in the capacity's padding too) plus the DAG's, against 12 more for
+        the coordinates and 4 for the closest triangles. `sample`, `field_to_mesh` and
+        the sampled SDF node work alike; `SparseField.voxel_coords` expands the tree.
 
     Returns:
       A `SparseField` (empty, ``count == 0``, for a mesh without faces) whose tree is the
@@ -368,25 +382,27 @@ def sparse_distance_field(
       JaxvoxError: a malformed mesh, not a `Grid`, a bad `band`, `signed` or `region`, or
         a triangle whose dilated box holds more than about 2^31 voxels.
     """
-    size = _checked("sparse_distance_field", mesh, grid, band, signed, region)
-    out = _field_rows(grid.resolution, size)
+    size = _checked("sparse_distance_field", mesh, grid, band, signed, region, compact)
+    out = _field_rows(grid.resolution, size, compact)
     coords, values, closest = [], [], []
     stack: list = []
     build = lambda keys, region_lo: push_region(stack, keys, region_lo, size)  # in region order (one worker)
     pushed = []  # waited for at the end: each region is finished while the next is found
     for ijk, dist, tri, done in band_regions(mesh, grid, band, signed, size, progress, build, out):
         pushed.append(done)
-        coords.append(ijk)
         values.append(dist)
-        closest.append(tri)
+        if not compact:
+            coords.append(ijk)
+            closest.append(tri)
         del ijk, dist, tri
     for done in pushed:
         done.result()
-    n = sum(len(c) for c in coords)
+    n = sum(len(v) for v in values)
     if out is not None:  # the regions' rows follow each other in the reserved buffers
-        coords, values, closest = ([a[:n]] for a in out)
+        coords, values, closest = ([] if a is None else [a[:n]] for a in out)
     check_count(n, grid, "sparse_distance_field")
-    return _field(grid, band, n, coords, values, closest, finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n))
+    tree = finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n)
+    return _field(grid, band, n, coords, values, closest, tree, compact)
 
 
 def sparse_field_regions(
@@ -397,6 +413,7 @@ def sparse_field_regions(
     signed: bool = True,
     region: int | None = None,
     progress: bool | None = None,
+    compact: bool = False,
 ) -> Iterator[SparseField]:
     """`sparse_distance_field` handed out region by region, for fields larger than memory
     (the bunny at 8192^3, band 3: 912 M band voxels, a 20.3 GiB field whose build peaks
@@ -413,7 +430,7 @@ def sparse_field_regions(
       voxels alone. `sample` on it sees only the region: near the region's faces a
       neighbour in the next region counts as outside the band.
     """
-    size = _checked("sparse_field_regions", mesh, grid, band, signed, region)
+    size = _checked("sparse_field_regions", mesh, grid, band, signed, region, compact)
 
     def build(keys: np.ndarray, region_lo: np.ndarray) -> Octree:  # the region's DAG alone
         stack: list = []
@@ -421,24 +438,26 @@ def sparse_field_regions(
         return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
 
     for ijk, dist, tri, tree in band_regions(mesh, grid, band, signed, size, progress, build):
-        yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result())
+        yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result(), compact)
 
 
-def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region) -> int:
+def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region, compact) -> int:
     """Checks the arguments of `caller` (`JaxvoxError` naming the bad one); returns the
     region edge, capped at the resolution."""
     validate_mesh(mesh)
     check_type(f"{caller} grid", grid, Grid)
     check_int(f"{caller} band", band, minimum=0, maximum=MAX_BAND)
-    if not isinstance(signed, (bool, np.bool_)):
-        raise refuse(f"{caller} signed", "must be True or False", signed)
+    for name, flag in (("signed", signed), ("compact", compact)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise refuse(f"{caller} {name}", "must be True or False", flag)
     return min(check_region(f"{caller} region", region), grid.resolution)
 
 
-def _field_rows(resolution: int, size: int) -> tuple | None:
+def _field_rows(resolution: int, size: int, compact: bool) -> tuple | None:
     """Buffers for a whole field's rows (ijk int32 [m, 3], values float32 [m], triangles
-    int32 [m]) written region after region (`band_regions`' ``out``), so that they become
-    the field's own without a join (a join of a large field's rows costs as much as a region's work). m bounds both
+    int32 [m]; `compact`: the values only, None for the others) written region after
+    region (`band_regions`' ``out``), so that they become the field's own without a join
+    (a join of a large field's rows costs as much as a region's work). m bounds both
     the rows (every cell, in whole tiles, of the regions of edge `size` that cover the
     grid) and the field's capacity (`bucket` of R^3): address space only
     (`reserved_empty`). None where the system will not reserve it; the regions are then
@@ -446,7 +465,10 @@ def _field_rows(resolution: int, size: int) -> tuple | None:
     span = -(-resolution // size) * size
     tiled = -(-span // TILE) * TILE
     rows = max(bucket(resolution**3), tiled**3)
-    out = reserved_empty((rows, 3), np.int32), reserved_empty((rows,), np.float32), reserved_empty((rows,), np.int32)
+    values = reserved_empty((rows,), np.float32)
+    if compact:
+        return None if values is None else (None, values, None)
+    out = reserved_empty((rows, 3), np.int32), values, reserved_empty((rows,), np.int32)
     return None if any(a is None for a in out) else out
 
 
@@ -508,11 +530,12 @@ def band_regions(
 
         regions, n = zip(starts, ends), 0
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
+            release_free_memory()  # what the last regions freed (`jaxvox._core.buffers`)
             region_lo = morton.decode_host(codes[a]) * size
             mine = ids[a:b]  # ascending, so ties still go to the lower id
             started: list = []  # the sides' kernels, started round by round
             start = None if sides is None else functools.partial(_start_sides, sides, started, region_lo, mine)
-            rows = None if out is None else tuple(part[n:] for part in out)
+            rows = None if out is None else tuple(None if part is None else part[n:] for part in out)
             ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start, rows)
             if not len(ijk):
                 continue
@@ -533,11 +556,17 @@ def _start_sides(sides: Sides, started: list, region_lo: np.ndarray, ids: np.nda
     started.append(sides.start(ijk + region_lo, ids[tri]))
 
 
-def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree) -> SparseField:
+def _field(
+    grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree, compact: bool
+) -> SparseField:
     """The `SparseField` of `n` band voxels given as parts (lists of host arrays, emptied
-    as they are joined into buffers of the shape ladder) and their tree."""
+    as they are joined into buffers of the shape ladder) and their tree; `compact`: the
+    values and the tree only (coords and closest are dropped)."""
     capacity = bucket(n)
     put = functools.partial(jax.device_put, may_alias=True)
+    field_values = put(_joined(values, (capacity,), UNUSED_VALUE, np.float32))
+    if compact:
+        return SparseField(None, field_values, tree, grid, int(band))
     voxels = Voxels(
         put(_joined(coords, (capacity, 3), UNUSED, np.int32)),
         jnp.int32(n),
@@ -546,7 +575,7 @@ def _field(grid: Grid, band: int, n: int, coords: list, values: list, closest: l
         grid,
         CONSERVATIVE,
     )
-    return SparseField(voxels, put(_joined(values, (capacity,), UNUSED_VALUE, np.float32)), tree, grid, int(band))
+    return SparseField(voxels, field_values, tree, grid, int(band))
 
 
 def _joined(parts: list, shape: tuple[int, ...], fill, dtype) -> np.ndarray:
