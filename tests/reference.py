@@ -410,13 +410,18 @@ def winding_number(vertices, faces, points) -> np.ndarray:
     block = max(1, (1 << 21) // max(len(tri), 1))  # points per block: [block, F] temporaries
     corner = [[tri[None, :, k, axis] for axis in range(3)] for k in range(3)]  # [1, F] per axis
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    zero_area = (np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) == 0).all(-1)  # [F]
     for start in range(0, len(points), block):
         p = points[start : start + block]
         a, b, c = ([corner[k][axis] - p[:, axis, None] for axis in range(3)] for k in range(3))  # [B, F] each
         la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
         cross = (b[1] * c[2] - b[2] * c[1], b[2] * c[0] - b[0] * c[2], b[0] * c[1] - b[1] * c[0])
         den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
-        out[start : start + block] = np.arctan2(dot(a, cross), den).sum(-1) / (2 * np.pi)
+        angle = np.arctan2(dot(a, cross), den)
+        # A triangle of zero area has no solid angle, also from a point on it (where the
+        # formula reads atan2(0, den <= 0)): the library's convention.
+        angle[:, zero_area] = 0.0
+        out[start : start + block] = angle.sum(-1) / (2 * np.pi)
     return out
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
-from tests.reference import winding_number
+from tests.reference import closest_point_on_triangles, winding_number
 
 # Far-field error of the tree at beta = 2, in winding-number units: measured at most
 # 5e-3 on spot and 3e-3 on the bunny at 32^3, 4e-3 on random triangle soups.
@@ -40,16 +40,28 @@ def test_data_meshes_against_brute_force(meshes_dir, name, block):
 @hypothesis.given(
     st.lists(st.tuples(*[st.floats(-0.5, 1.5, width=32)] * 9), min_size=1, max_size=40), st.sampled_from([1, 2, 8])
 )
+# A repeated corner: voxel centres on the segment read atan2(+-0, den <= 0) = +-pi, half a
+# winding number, until zero-area triangles got no solid angle (found by hypothesis).
+@hypothesis.example(corners=[(0.0,) * 9, (0.0,) * 6 + (1.5, 1.5, 0.5)], block=1)
+@hypothesis.example(corners=[(0.0,) * 9, (0.0, 1.5, 0.0, 0.0, 0.0, 0.0, 1.5, 0.0, 0.5)], block=1)  # a centre on an edge
 def test_random_soups_against_brute_force(corners, block):
     """Random triangles, degenerate ones and ones outside the grid included."""
     v = np.array(corners, np.float32).reshape(-1, 3)
     mesh = jv.Mesh(v, np.arange(len(v), dtype=np.int32).reshape(-1, 3))
     grid = jv.Grid(origin=(0.0, 0.0, 0.0), voxel_size=1 / 8, resolution=8)
     got = np.asarray(jv.winding_numbers(mesh, grid, block=block)).reshape(-1)
-    ref = winding_number(v, np.asarray(mesh.faces), _centres(grid))
+    centres = _centres(grid)
+    ref = winding_number(v, np.asarray(mesh.faces), centres)
     assert np.isfinite(got).all()
-    # A voxel centre on a triangle's plane inside it has an undefined solid angle.
-    np.testing.assert_allclose(got, ref, atol=TOLERANCE)
+    # A voxel centre on a triangle (its plane inside it, or an edge) has an undefined
+    # solid angle, and one within float32 rounding of it an ill-conditioned one: those
+    # are left out. A triangle of zero area has none, also from a point on it.
+    tris = v.reshape(-1, 3, 3).astype(np.float64)
+    proper = np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1) > 0
+    near = np.zeros(len(centres), bool)
+    for a, b, c in tris[proper]:
+        near |= np.linalg.norm(closest_point_on_triangles(centres, a, b, c) - centres, axis=1) < 1e-6
+    np.testing.assert_allclose(got[~near], ref[~near], atol=TOLERANCE)
 
 
 def test_huge_beta_is_the_brute_force_and_orientation_flips_the_sign(meshes_dir):

@@ -67,7 +67,12 @@ def solid_angle_parts(a, b, c):
 def _atan2_arguments(a, b, c):
     """(det, den) of Van Oosterom & Strackee for corners a, b, c relative to the point
     (tuples of x, y, z arrays), and the magnitude of the terms each sums (for
-    `solid_angle_rounding`; XLA drops it where it is unused)."""
+    `solid_angle_rounding`; XLA drops it where it is unused).
+
+    A triangle of zero area (its edges' cross product exactly zero, e.g. a repeated
+    corner) gets (0, 1): no solid angle. Otherwise a point on its segment would read
+    atan2(+-0, den <= 0) = +-pi, half a winding number from a triangle that has no inside.
+    """
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     la, lb, lc = (jnp.sqrt(dot(x, x)) for x in (a, b, c))
     # det = a . (b x c) = a . ((b - a) x (c - a)): the edges' cross product (the plane's
@@ -75,9 +80,11 @@ def _atan2_arguments(a, b, c):
     # plane over |a|, where a . (b x c) rounds at |a| |b| |c| (points near the triangle)
     e = tuple(bi - ai for ai, bi in zip(a, b))
     f = tuple(ci - ai for ai, ci in zip(a, c))
-    det = a[0] * (e[1] * f[2] - e[2] * f[1]) + a[1] * (e[2] * f[0] - e[0] * f[2]) + a[2] * (e[0] * f[1] - e[1] * f[0])
+    n = (e[1] * f[2] - e[2] * f[1], e[2] * f[0] - e[0] * f[2], e[0] * f[1] - e[1] * f[0])
+    flat = (n[0] == 0) & (n[1] == 0) & (n[2] == 0)
+    det = jnp.where(flat, 0.0, dot(a, n))
     ab, bc, ca = dot(a, b), dot(b, c), dot(c, a)
-    den = la * lb * lc + ab * lc + bc * la + ca * lb
+    den = jnp.where(flat, 1.0, la * lb * lc + ab * lc + bc * la + ca * lb)
     terms = la * jnp.sqrt(dot(e, e) * dot(f, f)) + la * lb * lc + jnp.abs(ab) * lc + jnp.abs(bc) * la + jnp.abs(ca) * lb
     return det, den, terms
 

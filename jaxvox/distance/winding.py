@@ -394,8 +394,10 @@ def host_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
         rows = slice(s, s + block)
         a, b, c = (tris[None, :, k] - points[rows, None] for k in range(3))
         la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
-        det = dot(a, np.cross(b, c))
-        den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
+        normal = np.cross(b - a, c - a)
+        flat = (normal == 0).all(-1)  # zero area: no solid angle (`jaxvox._core.geometry.solid_angle`)
+        det = np.where(flat, 0.0, dot(a, normal))
+        den = np.where(flat, 1.0, la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb)
         w[rows] = np.arctan2(det, den).sum(1) / (2 * np.pi)
     return w
 
