@@ -74,6 +74,7 @@ SLOTS = 4  # triangles per work unit (a tile overlapped by more takes several); 
 UNITS = 1 << 13  # work units per call of the tile kernel
 GROUP_ITEMS = 1 << 17  # (triangle, tile) items per host round: its arrays stay small enough to reuse memory
 CULL_CHUNK = 1 << 16  # items per call of the cull kernel
+TRIM_ROWS = 1 << 16  # band voxels found between two returns of freed heap memory (`release_free_memory`)
 _REACH = float(np.sqrt(3) * (TILE - 1) / 2)  # farthest cell centre from its tile's centre (voxels)
 CULL_SLACK = 1e-2  # voxels: far above the float32 error of the cull's distance
 _CELLS = TILE**3
@@ -528,9 +529,11 @@ def band_regions(
             finish(ijk, dist, tri, keys, region_lo, code, mine, started)
             return build(keys, region_lo)
 
-        regions, n = zip(starts, ends), 0
+        regions, n, trimmed = zip(starts, ends), 0, 0
         for a, b in tqdm(regions, total=len(starts), desc="regions", disable=progress_off(progress, len(starts))):
-            release_free_memory()  # what the last regions freed (`jaxvox._core.buffers`)
+            if n - trimmed >= TRIM_ROWS:  # what the last regions freed (`jaxvox._core.buffers`)
+                release_free_memory()
+                trimmed = n
             region_lo = morton.decode_host(codes[a]) * size
             mine = ids[a:b]  # ascending, so ties still go to the lower id
             started: list = []  # the sides' kernels, started round by round
