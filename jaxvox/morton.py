@@ -70,6 +70,16 @@ def encode_host(ijk: np.ndarray) -> np.ndarray:
 
 def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     """`encode_host` of the axes given as separate int arrays (< 2^20, broadcast): uint64."""
+    i, j, k = np.broadcast_arrays(i, j, k)
+    if i.size and min(a.min() for a in (i, j, k)) >= 0 and max(a.max() for a in (i, j, k)) <= WORD_MASK:
+        # One word (grids up to 1024^3): the axes index the table as they are, with no
+        # shifted or masked copies, and the word is built in place.
+        word = _SPREAD[i]
+        for axis, a in ((1, j), (2, k)):
+            spread = _SPREAD[a]
+            spread <<= axis
+            word |= spread
+        return word.astype(np.uint64)
     word = lambda shift, mask: (
         _SPREAD[(i >> shift) & mask] | (_SPREAD[(j >> shift) & mask] << 1) | (_SPREAD[(k >> shift) & mask] << 2)
     ).astype(np.uint64)

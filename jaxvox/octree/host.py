@@ -73,20 +73,22 @@ def unique_rows(rows: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _parents(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Groups increasing codes by parent: (parent codes [p] uint64, first [p] index of each
-    parent's first child, row [k] int64 parent of each cell)."""
+    """Groups increasing codes by parent: (parent codes [p] uint64, first [k] bool whether
+    each cell is its parent's first child, starts [p] index of each parent's first child)."""
     parent = cells >> np.uint64(3)
     first = np.ones(len(cells), bool)
-    first[1:] = parent[1:] != parent[:-1]
+    np.not_equal(parent[1:], parent[:-1], out=first[1:])
     starts = np.flatnonzero(first)
-    return parent[starts], starts, np.cumsum(first) - 1
+    return parent[starts], first, starts
 
 
 def mask_level(codes: np.ndarray, dag: bool) -> tuple[Level, Nodes]:
     """Level D - 1 from voxel Morton codes [V] uint64 (increasing): the masks (a DAG keeps
     the sorted distinct ones) and its nodes."""
-    cells, starts, _ = _parents(codes)
-    bits = np.left_shift(np.uint8(1), (codes & np.uint64(7)).astype(np.uint8))
+    cells, _, starts = _parents(codes)
+    slot = codes.astype(np.uint8)  # (the low byte; its 3 low bits are the slot)
+    slot &= np.uint8(7)
+    bits = np.left_shift(np.uint8(1), slot)
     mask = np.bitwise_or.reduceat(bits, starts) if len(codes) else np.zeros(0, np.uint8)
     counts = np.bitwise_count(mask).astype(np.int64)
     table: np.ndarray
@@ -103,7 +105,8 @@ def mask_level(codes: np.ndarray, dag: bool) -> tuple[Level, Nodes]:
 def row_level(below: Nodes, dag: bool) -> tuple[Level, Nodes]:
     """The level above `below`: each parent's child row and prefix sums (a DAG keeps the
     distinct rows in lexicographic order) and its nodes."""
-    cells, _, row = _parents(below.cells)
+    cells, first, _ = _parents(below.cells)
+    row = np.cumsum(first) - 1  # each cell's parent
     slot = (below.cells & np.uint64(7)).astype(np.int64)
     child = np.full((len(cells), 8), EMPTY, np.uint32)
     child[row, slot] = below.ids
