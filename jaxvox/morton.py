@@ -53,6 +53,11 @@ _SPREAD = _spread10(np.arange(1 << WORD_BITS, dtype=np.uint32))
 _FIFTEEN = np.arange(1 << 15, dtype=np.uint32)
 _GATHER_LO = (_compact10(_FIFTEEN) | _compact10(_FIFTEEN >> 1) << 10 | _compact10(_FIFTEEN >> 2) << 20).astype(np.int32)
 _GATHER_HI = _GATHER_LO << 5
+# `_SPREAD16[v]`: the 16 bits of v spread to every third bit (uint64), for `encode_axes_host`.
+_SPREAD16 = (_SPREAD[np.arange(1 << 16) & WORD_MASK].astype(np.uint64)) | (
+    _SPREAD[np.arange(1 << 16) >> WORD_BITS].astype(np.uint64) << np.uint64(3 * WORD_BITS)
+)
+_ENCODE_BLOCK = 1 << 14  # rows per block of `encode_axes_host`
 
 
 def encode_word_host(ijk: np.ndarray) -> np.ndarray:
@@ -71,15 +76,20 @@ def encode_host(ijk: np.ndarray) -> np.ndarray:
 def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     """`encode_host` of the axes given as separate int arrays (< 2^20, broadcast): uint64."""
     i, j, k = np.broadcast_arrays(i, j, k)
-    if i.size and min(a.min() for a in (i, j, k)) >= 0 and max(a.max() for a in (i, j, k)) <= WORD_MASK:
-        # One word (grids up to 1024^3): the axes index the table as they are, with no
-        # shifted or masked copies, and the word is built in place.
-        word = _SPREAD[i]
-        for axis, a in ((1, j), (2, k)):
-            spread = _SPREAD[a]
-            spread <<= axis
-            word |= spread
-        return word.astype(np.uint64)
+    if i.size and min(a.min() for a in (i, j, k)) >= 0 and max(a.max() for a in (i, j, k)) < len(_SPREAD16):
+        # Every grid up to 65536^3: one table lookup per axis, block by block so that the
+        # temporaries stay in the cache (several times faster than whole-array passes).
+        shape, (i, j, k) = i.shape, (a.reshape(-1) for a in (i, j, k))
+        out, part = np.empty(i.shape, np.uint64), np.empty(min(_ENCODE_BLOCK, i.size), np.uint64)
+        for s in range(0, i.size, _ENCODE_BLOCK):
+            rows = slice(s, s + _ENCODE_BLOCK)
+            code, spread = out[rows], part[: len(out[rows])]
+            np.take(_SPREAD16, i[rows], out=code)
+            for shift, axis in ((1, j), (2, k)):
+                np.take(_SPREAD16, axis[rows], out=spread)
+                spread <<= np.uint64(shift)
+                code |= spread
+        return out.reshape(shape)
     word = lambda shift, mask: (
         _SPREAD[(i >> shift) & mask] | (_SPREAD[(j >> shift) & mask] << 1) | (_SPREAD[(k >> shift) & mask] << 2)
     ).astype(np.uint64)
