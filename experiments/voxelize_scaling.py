@@ -11,7 +11,10 @@ counting pass, the emit calls, the host sort), from wrappers around them. With
 ``--hako PATH`` (the seed author's single-threaded C++ from ``shared/anchors/hako``, built
 with its README), the same run also times its voxelize + sort + unique (median of 3; up
 to ``--hako-max``, 8192), on its own grid fit (bounding-box minimum, longest side / R,
-so its voxel counts differ slightly); the ratio is per voxel.
+so its voxel counts differ slightly); the ratio is per voxel. Up to ``--build-max``
+(4096) the worker also times the public calls on the voxels in memory, `jv.voxelize` and
+`jv.build_dag` (first call and the best of two more), beside the C++'s voxelize + sort +
+unique and its DAG build (`buildDAGReference`) from the same run of it.
 
 Writes ``voxelize_scaling[_smoke].json``, ``.md`` and ``.png`` (time against voxels,
 log-log, with a line of slope 1; ns per voxel against R) in ``--out``.
@@ -68,7 +71,19 @@ def worker(spec: dict) -> dict:
             regions += 1
         seconds = time.perf_counter() - start
         passes.append(dict(seconds=seconds, ns_per_voxel=1e9 * seconds / voxels, steps=dict(spent)))
-    return dict(voxels=voxels, regions=regions, passes=passes, peak_rss_mib=_common.peak_rss_mib())
+    out = dict(voxels=voxels, regions=regions, passes=passes)
+    if spec["resolution"] <= spec["build_max"]:  # the public calls, the voxels in memory: first and warm
+        for name, call in (("voxelize", lambda: jv.voxelize(mesh, grid)), ("build_dag", lambda: jv.build_dag(vox))):
+            times = []
+            for _ in range(3):
+                start = time.perf_counter()
+                result = jax.block_until_ready(call())
+                times.append(time.perf_counter() - start)
+                if name == "voxelize":
+                    vox = result
+            out[name] = dict(first_s=times[0], warm_s=min(times[1:]), times_s=times)
+        del vox, result
+    return dict(out, peak_rss_mib=_common.peak_rss_mib())
 
 
 def hako(path: str, mesh: str, resolution: int) -> dict:
@@ -79,7 +94,7 @@ def hako(path: str, mesh: str, resolution: int) -> dict:
         check=True,
     ).stdout
     line = json.loads(next(x for x in out.splitlines() if x.startswith("{")))
-    return dict(voxels=line["voxels"], seconds=line["voxelize_total_ms"] / 1e3)
+    return dict(voxels=line["voxels"], seconds=line["voxelize_total_ms"] / 1e3, dag_seconds=line["dag_build_ms"] / 1e3)
 
 
 def table(cases: list[dict]) -> str:
@@ -93,6 +108,11 @@ def table(cases: list[dict]) -> str:
         ("peak", "peak RSS (MiB)"),
         ("hako", "C++ (s, voxels)"),
         ("ratio", "jaxvox / C++ per voxel"),
+        ("voxelize", "jv.voxelize first / warm (s)"),
+        ("voxelize_ratio", "jv.voxelize warm / C++"),
+        ("dag", "jv.build_dag first / warm (s)"),
+        ("hako_dag", "C++ DAG (s)"),
+        ("dag_ratio", "build_dag warm / C++"),
     ]
     rows = []
     for c in cases:
@@ -107,10 +127,19 @@ def table(cases: list[dict]) -> str:
             steps=" / ".join(f"{steps.get(s, 0):.2f}" for s in STEPS),
             peak=f"{c['peak_rss_mib']:.0f}",
         )
+        for name, key in (("voxelize", "voxelize"), ("dag", "build_dag")):
+            if key in c:
+                row[name] = f"{c[key]['first_s']:.2f} / {c[key]['warm_s']:.2f}"
         if c.get("hako"):
             h = c["hako"]
             row["hako"] = f"{h['seconds']:.2f} ({h['voxels']:,})"
             row["ratio"] = f"{best['ns_per_voxel'] / (1e9 * h['seconds'] / h['voxels']):.2f}x"
+            if "dag_seconds" in h:
+                row["hako_dag"] = f"{h['dag_seconds']:.2f}"
+            if "voxelize" in c:
+                row["voxelize_ratio"] = f"{c['voxelize']['warm_s'] / h['seconds']:.2f}x"
+            if "build_dag" in c and "dag_seconds" in h:
+                row["dag_ratio"] = f"{c['build_dag']['warm_s'] / h['dag_seconds']:.2f}x"
         rows.append(row)
     return _common.markdown_table(rows, columns)
 
@@ -158,6 +187,9 @@ def main() -> None:
     parser.add_argument("--repeat-max", type=int, default=4096)
     parser.add_argument("--hako", help="path of the hako-bench binary (shared/anchors/hako)")
     parser.add_argument("--hako-max", type=int, default=8192)
+    parser.add_argument(
+        "--build-max", type=int, default=4096, help="largest R at which jv.voxelize and jv.build_dag are timed"
+    )
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
@@ -165,7 +197,7 @@ def main() -> None:
     mesh = str(_common.MESH_DIR / "stanford-bunny.obj")
     cases = []
     for r in resolutions:
-        spec = dict(mesh=mesh, resolution=r, repeat_max=args.repeat_max)
+        spec = dict(mesh=mesh, resolution=r, repeat_max=args.repeat_max, build_max=args.build_max)
         case = dict(_common.run_worker(__file__, spec, timeout=args.timeout), resolution=r)
         if "error" in case:
             print(json.dumps(case), flush=True)

@@ -70,6 +70,8 @@ def encode_word_host(ijk: np.ndarray) -> np.ndarray:
 def encode_host(ijk: np.ndarray) -> np.ndarray:
     """The whole Morton code in numpy (compiles nothing): int [..., 3] (< 2^20) -> uint64 [...]."""
     u = np.asarray(ijk)
+    if u.size and u.min() >= 0 and u.max() < len(_SPREAD16):  # (two passes over the rows as they lie)
+        return _encode16(u[..., 0], u[..., 1], u[..., 2])
     return encode_axes_host(u[..., 0], u[..., 1], u[..., 2])
 
 
@@ -77,23 +79,28 @@ def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     """`encode_host` of the axes given as separate int arrays (< 2^20, broadcast): uint64."""
     i, j, k = np.broadcast_arrays(i, j, k)
     if i.size and min(a.min() for a in (i, j, k)) >= 0 and max(a.max() for a in (i, j, k)) < len(_SPREAD16):
-        # Every grid up to 65536^3: one table lookup per axis, block by block so that the
-        # temporaries stay in the cache (several times faster than whole-array passes).
-        shape, (i, j, k) = i.shape, (a.reshape(-1) for a in (i, j, k))
-        out, part = np.empty(i.shape, np.uint64), np.empty(min(_ENCODE_BLOCK, i.size), np.uint64)
-        for s in range(0, i.size, _ENCODE_BLOCK):
-            rows = slice(s, s + _ENCODE_BLOCK)
-            code, spread = out[rows], part[: len(out[rows])]
-            np.take(_SPREAD16, i[rows], out=code)
-            for shift, axis in ((1, j), (2, k)):
-                np.take(_SPREAD16, axis[rows], out=spread)
-                spread <<= np.uint64(shift)
-                code |= spread
-        return out.reshape(shape)
+        return _encode16(i, j, k)
     word = lambda shift, mask: (
         _SPREAD[(i >> shift) & mask] | (_SPREAD[(j >> shift) & mask] << 1) | (_SPREAD[(k >> shift) & mask] << 2)
     ).astype(np.uint64)
     return (word(WORD_BITS, WORD_MASK) << np.uint64(3 * WORD_BITS)) | word(0, WORD_MASK)
+
+
+def _encode16(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """`encode_axes_host` of axes of one shape with values in [0, 2^16): one table lookup
+    per axis, block by block so that the temporaries stay in the cache (several times
+    faster than whole-array passes)."""
+    shape, (i, j, k) = i.shape, (a.reshape(-1) for a in (i, j, k))
+    out, part = np.empty(i.shape, np.uint64), np.empty(min(_ENCODE_BLOCK, i.size), np.uint64)
+    for s in range(0, i.size, _ENCODE_BLOCK):
+        rows = slice(s, s + _ENCODE_BLOCK)
+        code, spread = out[rows], part[: len(out[rows])]
+        np.take(_SPREAD16, i[rows], out=code)
+        for shift, axis in ((1, j), (2, k)):
+            np.take(_SPREAD16, axis[rows], out=spread)
+            spread <<= np.uint64(shift)
+            code |= spread
+    return out.reshape(shape)
 
 
 def decode_host(code: np.ndarray) -> np.ndarray:

@@ -105,21 +105,24 @@ def mask_level(codes: np.ndarray, dag: bool) -> tuple[Level, Nodes]:
 def row_level(below: Nodes, dag: bool) -> tuple[Level, Nodes]:
     """The level above `below`: each parent's child row and prefix sums (a DAG keeps the
     distinct rows in lexicographic order) and its nodes."""
-    cells, first, _ = _parents(below.cells)
+    cells, first, starts = _parents(below.cells)
     row = np.cumsum(first) - 1  # each cell's parent
     slot = (below.cells & np.uint64(7)).astype(np.int64)
     child = np.full((len(cells), 8), EMPTY, np.uint32)
     child[row, slot] = below.ids
-    per_slot = np.zeros((len(cells), 8), np.int64)
+    # uint32: a tree holds at most 2^32 - 1 voxels (`jaxvox.octree.stream.MAX_VOXELS`), and
+    # the prefix sums are stored as uint32 anyway; half the fresh memory of int64 rows
+    per_slot = np.zeros((len(cells), 8), np.uint32)
     per_slot[row, slot] = below.counts
-    counts = per_slot.sum(1)
+    counts = np.add.reduceat(below.counts, starts) if len(starts) else np.zeros(0, np.int64)  # children in order
     if dag:
         rep, ids = unique_rows(child, below.rows)
         child, per_slot = child[rep], per_slot[rep]
     else:
         ids = np.arange(len(cells))
     mask = np.packbits(child != EMPTY, axis=1, bitorder="little")[:, 0]
-    prefix = (np.cumsum(per_slot, axis=1) - per_slot).astype(np.uint32)
+    prefix = np.cumsum(per_slot, axis=1, dtype=np.uint32)
+    prefix -= per_slot
     return (mask, child, prefix), Nodes(cells, counts, ids, len(child))
 
 
