@@ -118,13 +118,32 @@ def decode_word(word: jax.Array) -> jax.Array:
 
 def decode_word_host(word: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """`decode_word` in numpy (compiles nothing): int [...] (< 2^30) -> int32 [..., 3],
-    written to `out` when given."""
+    written to `out` when given.
+
+    Block by block (`_ENCODE_BLOCK` words), so that the lookups' temporaries stay in the
+    cache: about twice as fast as whole-array passes on millions of words."""
     w = np.asarray(word).astype(np.uint32, copy=False)
-    fields = _GATHER_LO[w & 0x7FFF] | _GATHER_HI[w >> 15]
     out = np.empty(w.shape + (3,), np.int32) if out is None else out
-    out[..., 0] = fields & WORD_MASK
-    out[..., 1] = (fields >> WORD_BITS) & WORD_MASK
-    out[..., 2] = fields >> (2 * WORD_BITS)
+    if not out.flags.c_contiguous:  # (rows written through a view that a reshape would copy)
+        fields = _GATHER_LO[w & 0x7FFF] | _GATHER_HI[w >> 15]
+        out[..., 0], out[..., 1], out[..., 2] = (
+            fields & WORD_MASK,
+            (fields >> WORD_BITS) & WORD_MASK,
+            fields >> 2 * WORD_BITS,
+        )
+        return out
+    words, rows = w.reshape(-1), out.reshape(-1, 3)
+    size = min(_ENCODE_BLOCK, words.size)
+    index, fields, part = np.empty(size, np.uint32), np.empty(size, np.int32), np.empty(size, np.int32)
+    for s in range(0, words.size, _ENCODE_BLOCK):
+        block, xyz = words[s : s + _ENCODE_BLOCK], rows[s : s + _ENCODE_BLOCK]
+        n = len(block)
+        np.take(_GATHER_LO, np.bitwise_and(block, 0x7FFF, out=index[:n]), out=fields[:n])
+        np.take(_GATHER_HI, np.right_shift(block, 15, out=index[:n]), out=part[:n])
+        fields[:n] |= part[:n]
+        np.bitwise_and(fields[:n], WORD_MASK, out=xyz[:, 0])
+        np.bitwise_and(np.right_shift(fields[:n], WORD_BITS, out=part[:n]), WORD_MASK, out=xyz[:, 1])
+        np.right_shift(fields[:n], 2 * WORD_BITS, out=xyz[:, 2])
     return out
 
 
