@@ -116,9 +116,10 @@ def decode_word(word: jax.Array) -> jax.Array:
     return jnp.stack([_compact10(w), _compact10(w >> 1), _compact10(w >> 2)], axis=-1).astype(jnp.int32)
 
 
-def decode_word_host(word: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+def decode_word_host(word: np.ndarray, out: np.ndarray | None = None, high: np.ndarray | None = None) -> np.ndarray:
     """`decode_word` in numpy (compiles nothing): int [...] (< 2^30) -> int32 [..., 3],
-    written to `out` when given.
+    written to `out` when given, with `high` (int32 [3], bits above the word's 10 per
+    axis, e.g. a region's corner) OR'ed into every row when given.
 
     Block by block (`_ENCODE_BLOCK` words), so that the lookups' temporaries stay in the
     cache: about twice as fast as whole-array passes on millions of words."""
@@ -131,6 +132,8 @@ def decode_word_host(word: np.ndarray, out: np.ndarray | None = None) -> np.ndar
             (fields >> WORD_BITS) & WORD_MASK,
             fields >> 2 * WORD_BITS,
         )
+        if high is not None:
+            out |= high
         return out
     words, rows = w.reshape(-1), out.reshape(-1, 3)
     size = min(_ENCODE_BLOCK, words.size)
@@ -144,6 +147,8 @@ def decode_word_host(word: np.ndarray, out: np.ndarray | None = None) -> np.ndar
         np.bitwise_and(fields[:n], WORD_MASK, out=xyz[:, 0])
         np.bitwise_and(np.right_shift(fields[:n], WORD_BITS, out=part[:n]), WORD_MASK, out=xyz[:, 1])
         np.right_shift(fields[:n], 2 * WORD_BITS, out=xyz[:, 2])
+        if high is not None:
+            xyz |= high
     return out
 
 

@@ -150,7 +150,7 @@ def _sort_region(pages, with_ids: bool):
         order = np.lexsort((payload[1], payload[0], keys))
         keys, tri = keys[order], payload[1][order]
     else:
-        keys = np.sort(keys)
+        keys.sort()  # in place: the concatenation is a copy of its own
     written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
     first = np.concatenate([[True], keys[1:] != keys[:-1]])
     first[written:] = False
@@ -166,9 +166,8 @@ def region_coords(keys: np.ndarray, region_lo, out: np.ndarray | None = None) ->
       region_lo: int32 [3] first voxel of the (aligned, at most 1024-wide) region, which
         supplies the higher bits.
     """
-    coords = morton.decode_word_host(keys, out=out)
-    coords |= (np.asarray(region_lo, np.int32) >> morton.WORD_BITS) << morton.WORD_BITS
-    return coords
+    high = (np.asarray(region_lo, np.int32) >> morton.WORD_BITS) << morton.WORD_BITS
+    return morton.decode_word_host(keys, out=out, high=high)
 
 
 def _grid_triangles(mesh: Mesh, grid: Grid) -> np.ndarray:
