@@ -13,7 +13,8 @@ with its README), the same run also times its voxelize + sort + unique (median o
 to ``--hako-max``, 8192), on its own grid fit (bounding-box minimum, longest side / R,
 so its voxel counts differ slightly); the ratio is per voxel. Up to ``--build-max``
 (4096) the worker also times the public calls on the voxels in memory, `jv.voxelize` and
-`jv.build_dag` (first call and the best of two more), beside the C++'s voxelize + sort +
+`jv.build_dag` (first call with its XLA compilations, after the region loop's passes
+have compiled the voxelizer's programs, and the best of two more), beside the C++'s voxelize + sort +
 unique and its DAG build (`buildDAGReference`) from the same run of it.
 
 Writes ``voxelize_scaling[_smoke].json``, ``.md`` and ``.png`` (time against voxels,
@@ -62,7 +63,7 @@ def worker(spec: dict) -> dict:
     passes = []
     for _ in range(2 if spec["resolution"] <= spec["repeat_max"] else 1):
         spent.clear()
-        start = time.perf_counter()
+        before, start = _common.compile_count(), time.perf_counter()
         voxels = regions = 0
         for _, _, keys, _ in host.region_voxels(
             mesh, grid, six_sep=False, region_size=min(1024, grid.resolution), triangle_ids=False, progress=False
@@ -70,18 +71,22 @@ def worker(spec: dict) -> dict:
             voxels += len(keys)
             regions += 1
         seconds = time.perf_counter() - start
-        passes.append(dict(seconds=seconds, ns_per_voxel=1e9 * seconds / voxels, steps=dict(spent)))
+        compiles = _common.compile_count() - before
+        passes.append(dict(seconds=seconds, ns_per_voxel=1e9 * seconds / voxels, steps=dict(spent), compiles=compiles))
     out = dict(voxels=voxels, regions=regions, passes=passes)
     if spec["resolution"] <= spec["build_max"]:  # the public calls, the voxels in memory: first and warm
         for name, call in (("voxelize", lambda: jv.voxelize(mesh, grid)), ("build_dag", lambda: jv.build_dag(vox))):
-            times = []
+            times, compiles = [], []
             for _ in range(3):
-                start = time.perf_counter()
+                before, start = _common.compile_count(), time.perf_counter()
                 result = jax.block_until_ready(call())
                 times.append(time.perf_counter() - start)
+                compiles.append(_common.compile_count() - before)
                 if name == "voxelize":
                     vox = result
-            out[name] = dict(first_s=times[0], warm_s=min(times[1:]), times_s=times)
+            out[name] = dict(
+                first_s=times[0], warm_s=min(times[1:]), times_s=times, compiles_first=compiles[0], compiles=compiles
+            )
         del vox, result
     return dict(out, peak_rss_mib=_common.peak_rss_mib())
 
@@ -101,16 +106,16 @@ def table(cases: list[dict]) -> str:
     columns = [
         ("R", "R"),
         ("voxels", "voxels"),
-        ("first", "first pass (s)"),
+        ("first", "first pass (s, compiles)"),
         ("warm", "second pass (s)"),
         ("ns", "ns/voxel"),
         ("steps", "count / emit / sort (s)"),
         ("peak", "peak RSS (MiB)"),
         ("hako", "C++ (s, voxels)"),
         ("ratio", "jaxvox / C++ per voxel"),
-        ("voxelize", "jv.voxelize first / warm (s)"),
+        ("voxelize", "jv.voxelize first (compiles) / warm (s)"),
         ("voxelize_ratio", "jv.voxelize warm / C++"),
-        ("dag", "jv.build_dag first / warm (s)"),
+        ("dag", "jv.build_dag first (compiles) / warm (s)"),
         ("hako_dag", "C++ DAG (s)"),
         ("dag_ratio", "build_dag warm / C++"),
     ]
@@ -121,7 +126,7 @@ def table(cases: list[dict]) -> str:
         row = dict(
             R=c["resolution"],
             voxels=f"{c['voxels']:,}",
-            first=f"{c['passes'][0]['seconds']:.2f}",
+            first=f"{c['passes'][0]['seconds']:.2f} ({c['passes'][0].get('compiles', '-')})",
             warm=f"{c['passes'][1]['seconds']:.2f}" if len(c["passes"]) > 1 else "-",
             ns=f"{best['ns_per_voxel']:.0f}",
             steps=" / ".join(f"{steps.get(s, 0):.2f}" for s in STEPS),
@@ -129,7 +134,7 @@ def table(cases: list[dict]) -> str:
         )
         for name, key in (("voxelize", "voxelize"), ("dag", "build_dag")):
             if key in c:
-                row[name] = f"{c[key]['first_s']:.2f} / {c[key]['warm_s']:.2f}"
+                row[name] = f"{c[key]['first_s']:.2f} ({c[key].get('compiles_first', '-')}) / {c[key]['warm_s']:.2f}"
         if c.get("hako"):
             h = c["hako"]
             row["hako"] = f"{h['seconds']:.2f} ({h['voxels']:,})"

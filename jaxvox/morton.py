@@ -124,17 +124,10 @@ def decode_word_host(word: np.ndarray, out: np.ndarray | None = None, high: np.n
     Block by block (`_ENCODE_BLOCK` words), so that the lookups' temporaries stay in the
     cache: about twice as fast as whole-array passes on millions of words."""
     w = np.asarray(word).astype(np.uint32, copy=False)
-    out = np.empty(w.shape + (3,), np.int32) if out is None else out
-    if not out.flags.c_contiguous:  # (rows written through a view that a reshape would copy)
-        fields = _GATHER_LO[w & 0x7FFF] | _GATHER_HI[w >> 15]
-        out[..., 0], out[..., 1], out[..., 2] = (
-            fields & WORD_MASK,
-            (fields >> WORD_BITS) & WORD_MASK,
-            fields >> 2 * WORD_BITS,
-        )
-        if high is not None:
-            out |= high
+    if out is not None and not out.flags.c_contiguous:  # (a view that a reshape would copy)
+        out[...] = decode_word_host(w, high=high)
         return out
+    out = np.empty(w.shape + (3,), np.int32) if out is None else out
     words, rows = w.reshape(-1), out.reshape(-1, 3)
     size = min(_ENCODE_BLOCK, words.size)
     index, fields, part = np.empty(size, np.uint32), np.empty(size, np.int32), np.empty(size, np.int32)

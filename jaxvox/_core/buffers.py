@@ -1,8 +1,8 @@
 """Host buffers for large results: page-aligned arrays that `jax.device_put` aliases
 instead of copying, address-space-only reservations whose pages cost memory once written,
 row joins that never hold the parts and the whole at once, the return of freed heap
-memory between regions, and the progress-bar switch of the region loops. Used by the
-voxelizer, the sparse distance fields and the solid boundary."""
+memory (between the sparse distance field's regions), and the progress-bar switch of the
+region loops. Used by the voxelizer, the sparse distance fields and the solid boundary."""
 
 from __future__ import annotations
 

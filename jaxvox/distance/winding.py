@@ -390,12 +390,12 @@ def host_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     w = np.zeros(len(points))
     dot = lambda x, y: np.einsum("...k,...k->...", x, y)
     block = max(1, (1 << 20) // max(len(tris), 1))  # points per block: [block, F, 3] temporaries
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # [F, 3], per triangle once
+    flat = (normal == 0).all(-1)  # zero area: no solid angle (`jaxvox._core.geometry.solid_angle`)
     for s in range(0, len(points), block):
         rows = slice(s, s + block)
         a, b, c = (tris[None, :, k] - points[rows, None] for k in range(3))
         la, lb, lc = (np.sqrt(dot(x, x)) for x in (a, b, c))
-        normal = np.cross(b - a, c - a)
-        flat = (normal == 0).all(-1)  # zero area: no solid angle (`jaxvox._core.geometry.solid_angle`)
         det = np.where(flat, 0.0, dot(a, normal))
         den = np.where(flat, 1.0, la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb)
         w[rows] = np.arctan2(det, den).sum(1) / (2 * np.pi)
