@@ -3,11 +3,11 @@
 For each resolution R (default 1024, 2048, 4096, 8192, 16384) on the bunny
 (`jv.Grid.fit`, conservative), one fresh worker process voxelizes every region of the
 grid with `jaxvox.voxelize.host.region_voxels`, the region loop that `jv.voxelize` and
-`jv.mesh_to_dag` run (count, emit, sort and unique per 1024^3 region; the keys are kept
+`jv.mesh_to_dag` run (emit, sort and unique per 1024^3 region; the keys are kept
 only as a count, so 16384^3 fits in memory): a first pass (compilation included, unless
 the persistent cache is warm) and, up to ``--repeat-max`` (4096), a second pass. Per
 pass: seconds, voxels, nanoseconds per voxel, and the time in each host step (the
-counting pass, the emit calls, the host sort), from wrappers around them. With
+emit calls, the host sort), from wrappers around them. With
 ``--hako PATH`` (the seed author's single-threaded C++ from ``shared/anchors/hako``, built
 with its README), the same run also times its voxelize + sort + unique (median of 3; up
 to ``--hako-max``, 8192), on its own grid fit (bounding-box minimum, longest side / R,
@@ -15,7 +15,10 @@ so its voxel counts differ slightly); the ratio is per voxel. Up to ``--build-ma
 (4096) the worker also times the public calls on the voxels in memory, `jv.voxelize` and
 `jv.build_dag` (first call with its XLA compilations, after the region loop's passes
 have compiled the voxelizer's programs, and the best of two more), beside the C++'s voxelize + sort +
-unique and its DAG build (`buildDAGReference`) from the same run of it.
+unique and its DAG build (`buildDAGReference`) from the same run of it. Every worker
+asks for huge pages (`_common`); up to ``--build-max`` a second worker in a plain process
+(as a user's `python` or notebook starts) times the same public calls, its first call
+compiling the voxelizer's programs.
 
 Writes ``voxelize_scaling[_smoke].json``, ``.md`` and ``.png`` (time against voxels,
 log-log, with a line of slope 1; ns per voxel against R) in ``--out``.
@@ -34,7 +37,7 @@ from pathlib import Path
 
 import _common
 
-STEPS = ("_count_chunks", "_emit_chunk", "_sort_region")
+STEPS = ("_emit_chunk", "_sort_region")
 
 
 def worker(spec: dict) -> dict:
@@ -60,8 +63,8 @@ def worker(spec: dict) -> dict:
         setattr(host, name, timed(name))
     mesh = jv.load_mesh(spec["mesh"])
     grid = jv.Grid.fit(mesh, spec["resolution"])
-    passes = []
-    for _ in range(2 if spec["resolution"] <= spec["repeat_max"] else 1):
+    passes, voxels, regions = [], 0, 0
+    for _ in range(0 if spec.get("public_only") else 2 if spec["resolution"] <= spec["repeat_max"] else 1):
         spent.clear()
         before, start = _common.compile_count(), time.perf_counter()
         voxels = regions = 0
@@ -73,7 +76,7 @@ def worker(spec: dict) -> dict:
         seconds = time.perf_counter() - start
         compiles = _common.compile_count() - before
         passes.append(dict(seconds=seconds, ns_per_voxel=1e9 * seconds / voxels, steps=dict(spent), compiles=compiles))
-    out = dict(voxels=voxels, regions=regions, passes=passes)
+    out = dict(voxels=voxels, regions=regions, passes=passes, environment=_common.environment())
     if spec["resolution"] <= spec["build_max"]:  # the public calls, the voxels in memory: first and warm
         for name, call in (("voxelize", lambda: jv.voxelize(mesh, grid)), ("build_dag", lambda: jv.build_dag(vox))):
             times, compiles = [], []
@@ -109,15 +112,17 @@ def table(cases: list[dict]) -> str:
         ("first", "first pass (s, compiles)"),
         ("warm", "second pass (s)"),
         ("ns", "ns/voxel"),
-        ("steps", "count / emit / sort (s)"),
+        ("steps", "emit / sort (s)"),
         ("peak", "peak RSS (MiB)"),
         ("hako", "C++ (s, voxels)"),
         ("ratio", "jaxvox / C++ per voxel"),
         ("voxelize", "jv.voxelize first (compiles) / warm (s)"),
         ("voxelize_ratio", "jv.voxelize warm / C++"),
+        ("plain_voxelize", "plain process: jv.voxelize first (compiles) / warm (s), warm / C++"),
         ("dag", "jv.build_dag first (compiles) / warm (s)"),
         ("hako_dag", "C++ DAG (s)"),
         ("dag_ratio", "build_dag warm / C++"),
+        ("plain_dag", "plain process: jv.build_dag first (compiles) / warm (s), warm / C++"),
     ]
     rows = []
     for c in cases:
@@ -132,9 +137,14 @@ def table(cases: list[dict]) -> str:
             steps=" / ".join(f"{steps.get(s, 0):.2f}" for s in STEPS),
             peak=f"{c['peak_rss_mib']:.0f}",
         )
-        for name, key in (("voxelize", "voxelize"), ("dag", "build_dag")):
-            if key in c:
-                row[name] = f"{c[key]['first_s']:.2f} ({c[key].get('compiles_first', '-')}) / {c[key]['warm_s']:.2f}"
+        h = c.get("hako") or {}
+        for name, key, base in (("voxelize", "voxelize", "seconds"), ("dag", "build_dag", "dag_seconds")):
+            for prefix, timed in (("", c), ("plain_", c.get("plain", {}))):
+                if key in timed:
+                    t = timed[key]
+                    row[prefix + name] = f"{t['first_s']:.2f} ({t.get('compiles_first', '-')}) / {t['warm_s']:.2f}"
+                    if prefix and base in h:
+                        row[prefix + name] += f", {t['warm_s'] / h[base]:.2f}x"
         if c.get("hako"):
             h = c["hako"]
             row["hako"] = f"{h['seconds']:.2f} ({h['voxels']:,})"
@@ -207,6 +217,9 @@ def main() -> None:
         if "error" in case:
             print(json.dumps(case), flush=True)
             continue
+        if r <= args.build_max:  # the public calls again, in a plain process (no huge pages)
+            plain = _common.run_worker(__file__, dict(spec, public_only=True), timeout=args.timeout, plain=True)
+            case["plain"] = {k: plain[k] for k in ("voxelize", "build_dag", "environment", "peak_rss_mib") if k in plain}
         if args.hako and r <= args.hako_max:
             case["hako"] = hako(args.hako, mesh, r)
         cases.append(case)

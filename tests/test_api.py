@@ -161,11 +161,9 @@ def test_streaming_regions_match_single_pass(meshes_dir):
         np.testing.assert_array_equal(streamed.to_numpy(), whole.to_numpy())
 
 
-def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
-    """The bunny at 256^3 has about 640K candidates in its one region, more than two sort
-    pages (2^18 slots each): every page is written once (the host path checks that it
-    received exactly the counted candidates) and the voxels and their triangle ids are
-    those of 64^3 regions, each of which fits in one page."""
+def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
+    """The bunny at 256^3 has about 640K candidates in its one region, more than one emit
+    call writes (`_SLOTS`): the voxels and their triangle ids are those of 64^3 regions."""
     from jaxvox.voxelize import host
 
     mesh = jv.load_mesh(meshes_dir / "stanford-bunny.obj")
@@ -173,7 +171,7 @@ def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
     # The counting pass alone (`voxel_capacities` would also voxelize without ids).
     lo, hi = host._region_bounds(np.zeros(3, np.int32), grid.resolution)
     chunks = host._chunks(host._grid_triangles(mesh, grid), np.arange(mesh.num_faces))
-    assert host._count_chunks(chunks, lo, hi, False)[0].sum(0)[2] > 2 * host._PAGE
+    assert host._count_chunks(chunks, lo, hi, False)[0].sum(0)[2] > host._SLOTS
     for mode in ("conservative", "6-separating"):
         whole = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True)
         small = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True, region_size=64)
@@ -181,34 +179,66 @@ def test_regions_of_several_pages_match_regions_of_one(meshes_dir):
         np.testing.assert_array_equal(whole.triangle_ids(), small.triangle_ids())
 
 
-def test_page_groups_and_a_triangle_larger_than_two_pages():
-    """Emit runs: every triangle once, in order, at most `_CHUNK` per run, all starting in
-    one page; and a single triangle with more candidates than four pages (written by
-    three calls) sets each of its counted candidates once, as it does (up to near-ties) in
-    regions small enough for one page."""
+def test_runs_that_overflow_an_emit_call_keep_every_triangle():
+    """Large triangles (about 3K candidates each): a run of `_CHUNK` overflows its call,
+    the triangles that did not fit start the next run, and later runs hold fewer
+    triangles than a chunk (their padding counts nothing). The voxels are the union of
+    those of groups of 10 triangles, each group one call."""
     from jaxvox.voxelize import host
-    from jaxvox.voxelize.host import _CHUNK, _PAGE, _page_groups
 
-    rng = np.random.default_rng(0)
-    per = rng.integers(0, 200, 20_000)
-    per[[5, 6000, 6001]] = [3 * _PAGE, _PAGE - 1, 5 * _PAGE + 7]  # triangles larger than a page
-    groups = _page_groups(per)
-    assert [a for a, _ in groups] == [0] + [b for _, b in groups[:-1]] and groups[-1][1] == len(per)
-    starts = np.cumsum(per) - per
-    for a, b in groups:
-        assert 0 < b - a <= _CHUNK and len(set(starts[a:b] // _PAGE)) == 1
+    rng = np.random.default_rng(7)
+    centres = rng.uniform(40, 216, (400, 1, 3))
+    corners = (centres + rng.normal(0, 35, (400, 3, 3))).reshape(-1, 3).astype(np.float32)
+    faces = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
+    grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=256)
+    mesh = jv.Mesh(corners, faces)
+    lo, hi = host._region_bounds(np.zeros(3, np.int32), 256)
+    per = host._count_chunks(host._chunks(host._grid_triangles(mesh, grid), np.arange(400)), lo, hi, False)[1]
+    assert per.sum() > 2 * host._SLOTS and per[:10].sum() < host._SLOTS  # several runs; groups fit one
+    for mode in ("conservative", "6-separating"):
+        got = jv.voxelize(mesh, grid, mode=mode, progress=False).to_numpy()
+        groups = [jv.Mesh(corners, faces[k : k + 10]) for k in range(0, 400, 10)]
+        union = np.unique(np.concatenate([jv.voxelize(g, grid, mode=mode).to_numpy() for g in groups]), axis=0)
+        np.testing.assert_array_equal(np.unique(got, axis=0), union)
+
+
+def test_a_triangle_larger_than_two_emit_calls():
+    """A single triangle with more candidates than two calls write (`_SLOTS` each) is
+    written part by part and sets each of its counted candidates once, as it does (up
+    to near-ties) in regions small enough for one call."""
+    from jaxvox.voxelize import host
+    from jaxvox.voxelize.host import _SLOTS
+
     corners = np.array([[0.01, 0.02, 0.05], [0.98, 0.03, 0.95], [0.02, 0.97, 0.5]], np.float32)
     tri = jv.Mesh(corners, np.array([[0, 1, 2]], np.int32))
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / 1024, resolution=1024)
     lo, hi = host._region_bounds(np.zeros(3, np.int32), 1024)
     counted = host._count_chunks(host._chunks(host._grid_triangles(tri, grid), np.arange(1)), lo, hi, False)[0]
-    assert counted[0, 2] > 4 * _PAGE  # 1.16 M candidates: three emit calls
+    assert counted[0, 2] > 2 * _SLOTS  # 1.16 M candidates: three parts
     whole = jv.voxelize(tri, grid).to_numpy()
     assert len(whole) == counted[0, 2]  # one triangle never repeats a voxel: every candidate, once
-    # In 256^3 regions the candidates of each fit one page. The region's coordinates scale
+    # In 256^3 regions the candidates of each fit one call. The region's coordinates scale
     # the half-plane tolerance, so 39 of the 1.16 M voxels (near-ties) are not set there.
     parts = {tuple(v) for v in jv.voxelize(tri, grid, region_size=256).to_numpy()}
     assert parts <= {tuple(v) for v in whole} and len(whole) - len(parts) < 1e-4 * len(whole)
+
+
+def test_bounds_round_alike_in_every_program():
+    """`_mul_add` gives the same float32 bits compiled (where XLA may contract a
+    multiply-add) as numpy's separately rounded operations, for integer coordinates
+    up to the region's size: a tie cannot round one way where a row is counted and the
+    other where it is placed."""
+    from jaxvox.voxelize.triangles import _mul_add
+
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-2000, 2000, 1 << 16).astype(np.float32)
+    q = (rng.uniform(-1, 1, 1 << 16) * 10.0 ** rng.integers(-3, 3, 1 << 16)).astype(np.float32)
+    s = rng.integers(-1025, 1026, 1 << 16).astype(np.float32)
+    got = np.asarray(jax.jit(_mul_add)(p, q, s))
+    q_hi = (q.view(np.uint32) & np.uint32(0xFFFFF000)).view(np.float32)
+    with np.errstate(all="ignore"):
+        want = (p + q_hi * s) + (q - q_hi) * s
+    np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
 
 
 def test_high_resolutions_use_two_word_keys():

@@ -315,17 +315,24 @@ def test_reference_matches_brute_force_clipping(tri, kind):
     st.tuples(*[st.floats(-0.05, 0.05)] * 3),
 )
 @example(tri=[(0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.96875)], shift=(0.0, 0.0, 0.03125))
+@example(tri=[(0.0, 1.0, 1.0), (1.0, 0.0, 0.0), (1.6377985e-21, 1.0, 1.0)], shift=(0.03125, 0.0, 0.0))
 def test_reference_margin_bounds_translation(tri, shift):
     """Translating the triangle by s cannot flip a voxel whose margin exceeds |s|.
 
     Voxels the reference never examined (outside the triangle's bounding box) have the
     sentinel margin -inf, not a distance, so they are not counted as firm decisions.
+    In 6-separating mode a zero-area triangle sets nothing: where rounding the moved
+    corners to float32 merges two of them (or parts them), the triangle's area is a
+    switch, not a margin, and that mode is not compared.
     """
     tri = np.array(tri, np.float32)
     moved = (tri.astype(np.float64) + np.array(shift)).astype(np.float32)
     slack = np.abs(moved.astype(np.float64) - tri - np.array(shift)).max()  # float32 rounding
     bound = np.linalg.norm(shift) + slack + 1e-9
+    flat = [not np.cross(t[1] - t[0], t[2] - t[0]).any() for t in (tri.astype(np.float64), moved.astype(np.float64))]
     for mode in MODES:
+        if mode == SIX_SEP and flat[0] != flat[1]:
+            continue
         a, b = _ref1(tri, mode=mode), _ref1(moved, mode=mode)
         ijk = np.argwhere(np.ones((8, 8, 8), bool))
         ma, _ = a.lookup(ijk)

@@ -33,14 +33,16 @@ from jaxvox.voxelize.voxels import (
 # ------------------------------------------------------------------ host-side API
 
 # The host path walks fixed work windows, so that every mesh at every resolution runs the
-# same few compiled programs whatever its counts: triangles in chunks of `_CHUNK`,
-# expanded into windows of columns, row slots and candidates, written into fixed pages,
-# which numpy sorts (`_sort_region`): no program depends on a mesh's counts.
+# same few compiled programs whatever its counts: triangles in runs of at most `_CHUNK`,
+# expanded into windows of columns, row slots and candidates, written into a buffer of
+# `_SLOTS` slots, which numpy sorts (`_sort_region`): no program depends on a mesh's
+# counts.
 _CHUNK = 4096
 _WINDOW_COLUMNS = 1 << 15
 _WINDOW_ROWS = 1 << 16
 _WINDOW_CANDIDATES = 1 << 17
-_PAGE = 1 << 18  # slots per page of a region's sort buffer (the emit program writes two)
+_SLOTS = 1 << 19  # candidate slots one emit call writes
+_FILL = 0.8  # share of `_SLOTS` that a run of triangles is sized to fill
 
 
 def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
@@ -69,65 +71,67 @@ def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
     return n_cols, n_slots, carry
 
 
+def _count_rows(rows, per):
+    """Adds a row window's candidates to the per-triangle counts [_CHUNK] int32."""
+    return per.at[rows.place[:, 4]].add(rows.n_depth)
+
+
 @functools.partial(jax.jit, static_argnames=("six_sep",))
 def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
     """Counts of a chunk [_CHUNK, 3, 3] in a region: ([3] int32 columns, row slots,
     candidates; [_CHUNK] int32 candidates per triangle)."""
-    visit = lambda rows, per: per.at[rows.place[:, 4]].add(rows.n_depth)
-    n_cols, n_slots, per = _walk(tris_grid, region_lo, region_hi, six_sep, visit, jnp.zeros(_CHUNK, jnp.int32))
+    n_cols, n_slots, per = _walk(tris_grid, region_lo, region_hi, six_sep, _count_rows, jnp.zeros(_CHUNK, jnp.int32))
     return jnp.stack([n_cols, n_slots, jnp.sum(per)]), per
 
 
-@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"), donate_argnames=("pages",))
-def _emit_chunk(tris_grid, ids, region_lo, region_hi, pages, offset, *, six_sep, with_ids):
-    """Writes the candidates of a chunk that fall in two consecutive pages of the region's
-    sort buffer (a chunk holds fewer candidates than a page, so one call usually writes
-    all of them).
+@functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"))
+def _emit_chunk(tris_grid, ids, region_lo, region_hi, offset, *, six_sep, with_ids):
+    """Writes a run of triangles' candidates, in triangle order, into `_SLOTS` slots and
+    counts them per triangle, so the host keeps the triangles whose candidates all fit.
 
     Args:
       tris_grid: [_CHUNK, 3, 3] float32 triangles in grid units (NaN rows are skipped).
       ids: [_CHUNK] int32 triangle ids to record.
-      pages: two pages, each (keys,) or (keys, distance bits, triangle ids) of uint32
-        [_PAGE] (donated).
-      offset: [] int32 slot of the chunk's first candidate relative to the first page's
-        first slot (negative when the chunk started in an earlier page); candidates
-        outside the two pages are skipped.
+      offset: [] int32 slot of the run's first candidate (0, or ``-k * _SLOTS`` to write
+        the k-th further part of a triangle with more candidates than `_SLOTS`);
+        candidates outside ``[0, _SLOTS)`` are counted, not written.
 
     Returns:
-      The two pages.
+      (slots: (keys,) or (keys, distance bits, triangle ids) of uint32 [_SLOTS], keys
+      `morton.EMPTY` past the last candidate; per [_CHUNK] int32 candidates per triangle).
     """
 
     # A window's candidates fill consecutive slots, so each window is one contiguous
-    # write (no scatter) into the two pages laid end to end between margins of a window:
-    # slots before the pages land in the front margin, slots past them (and a window's
-    # unused tail, EMPTY keys that a later chunk overwrites) in the back one.
+    # write (no scatter) into the slots between margins of a window: slots before them
+    # land in the front margin, slots past them (and a window's unused tail, EMPTY keys
+    # that the next window overwrites) in the back one.
     margin = _WINDOW_CANDIDATES
-    buffers = tuple(
-        jnp.concatenate([jnp.zeros(margin, jnp.uint32), a, b, jnp.zeros(margin, jnp.uint32)]) for a, b in zip(*pages)
-    )
+    size = 2 * margin + _SLOTS
+    buffers = (jnp.full(size, morton.EMPTY, jnp.uint32),) + tuple(jnp.zeros(size, jnp.uint32) for _ in range(2 * with_ids))
 
     def visit(rows, carry):
-        buffers, offset = carry
+        buffers, offset, per = carry
         n = jnp.sum(rows.n_depth)
 
         def step(state):
             start, buffers = state
             keys, payload, _ = expand_candidates(tris_grid, rows, _WINDOW_CANDIDATES, 1, with_ids, start, ids)
-            at = margin + offset + start  # in [1, margin + 2 _PAGE): the loop's bounds below
+            at = margin + offset + start  # in [1, margin + _SLOTS): the loop's bounds below
             return start + _WINDOW_CANDIDATES, tuple(
                 jax.lax.dynamic_update_slice(b, v, (at,)) for b, v in zip(buffers, keys + payload)
             )
 
-        # Only the windows that overlap the pages: from the one holding their first slot.
+        # Only the windows that overlap the slots: from the one holding the first slot.
         first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
-        _, buffers = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < 2 * _PAGE), step, (first, buffers))
-        return buffers, offset + n
+        _, buffers = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < _SLOTS), step, (first, buffers))
+        return buffers, offset + n, _count_rows(rows, per)
 
-    buffers = _walk(tris_grid, region_lo, region_hi, six_sep, visit, (buffers, offset))[2][0]
-    return tuple(tuple(b[margin + k * _PAGE : margin + (k + 1) * _PAGE] for b in buffers) for k in range(2))
+    carry = (buffers, offset, jnp.zeros(_CHUNK, jnp.int32))
+    buffers, _, per = _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry)[2]
+    return tuple(b[margin : margin + _SLOTS] for b in buffers), per
 
 
-def _sort_region(pages, with_ids: bool):
+def _sort_region(parts, with_ids: bool):
     """Sorts and deduplicates a region's candidates on the host.
 
     numpy's sort compiles nothing, so regions of any size share the device programs, and
@@ -137,22 +141,23 @@ def _sort_region(pages, with_ids: bool):
     `jaxvox.voxelize.fixed.sort_unique`.
 
     Args:
-      pages: the region's pages, each (keys,) or (keys, distance bits, triangle ids) of
-        uint32 [_PAGE] (keys region-relative Morton words, `morton.EMPTY` past the end).
+      parts: the region's written slots, each (keys,) or (keys, distance bits, triangle
+        ids) of uint32 [n_i] (keys region-relative Morton words).
 
     Returns:
       (keys [n] uint32: the voxels' Morton words (`region_coords` decodes them), in
       Morton order; triangle [n] int32 or None; written: the number of candidates in the
-      pages, keys other than `morton.EMPTY`).
+      parts, keys other than `morton.EMPTY`).
     """
-    keys, *payload = (np.concatenate([np.asarray(page[i]) for page in pages]) for i in range(len(pages[0])))
+    keys, *payload = (np.concatenate([part[i] for part in parts]) for i in range(len(parts[0])))
     if with_ids:
         order = np.lexsort((payload[1], payload[0], keys))
         keys, tri = keys[order], payload[1][order]
     else:
         keys.sort()  # in place: the concatenation is a copy of its own
     written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
-    first = np.concatenate([[True], keys[1:] != keys[:-1]])
+    first = np.ones(len(keys), bool)
+    first[1:] = keys[1:] != keys[:-1]
     first[written:] = False
     return keys[first], (tri[first].astype(np.int32) if with_ids else None), written
 
@@ -203,61 +208,39 @@ def _count_chunks(chunks, lo, hi, six_sep: bool) -> tuple[np.ndarray, np.ndarray
     return totals, np.concatenate([np.asarray(p, np.int64) for _, p in counts] or [np.zeros(0, np.int64)])
 
 
-def _page_groups(per_triangle: np.ndarray) -> list[tuple[int, int]]:
-    """Consecutive runs [a, b) of triangles for the emit calls: those whose first candidate
-    falls in the same page of the sort buffer, at most `_CHUNK` of them. A run then ends
-    within the next page unless one triangle holds more than a page of candidates, so
-    one call (two pages) writes it, and no call walks triangles whose candidates it
-    cannot write."""
-    starts = np.cumsum(per_triangle) - per_triangle
-    page = starts // _PAGE
-    cuts = np.flatnonzero(np.diff(page)) + 1
-    groups = []
-    for a, b in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [len(per_triangle)]])):
-        groups += [(int(k), int(min(k + _CHUNK, b))) for k in range(int(a), int(b), _CHUNK)]
-    return groups
-
-
 def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
-    """Host-side passes for one region: a counting pass counts every triangle's
-    candidates, which places them in the sort buffer; runs of triangles whose candidates
-    start in the same page write them (`_page_groups`), and one sort makes them unique.
+    """Host-side passes for one region: runs of triangles write their candidates
+    (`_emit_chunk`), each run sized from the candidates per triangle of the last one;
+    the triangles whose candidates did not all fit start the next run, and one sort
+    makes the kept candidates unique.
 
     Returns:
       (keys [n] uint32 Morton words of the voxels, see `region_coords`; triangle [n]
       int32 ids or None) host arrays.
     """
     lo, hi = _region_bounds(region_lo, region_size)
-    per_triangle = _count_chunks(_chunks(tris, idx), lo, hi, six_sep)[1][: len(idx)]
-    ends = np.cumsum(per_triangle)
-    total = int(ends[-1]) if len(ends) else 0
-    n_pages = max(1, -(-total // _PAGE))
-    pages: list = []
-    for _ in range(n_pages + 1):  # and a spare page past the end, written as the last pair's second
-        page = [np.full(_PAGE, morton.EMPTY, np.uint32)] + [np.zeros(_PAGE, np.uint32) for _ in range(2 * with_ids)]
-        pages.append(tuple(jax.device_put(b, may_alias=False) for b in page))
-    for a, b in _page_groups(per_triangle):
-        start, end = int(ends[a] - per_triangle[a]), int(ends[b - 1])
-        if start == end:
-            continue
-        ((t, ids),) = _chunks(tris, idx[a:b])
-        at = start // _PAGE
-        while at * _PAGE < end:  # two pages per call: once, unless a triangle holds more than a page
-            pages[at], pages[at + 1] = _emit_chunk(
-                t,
-                ids,
-                lo,
-                hi,
-                (pages[at], pages[at + 1]),
-                np.int32(start - at * _PAGE),
-                six_sep=six_sep,
-                with_ids=with_ids,
-            )
-            at += 2
-    pages = pages[:n_pages]
-    keys, triangle, written = _sort_region(pages, with_ids)
-    # The pages were sized by the exact count of the same walk, so every candidate has a
-    # slot; a walk that wrote fewer (or more) would lose voxels, so it raises.
+    emit = functools.partial(_emit_chunk, region_lo=lo, region_hi=hi, six_sep=six_sep, with_ids=with_ids)
+    parts: list[tuple[np.ndarray, ...]] = []
+    total, pos, run = 0, 0, _CHUNK
+    while pos < len(idx):
+        part = idx[pos : pos + run]
+        ((t, ids),) = _chunks(tris, part)
+        slots, per = emit(t, ids, offset=np.int32(0))
+        ends = np.cumsum(np.asarray(per, np.int64)[: len(part)])
+        done = int(np.searchsorted(ends, _SLOTS, side="right"))  # triangles whose candidates all fit
+        if done:
+            parts.append(tuple(np.asarray(b)[: ends[done - 1]] for b in slots))
+        else:  # one triangle holds more than `_SLOTS` candidates: written part by part
+            done, ((t, ids),) = 1, _chunks(tris, idx[pos : pos + 1])
+            for start in range(0, int(ends[0]), _SLOTS):
+                slots = emit(t, ids, offset=np.int32(-start))[0]
+                parts.append(tuple(np.asarray(b)[: ends[0] - start] for b in slots))
+        total += int(ends[done - 1])
+        pos += done
+        run = int(np.clip(_FILL * _SLOTS * done / max(ends[done - 1], 1), 1, _CHUNK))
+    keys, triangle, written = _sort_region(parts, with_ids)
+    # Every kept candidate was counted by the same walk that wrote it; a walk that wrote
+    # fewer (or more) would lose voxels, so it raises.
     if written != total:
         raise JaxvoxError(f"internal error: {written} candidates written, {total} counted")
     return keys, triangle
@@ -332,13 +315,13 @@ def voxelize(
     region_size: int = REGION_SIZE,
     progress: bool | None = None,
 ) -> Voxels:
-    """Voxelizes a triangle mesh exactly; capacities are sized by counting passes.
+    """Voxelizes a triangle mesh exactly, whatever its counts.
 
-    Triangles go through fixed-size chunks and fixed work windows, so every mesh runs
-    the same compiled programs; a counting pass over the same windows sizes each
-    region's candidate buffer (on the shape ladder), so nothing is ever dropped and no
-    retry is needed. The count is checked against what was written, and a mismatch
-    raises instead of returning a truncated set.
+    Triangles go through runs of at most a fixed chunk and fixed work windows, so every
+    mesh runs the same compiled programs. Each call writes a run's candidates into a
+    fixed buffer and counts them per triangle; the triangles whose candidates did not
+    all fit go to the next run, so nothing is dropped. The kept candidates are checked
+    against their count, and a mismatch raises instead of returning a truncated set.
 
     Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
     regions, visited in Morton order, each voxelized from the triangles whose bounding

@@ -3,6 +3,7 @@ triangles into columns, rows and candidate voxels (see `jaxvox.voxelize` for the
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -231,6 +232,23 @@ class _Columns(NamedTuple):
     total: jax.Array  # [] int32 number of columns needed
 
 
+def _mul_add(p, q, s):
+    """``p + q * s`` for an integer-valued float32 `s` with ``|s| < 2^12``, rounded alike
+    wherever it is computed.
+
+    XLA recomputes cheap elementwise values inside each fusion that reads them, and
+    the CPU backend may contract a multiply-add into one fused operation in some copies
+    only. A bound at a tie would then round one way where a row's voxels are counted
+    and the other where they are placed, shifting the row by a voxel. Split into a high
+    part of 12 significant bits and the exact rest, `q` gives two exact products, so
+    every evaluation order rounds the same two additions.
+    """
+    q_hi = jax.lax.bitcast_convert_type(
+        jax.lax.bitcast_convert_type(q, jnp.uint32) & jnp.uint32(0xFFFFF000), jnp.float32
+    )
+    return (p + q_hi * s) + (q - q_hi) * s
+
+
 def _eval_bounds(bounds, s, lo, hi):
     """Intersects [lo, hi] with ``lower_p + lower_q s <= t <= upper_p + upper_q s``.
 
@@ -241,11 +259,12 @@ def _eval_bounds(bounds, s, lo, hi):
     Returns:
       (lo, hi) [...] float32 integer-valued.
     """
+    # Unrolled over the H half-planes: an elementwise loop, where a reduction over the
+    # short last axis compiles to a slower reduction kernel on the CPU.
     h = bounds.shape[-1] // 4
-    s = s[..., None]
-    lower = jnp.ceil(bounds[..., :h] + bounds[..., h : 2 * h] * s).max(-1)
-    upper = jnp.floor(bounds[..., 2 * h : 3 * h] + bounds[..., 3 * h :] * s).min(-1)
-    return jnp.maximum(lo, lower), jnp.minimum(hi, upper)
+    lower = [jnp.ceil(_mul_add(bounds[..., i], bounds[..., h + i], s)) for i in range(h)]
+    upper = [jnp.floor(_mul_add(bounds[..., 2 * h + i], bounds[..., 3 * h + i], s)) for i in range(h)]
+    return functools.reduce(jnp.maximum, lower, lo), functools.reduce(jnp.minimum, upper, hi)
 
 
 def expand_columns(tris: _Triangles, col_cap: int, start=0) -> _Columns:
@@ -259,7 +278,8 @@ def expand_columns(tris: _Triangles, col_cap: int, start=0) -> _Columns:
     row_lo, row_hi = _eval_bounds(c[:, :h4], cu, v_lo, v_hi)
     w_lo, w_hi = _eval_bounds(c[:, h4 : 2 * h4], cu, w_lo, w_hi)
     n_rows = jnp.where(valid, jnp.maximum(row_hi - row_lo + 1.0, 0.0), 0.0).astype(jnp.int32)
-    depth = jnp.concatenate([jnp.stack([w_lo, w_hi, z_lo + kx * cu, z_hi + kx * cu], 1), tris.row_data[tri]], axis=1)
+    depth = jnp.stack([w_lo, w_hi, _mul_add(z_lo, kx, cu), _mul_add(z_hi, kx, cu)], 1)
+    depth = jnp.concatenate([depth, tris.row_data[tri]], axis=1)
     place = tris.base[tri]
     u_step = cu.astype(jnp.int32)[:, None] * (jnp.arange(3, dtype=jnp.int32) == place[:, 3:4])
     origin = jnp.concatenate([place[:, :3] + u_step, place[:, 4:]], axis=1)
@@ -288,8 +308,8 @@ def expand_rows(columns: _Columns, row_cap: int, chunk: int, start=0) -> _Rows:
     v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
     c = columns.depth[col][:, None, :]
     ky = c[..., -1]
-    lo = jnp.maximum(c[..., 0], jnp.ceil(c[..., 2] + ky * v - 1.0))
-    hi = jnp.minimum(c[..., 1], jnp.floor(c[..., 3] + ky * v))
+    lo = jnp.maximum(c[..., 0], jnp.ceil(_mul_add(c[..., 2], ky, v) - 1.0))
+    hi = jnp.minimum(c[..., 1], jnp.floor(_mul_add(c[..., 3], ky, v)))
     lo, hi = _eval_bounds(c[..., 4:-1], v, lo, hi)
     n_depth = jnp.where(ok, jnp.maximum(hi - lo + 1.0, 0.0), 0.0).astype(jnp.int32)
     o = columns.origin[col][:, None, :]
