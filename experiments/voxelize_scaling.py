@@ -25,6 +25,7 @@ log-log, with a line of slope 1; ns per voxel against R) in ``--out``.
 
 Examples:
   python experiments/voxelize_scaling.py --hako /tmp/hako/hako-bench
+  python experiments/voxelize_scaling.py --hako /tmp/hako/hako-bench --resolutions 8192 16384 --update
   python experiments/voxelize_scaling.py --smoke
 """
 
@@ -205,6 +206,7 @@ def main() -> None:
     parser.add_argument(
         "--build-max", type=int, default=4096, help="largest R at which jv.voxelize and jv.build_dag are timed"
     )
+    parser.add_argument("--update", action="store_true", help="replace only these resolutions' rows in the JSON")
     args = parser.parse_args()
     if _common.answer_as_worker(args, worker):
         return
@@ -225,9 +227,11 @@ def main() -> None:
         cases.append(case)
         print(table([case]).splitlines()[-1], flush=True)
     name = "voxelize_scaling_smoke" if args.smoke else "voxelize_scaling"
-    _common.write_json(
-        args.out / f"{name}.json", dict(cases=cases, machine=_common.machine_info(["jax", "jaxlib", "numpy"]))
-    )
+    path = args.out / f"{name}.json"
+    if args.update and path.exists():  # keep the other resolutions' rows of the last run
+        last = {c["resolution"]: c for c in json.loads(path.read_text())["cases"]}
+        cases = sorted([c for r, c in last.items() if r not in resolutions] + cases, key=lambda c: c["resolution"])
+    _common.write_json(path, dict(cases=cases, machine=_common.machine_info(["jax", "jaxlib", "numpy"])))
     (args.out / f"{name}.md").write_text(table(cases))
     plot(cases, args.out / f"{name}.png")
     print(table(cases))
