@@ -221,7 +221,9 @@ def main() -> None:
             continue
         if r <= args.build_max:  # the public calls again, in a plain process (no huge pages)
             plain = _common.run_worker(__file__, dict(spec, public_only=True), timeout=args.timeout, plain=True)
-            case["plain"] = {k: plain[k] for k in ("voxelize", "build_dag", "environment", "peak_rss_mib") if k in plain}
+            case["plain"] = {
+                k: plain[k] for k in ("voxelize", "build_dag", "environment", "peak_rss_mib") if k in plain
+            }
         if args.hako and r <= args.hako_max:
             case["hako"] = hako(args.hako, mesh, r)
         cases.append(case)

@@ -179,27 +179,36 @@ def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
         np.testing.assert_array_equal(whole.triangle_ids(), small.triangle_ids())
 
 
-def test_runs_that_overflow_an_emit_call_keep_every_triangle():
+def test_runs_that_overflow_an_emit_call_keep_every_triangle(monkeypatch):
     """Large triangles (about 3K candidates each): a run of `_CHUNK` overflows its call,
     the triangles that did not fit start the next run, and later runs hold fewer
     triangles than a chunk (their padding counts nothing). The voxels are the union of
-    those of groups of 10 triangles, each group one call."""
+    those of groups of 100 triangles, each group one call."""
     from jaxvox.voxelize import host
 
     rng = np.random.default_rng(7)
-    centres = rng.uniform(40, 216, (400, 1, 3))
-    corners = (centres + rng.normal(0, 35, (400, 3, 3))).reshape(-1, 3).astype(np.float32)
+    centres = rng.uniform(40, 216, (800, 1, 3))
+    corners = (centres + rng.normal(0, 35, (800, 3, 3))).reshape(-1, 3).astype(np.float32)
     faces = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=256)
     mesh = jv.Mesh(corners, faces)
-    lo, hi = host._region_bounds(np.zeros(3, np.int32), 256)
-    per = host._count_chunks(host._chunks(host._grid_triangles(mesh, grid), np.arange(400)), lo, hi, False)[1]
-    assert per.sum() > 2 * host._SLOTS and per[:10].sum() < host._SLOTS  # several runs; groups fit one
+    emit, written = host._emit_chunk, []
+
+    def recorded(*args, **kwargs):
+        out = emit(*args, **kwargs)
+        written.append(int(np.asarray(out[1]).sum()))  # candidates of the run's triangles
+        return out
+
+    monkeypatch.setattr(host, "_emit_chunk", recorded)
     for mode in ("conservative", "6-separating"):
+        written.clear()
         got = jv.voxelize(mesh, grid, mode=mode, progress=False).to_numpy()
-        groups = [jv.Mesh(corners, faces[k : k + 10]) for k in range(0, 400, 10)]
-        union = np.unique(np.concatenate([jv.voxelize(g, grid, mode=mode).to_numpy() for g in groups]), axis=0)
-        np.testing.assert_array_equal(np.unique(got, axis=0), union)
+        assert len(written) >= 3 and written[0] > host._SLOTS  # the first run overflowed
+        groups = [jv.Mesh(corners, faces[k : k + 100]) for k in range(0, 800, 100)]
+        linear = lambda ijk: (ijk[:, 0].astype(np.int64) << 16) | (ijk[:, 1] << 8) | ijk[:, 2]
+        union = np.unique(np.concatenate([linear(jv.voxelize(g, grid, mode=mode).to_numpy()) for g in groups]))
+        np.testing.assert_array_equal(np.sort(linear(got)), union)  # got: unique voxels
+        assert max(written[-len(groups) :]) < host._SLOTS  # each group fit one call
 
 
 def test_a_triangle_larger_than_two_emit_calls():

@@ -107,7 +107,9 @@ def _emit_chunk(tris_grid, ids, region_lo, region_hi, offset, *, six_sep, with_i
     # that the next window overwrites) in the back one.
     margin = _WINDOW_CANDIDATES
     size = 2 * margin + _SLOTS
-    buffers = (jnp.full(size, morton.EMPTY, jnp.uint32),) + tuple(jnp.zeros(size, jnp.uint32) for _ in range(2 * with_ids))
+    buffers = (jnp.full(size, morton.EMPTY, jnp.uint32),) + tuple(
+        jnp.zeros(size, jnp.uint32) for _ in range(2 * with_ids)
+    )
 
     def visit(rows, carry):
         buffers, offset, per = carry
