@@ -8,7 +8,9 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
   compilations), then the median of ``--repeats`` warmed-up calls; band voxels, bytes of
   the values and of the whole `SparseField` (voxels, values, triangles, tree), peak
   resident memory; each for the default field and for a compact one (``compact=True``:
-  values and tree only; ``--layouts``), each in a fresh process. Resolutions listed in
+  values and tree only; ``--layouts``), each in a fresh process; the default field again
+  in a plain process (``plain``: no huge pages, as a user's `python` or notebook starts;
+  every other worker asks for them, `_common`). Resolutions listed in
   ``--stream`` take `jv.sparse_field_regions` instead (each region's field counted and
   dropped: fields larger than memory). The
   bunny is open, so its sign takes components of mesh plus caps (`jaxvox.distance.band_sign`);
@@ -127,6 +129,7 @@ def worker(spec: dict) -> dict:
             memory=None if field is None else field.memory(),  # bytes by part (SparseField.memory)
             peak_rss_mib=_common.peak_rss_mib(),
             streamed=spec["stream"],
+            environment=_common.environment(),
         ),
         voxel_size=float(grid.voxel_size),
     )
@@ -183,9 +186,10 @@ def main() -> None:
     parser.add_argument(
         "--layouts",
         nargs="+",
-        choices=["full", "compact"],
-        default=["full", "compact"],
-        help="jaxvox's fields: full (the default call: voxels, triangles, values, tree) and compact (values and tree)",
+        choices=["full", "compact", "plain"],
+        default=["full", "compact", "plain"],
+        help="jaxvox's fields: full (the default call: voxels, triangles, values, tree), compact (values and "
+        "tree), and plain (the default call in a process without huge pages)",
     )
     parser.add_argument("--update", action="store_true", help="replace only these resolutions' rows in the JSON")
     args = parser.parse_args()
@@ -204,11 +208,12 @@ def main() -> None:
                 repeats=args.repeats,
                 signed=not args.unsigned,
                 stream=r in args.stream,
-                skip_open3d=args.skip_open3d,
+                skip_open3d=args.skip_open3d or layout != "full",
                 compact=layout == "compact",
             )
-            run = _common.run_worker(__file__, spec, timeout=args.timeout)
-            case["jaxvox" if layout == "full" else "jaxvox_compact"] = run.get("jaxvox", run)  # (or its error)
+            run = _common.run_worker(__file__, spec, timeout=args.timeout, plain=layout == "plain")
+            key = {"full": "jaxvox", "compact": "jaxvox_compact", "plain": "jaxvox_plain"}[layout]
+            case[key] = run.get("jaxvox", run)  # (or its error)
             case.update({name: run[name] for name in ("voxel_size", "open3d") if name in run})
         if "voxel_size" in case:
             peer = dict(mesh=mesh, voxel_size=case["voxel_size"], band=args.band, repeats=args.repeats)
@@ -234,7 +239,11 @@ def _rows(case: dict) -> list[dict]:
     fmt = lambda x: f"{x:.3g}" if isinstance(x, float) else "-"
     per_voxel = lambda nbytes, voxels: fmt(nbytes / voxels) if nbytes and voxels else "-"
     rows = []
-    for key, layout in (("jaxvox", "full (default)"), ("jaxvox_compact", "compact")):
+    for key, layout in (
+        ("jaxvox", "full (default)"),
+        ("jaxvox_compact", "compact"),
+        ("jaxvox_plain", "full, plain process"),
+    ):
         if key not in case:
             continue
         j = case[key]
@@ -292,6 +301,7 @@ def write_report(result: dict, stem) -> None:
         ("jaxvox first call", lambda c: c.get("jaxvox", {}).get("first_s")),
         ("jaxvox warm", lambda c: c.get("jaxvox", {}).get("median_s")),
         ("jaxvox warm, compact", lambda c: c.get("jaxvox_compact", {}).get("median_s")),
+        ("jaxvox warm, plain process", lambda c: c.get("jaxvox_plain", {}).get("median_s")),
         ("OpenVDB meshToLevelSet", lambda c: c.get("openvdb", {}).get("median_s")),
         ("Open3D exact signed query", lambda c: c.get("open3d", {}).get("signed", {}).get("median_s")),
     ]
