@@ -131,7 +131,7 @@ def trace(
     t_max: Real[ArrayLike, "*t"] = float("inf"),
     method: str = "esvo",
     max_steps: int | None = None,
-    lanes: int | None = 8192,
+    lanes: int | None = 4096,
     shard: bool | None = None,
     beam: bool | None = None,
 ) -> Hit:
