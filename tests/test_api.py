@@ -180,10 +180,10 @@ def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
 
 
 def test_runs_that_overflow_an_emit_call_keep_every_triangle(monkeypatch):
-    """Large triangles (about 3K candidates each): a run of `_CHUNK` overflows its call,
-    the triangles that did not fit start the next run, and later runs hold fewer
-    triangles than a chunk (their padding counts nothing). The voxels are the union of
-    those of groups of 100 triangles, each group one call."""
+    """Large triangles (about 3K candidates each): the first run (all 800) overflows its
+    call, the triangles that did not fit start the next run, and later runs hold fewer
+    triangles than the run before them, sized to fit (their padding counts nothing).
+    The voxels are the union of those of groups of 100 triangles, each group one call."""
     from jaxvox.voxelize import host
 
     rng = np.random.default_rng(7)
@@ -192,23 +192,26 @@ def test_runs_that_overflow_an_emit_call_keep_every_triangle(monkeypatch):
     faces = np.arange(len(corners), dtype=np.int32).reshape(-1, 3)
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=256)
     mesh = jv.Mesh(corners, faces)
-    emit, written = host._emit_chunk, []
+    emit, written, runs = host._emit_chunk, [], []
 
     def recorded(*args, **kwargs):
         out = emit(*args, **kwargs)
         written.append(int(np.asarray(out[1]).sum()))  # candidates of the run's triangles
+        runs.append(int(np.isfinite(np.asarray(args[0])).all((1, 2)).sum()))  # its triangles
         return out
 
     monkeypatch.setattr(host, "_emit_chunk", recorded)
     for mode in ("conservative", "6-separating"):
-        written.clear()
+        written.clear(), runs.clear()
         got = jv.voxelize(mesh, grid, mode=mode, progress=False).to_numpy()
-        assert len(written) >= 3 and written[0] > host._SLOTS  # the first run overflowed
+        assert len(written) >= 3 and written[0] > host._SLOTS and runs[0] == 800  # the first run overflowed
+        assert runs[1] < runs[0]  # a shorter run, with triangles after it (a third call)
+        calls = len(written)
         groups = [jv.Mesh(corners, faces[k : k + 100]) for k in range(0, 800, 100)]
         linear = lambda ijk: (ijk[:, 0].astype(np.int64) << 16) | (ijk[:, 1] << 8) | ijk[:, 2]
         union = np.unique(np.concatenate([linear(jv.voxelize(g, grid, mode=mode).to_numpy()) for g in groups]))
         np.testing.assert_array_equal(np.sort(linear(got)), union)  # got: unique voxels
-        assert max(written[-len(groups) :]) < host._SLOTS  # each group fit one call
+        assert len(written) - calls == len(groups) and max(written[calls:]) < host._SLOTS  # a group, a call
 
 
 def test_a_triangle_larger_than_two_emit_calls():
@@ -232,22 +235,32 @@ def test_a_triangle_larger_than_two_emit_calls():
     assert parts <= {tuple(v) for v in whole} and len(whole) - len(parts) < 1e-4 * len(whole)
 
 
-def test_bounds_round_alike_in_every_program():
+@pytest.mark.parametrize("wide", [False, True])
+def test_bounds_round_alike_in_every_program(wide):
     """`_mul_add` gives the same float32 bits compiled (where XLA may contract a
     multiply-add) as numpy's separately rounded operations, for integer coordinates
-    up to the region's size: a tie cannot round one way where a row is counted and the
-    other where it is placed."""
-    from jaxvox.voxelize.triangles import _mul_add
+    below `NARROW` (or 2^16, `wide`) and slopes of any size (infinite, zero, denormal):
+    a tie cannot round one way where a row is counted and the other where it is placed."""
+    from jaxvox.voxelize.triangles import NARROW, _mul_add
 
     rng = np.random.default_rng(3)
-    p = rng.uniform(-2000, 2000, 1 << 16).astype(np.float32)
-    q = (rng.uniform(-1, 1, 1 << 16) * 10.0 ** rng.integers(-3, 3, 1 << 16)).astype(np.float32)
-    s = rng.integers(-1025, 1026, 1 << 16).astype(np.float32)
-    got = np.asarray(jax.jit(_mul_add)(p, q, s))
-    q_hi = (q.view(np.uint32) & np.uint32(0xFFFFF000)).view(np.float32)
+    n, bound = 1 << 16, (1 << 16) if wide else NARROW
+    p = rng.uniform(-2 * bound, 2 * bound, n).astype(np.float32)
+    q = (rng.uniform(-1, 1, n) * 10.0 ** rng.integers(-3, 3, n)).astype(np.float32)
+    q[:8] = [np.inf, -np.inf, 0.0, -0.0, 2.0**30, 1e-40, -3e38, 1.0]  # sentinels, a denormal, huge
+    s = rng.integers(-bound + 1, bound, n).astype(np.float32)
+    got = np.asarray(jax.jit(_mul_add, static_argnums=3)(p, q, s, wide))
+    top = lambda x: (x.view(np.uint32) & np.uint32(0xFFFF0000 if wide else 0xFFFFF000)).view(np.float32)
     with np.errstate(all="ignore"):
-        want = (p + q_hi * s) + (q - q_hi) * s
+        q1 = top(q)
+        rest = np.where(np.isfinite(q), q - q1, np.float32(0))
+        q2 = top(rest) if wide else rest
+        want = ((p + q1 * s) + q2 * s) + (rest - q2) * s if wide else (p + q1 * s) + rest * s
+        exact = p.astype(np.float64) + q.astype(np.float64) * s
     np.testing.assert_array_equal(got.view(np.uint32), want.view(np.uint32))
+    finite = np.abs(exact) < 1e38  # and the value is p + q s, up to the additions' rounding
+    np.testing.assert_allclose(got[finite], exact[finite], rtol=1e-6, atol=1e-3)
+    assert np.isposinf(got[0]) == (s[0] > 0) and np.isneginf(got[1]) == (s[1] > 0)
 
 
 def test_high_resolutions_use_two_word_keys():

@@ -12,7 +12,7 @@ from jaxvox._core.checks import check_choice, check_type
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh
 from jaxvox.overflow import raise_if_overflow
-from jaxvox.voxelize.triangles import expand_candidates, expand_columns, expand_rows, setup_triangles
+from jaxvox.voxelize.triangles import NARROW, expand_candidates, expand_columns, expand_rows, setup_triangles
 from jaxvox.voxelize.voxels import (
     CONSERVATIVE,
     MODES,
@@ -82,8 +82,9 @@ def _pipeline(tris_grid, region_lo, region_size: int, six_sep: bool, caps: Capac
     region_hi = region_lo + region_size - 1
     words = _words(region_size)
     tris = setup_triangles(tris_grid, region_lo, region_hi, six_sep)
-    columns = expand_columns(tris, caps.columns)
-    rows = expand_rows(columns, caps.rows, caps.row_chunk)
+    wide = region_size > NARROW  # (the whole grid is one region here)
+    columns = expand_columns(tris, caps.columns, wide=wide)
+    rows = expand_rows(columns, caps.rows, caps.row_chunk, wide=wide)
     keys, payload, n_cand = expand_candidates(tris_grid, rows, caps.candidates, words, with_ids)
     coords, triangle, count, n_vox = sort_unique(keys, payload, words, region_lo, caps.voxels)
     overflow = functools.reduce(

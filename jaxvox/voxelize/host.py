@@ -1,5 +1,6 @@
-"""The host-side voxelizer: `voxelize` streams triangle chunks through fixed work windows
-into page buffers, region by region, and `voxel_capacities` sizes `voxelize_fixed`."""
+"""The host-side voxelizer: `voxelize` streams runs of triangles through fixed work
+windows into fixed candidate buffers, region by region, and `voxel_capacities` sizes
+`voxelize_fixed`."""
 
 from __future__ import annotations
 
@@ -126,7 +127,8 @@ def _emit_chunk(tris_grid, ids, region_lo, region_hi, offset, *, six_sep, with_i
         # Only the windows that overlap the slots: from the one holding the first slot.
         first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
         _, buffers = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < _SLOTS), step, (first, buffers))
-        return buffers, offset + n, _count_rows(rows, per)
+        # (saturated: a run's candidates may pass 2^31, and nothing past the slots is written)
+        return buffers, jnp.minimum(offset + n, _SLOTS), _count_rows(rows, per)
 
     carry = (buffers, offset, jnp.zeros(_CHUNK, jnp.int32))
     buffers, _, per = _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry)[2]
@@ -232,9 +234,10 @@ def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: 
         done = int(np.searchsorted(ends, _SLOTS, side="right"))  # triangles whose candidates all fit
         if done:
             parts.append(tuple(np.asarray(b)[: ends[done - 1]] for b in slots))
-        else:  # one triangle holds more than `_SLOTS` candidates: written part by part
+        else:  # one triangle holds more than `_SLOTS` candidates (all the slots): the rest part by part
             done, ((t, ids),) = 1, _chunks(tris, idx[pos : pos + 1])
-            for start in range(0, int(ends[0]), _SLOTS):
+            parts.append(tuple(np.asarray(b) for b in slots))
+            for start in range(_SLOTS, int(ends[0]), _SLOTS):
                 slots = emit(t, ids, offset=np.int32(-start))[0]
                 parts.append(tuple(np.asarray(b)[: ends[0] - start] for b in slots))
         total += int(ends[done - 1])

@@ -232,24 +232,33 @@ class _Columns(NamedTuple):
     total: jax.Array  # [] int32 number of columns needed
 
 
-def _mul_add(p, q, s):
-    """``p + q * s`` for an integer-valued float32 `s` with ``|s| < 2^12``, rounded alike
-    wherever it is computed.
+NARROW = 1 << 12  # local coordinates below this need `_mul_add`'s two-part split only
+
+
+def _mul_add(p, q, s, wide: bool):
+    """``p + q * s`` for an integer-valued float32 `s`, rounded alike wherever it is
+    computed: ``|s| < NARROW`` (`wide` False: every region of the host path), or
+    ``|s| < 2^16`` (`wide`: a triangle's local coordinates in a grid up to 65536^3).
 
     XLA recomputes cheap elementwise values inside each fusion that reads them, and
     the CPU backend may contract a multiply-add into one fused operation in some copies
     only. A bound at a tie would then round one way where a row's voxels are counted
-    and the other where they are placed, shifting the row by a voxel. Split into a high
-    part of 12 significant bits and the exact rest, `q` gives two exact products, so
-    every evaluation order rounds the same two additions.
+    and the other where they are placed, shifting the row by a voxel. Split into parts
+    of at most 12 (or 8) significant bits, `q` gives exact products, so every evaluation
+    order rounds the same additions. An infinite `q` keeps its infinite part alone (its
+    rest would be inf - inf).
     """
-    q_hi = jax.lax.bitcast_convert_type(
-        jax.lax.bitcast_convert_type(q, jnp.uint32) & jnp.uint32(0xFFFFF000), jnp.float32
-    )
-    return (p + q_hi * s) + (q - q_hi) * s
+    mask = jnp.uint32(0xFFFF0000 if wide else 0xFFFFF000)  # the leading 8 (or 12) significant bits
+    top = lambda x: jax.lax.bitcast_convert_type(jax.lax.bitcast_convert_type(x, jnp.uint32) & mask, jnp.float32)
+    q1 = top(q)
+    rest = jnp.where(jnp.isfinite(q), q - q1, 0.0)  # exact
+    if not wide:
+        return (p + q1 * s) + rest * s
+    q2 = top(rest)
+    return ((p + q1 * s) + q2 * s) + (rest - q2) * s
 
 
-def _eval_bounds(bounds, s, lo, hi):
+def _eval_bounds(bounds, s, lo, hi, wide: bool):
     """Intersects [lo, hi] with ``lower_p + lower_q s <= t <= upper_p + upper_q s``.
 
     Args:
@@ -262,23 +271,24 @@ def _eval_bounds(bounds, s, lo, hi):
     # Unrolled over the H half-planes: an elementwise loop, where a reduction over the
     # short last axis compiles to a slower reduction kernel on the CPU.
     h = bounds.shape[-1] // 4
-    lower = [jnp.ceil(_mul_add(bounds[..., i], bounds[..., h + i], s)) for i in range(h)]
-    upper = [jnp.floor(_mul_add(bounds[..., 2 * h + i], bounds[..., 3 * h + i], s)) for i in range(h)]
+    lower = [jnp.ceil(_mul_add(bounds[..., i], bounds[..., h + i], s, wide)) for i in range(h)]
+    upper = [jnp.floor(_mul_add(bounds[..., 2 * h + i], bounds[..., 3 * h + i], s, wide)) for i in range(h)]
     return functools.reduce(jnp.maximum, lower, lo), functools.reduce(jnp.minimum, upper, hi)
 
 
-def expand_columns(tris: _Triangles, col_cap: int, start=0) -> _Columns:
+def expand_columns(tris: _Triangles, col_cap: int, start=0, *, wide: bool = False) -> _Columns:
     """Expands triangles into columns (the window of `col_cap` columns from `start` on);
-    per column, its rows and depth coefficients."""
+    per column, its rows and depth coefficients. `wide` (static): the region is wider
+    than `NARROW` voxels (see `_mul_add`)."""
     tri, rank, valid, total = expand_counts(tris.n_cols, col_cap, start)
     cu = (tris.col_lo[tri] + rank).astype(jnp.float32)
     c = tris.col_data[tri]
     h4 = (c.shape[1] - 7) // 2
     v_lo, v_hi, w_lo, w_hi, z_lo, z_hi, kx = (c[:, 2 * h4 + i] for i in range(7))
-    row_lo, row_hi = _eval_bounds(c[:, :h4], cu, v_lo, v_hi)
-    w_lo, w_hi = _eval_bounds(c[:, h4 : 2 * h4], cu, w_lo, w_hi)
+    row_lo, row_hi = _eval_bounds(c[:, :h4], cu, v_lo, v_hi, wide)
+    w_lo, w_hi = _eval_bounds(c[:, h4 : 2 * h4], cu, w_lo, w_hi, wide)
     n_rows = jnp.where(valid, jnp.maximum(row_hi - row_lo + 1.0, 0.0), 0.0).astype(jnp.int32)
-    depth = jnp.stack([w_lo, w_hi, _mul_add(z_lo, kx, cu), _mul_add(z_hi, kx, cu)], 1)
+    depth = jnp.stack([w_lo, w_hi, _mul_add(z_lo, kx, cu, wide), _mul_add(z_hi, kx, cu, wide)], 1)
     depth = jnp.concatenate([depth, tris.row_data[tri]], axis=1)
     place = tris.base[tri]
     u_step = cu.astype(jnp.int32)[:, None] * (jnp.arange(3, dtype=jnp.int32) == place[:, 3:4])
@@ -294,12 +304,12 @@ class _Rows(NamedTuple):
     total: jax.Array  # [] int32 number of row slots needed
 
 
-def expand_rows(columns: _Columns, row_cap: int, chunk: int, start=0) -> _Rows:
+def expand_rows(columns: _Columns, row_cap: int, chunk: int, start=0, *, wide: bool = False) -> _Rows:
     """Expands columns into rows; per row, the interval of depths that are set.
 
     Rows are handled `chunk` at a time (one gather of the column's coefficients per
     chunk), so `row_cap` counts slots of whole chunks; the window starts at chunk slot
-    `start`.
+    `start`. `wide` as in `expand_columns`.
     """
     n_chunks = (columns.n_rows + chunk - 1) // chunk
     col, rank, valid, total = expand_counts(n_chunks, row_cap // chunk, start)
@@ -308,9 +318,9 @@ def expand_rows(columns: _Columns, row_cap: int, chunk: int, start=0) -> _Rows:
     v = columns.row_lo[col][:, None] + offset.astype(jnp.float32)
     c = columns.depth[col][:, None, :]
     ky = c[..., -1]
-    lo = jnp.maximum(c[..., 0], jnp.ceil(_mul_add(c[..., 2], ky, v) - 1.0))
-    hi = jnp.minimum(c[..., 1], jnp.floor(_mul_add(c[..., 3], ky, v)))
-    lo, hi = _eval_bounds(c[..., 4:-1], v, lo, hi)
+    lo = jnp.maximum(c[..., 0], jnp.ceil(_mul_add(c[..., 2], ky, v, wide) - 1.0))
+    hi = jnp.minimum(c[..., 1], jnp.floor(_mul_add(c[..., 3], ky, v, wide)))
+    lo, hi = _eval_bounds(c[..., 4:-1], v, lo, hi, wide)
     n_depth = jnp.where(ok, jnp.maximum(hi - lo + 1.0, 0.0), 0.0).astype(jnp.int32)
     o = columns.origin[col][:, None, :]
     axis = jnp.arange(3, dtype=jnp.int32)
