@@ -177,7 +177,7 @@ for b, mesh in enumerate(meshes2):
 
 # %% [markdown]
 # ## Mesh by mesh with the host API
-# The same work, one mesh at a time: `voxelize` (sized by counting passes), `build_dag`,
+# The same work, one mesh at a time: `voxelize` (nothing to size), `build_dag`,
 # `trace`. The first pass includes compilation; a second pass over the same meshes is
 # the compiled speed. The results equal the batched ones.
 
