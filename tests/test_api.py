@@ -171,7 +171,7 @@ def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
     # The counting pass alone (`voxel_capacities` would also voxelize without ids).
     lo, hi = host._region_bounds(np.zeros(3, np.int32), grid.resolution)
     chunks = host._chunks(host._grid_triangles(mesh, grid), np.arange(mesh.num_faces))
-    assert host._count_chunks(chunks, lo, hi, False)[0].sum(0)[2] > host._SLOTS
+    assert host._count_chunks(chunks, lo, hi, False).sum(0)[2] > host._SLOTS
     for mode in ("conservative", "6-separating"):
         whole = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True)
         small = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True, region_size=64)
@@ -225,7 +225,7 @@ def test_a_triangle_larger_than_two_emit_calls():
     tri = jv.Mesh(corners, np.array([[0, 1, 2]], np.int32))
     grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0 / 1024, resolution=1024)
     lo, hi = host._region_bounds(np.zeros(3, np.int32), 1024)
-    counted = host._count_chunks(host._chunks(host._grid_triangles(tri, grid), np.arange(1)), lo, hi, False)[0]
+    counted = host._count_chunks(host._chunks(host._grid_triangles(tri, grid), np.arange(1)), lo, hi, False)
     assert counted[0, 2] > 2 * _SLOTS  # 1.16 M candidates: three parts
     whole = jv.voxelize(tri, grid).to_numpy()
     assert len(whole) == counted[0, 2]  # one triangle never repeats a voxel: every candidate, once

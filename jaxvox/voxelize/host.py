@@ -72,17 +72,13 @@ def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
     return n_cols, n_slots, carry
 
 
-def _count_rows(rows, per):
-    """Adds a row window's candidates to the per-triangle counts [_CHUNK] int32."""
-    return per.at[rows.place[:, 4]].add(rows.n_depth)
-
-
 @functools.partial(jax.jit, static_argnames=("six_sep",))
 def _count_chunk(tris_grid, region_lo, region_hi, *, six_sep):
-    """Counts of a chunk [_CHUNK, 3, 3] in a region: ([3] int32 columns, row slots,
-    candidates; [_CHUNK] int32 candidates per triangle)."""
-    n_cols, n_slots, per = _walk(tris_grid, region_lo, region_hi, six_sep, _count_rows, jnp.zeros(_CHUNK, jnp.int32))
-    return jnp.stack([n_cols, n_slots, jnp.sum(per)]), per
+    """Counts of a chunk [_CHUNK, 3, 3] in a region: [3] int32 columns, row slots,
+    candidates (`voxel_capacities`)."""
+    visit = lambda rows, total: total + jnp.sum(rows.n_depth)
+    n_cols, n_slots, n_cand = _walk(tris_grid, region_lo, region_hi, six_sep, visit, jnp.int32(0))
+    return jnp.stack([n_cols, n_slots, n_cand])
 
 
 @functools.partial(jax.jit, static_argnames=("six_sep", "with_ids"))
@@ -128,7 +124,7 @@ def _emit_chunk(tris_grid, ids, region_lo, region_hi, offset, *, six_sep, with_i
         first = jnp.maximum(-offset, 0) // _WINDOW_CANDIDATES * _WINDOW_CANDIDATES
         _, buffers = jax.lax.while_loop(lambda s: (s[0] < n) & (offset + s[0] < _SLOTS), step, (first, buffers))
         # (saturated: a run's candidates may pass 2^31, and nothing past the slots is written)
-        return buffers, jnp.minimum(offset + n, _SLOTS), _count_rows(rows, per)
+        return buffers, jnp.minimum(offset + n, _SLOTS), per.at[rows.place[:, 4]].add(rows.n_depth)
 
     carry = (buffers, offset, jnp.zeros(_CHUNK, jnp.int32))
     buffers, _, per = _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry)[2]
@@ -204,12 +200,10 @@ def _region_bounds(region_lo, region_size: int):
     return jax.device_put(lo), jax.device_put(lo + np.int32(region_size - 1))
 
 
-def _count_chunks(chunks, lo, hi, six_sep: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Host int64 counts of a region's chunks: ([chunks, 3] columns, row slots,
-    candidates; [chunks * _CHUNK] candidates per triangle slot)."""
+def _count_chunks(chunks, lo, hi, six_sep: bool) -> np.ndarray:
+    """Host int64 [chunks, 3] counts of a region's chunks: columns, row slots, candidates."""
     counts = jax.device_get([_count_chunk(t, lo, hi, six_sep=six_sep) for t, _ in chunks])
-    totals = np.asarray([c for c, _ in counts], np.int64).reshape(-1, 3)
-    return totals, np.concatenate([np.asarray(p, np.int64) for _, p in counts] or [np.zeros(0, np.int64)])
+    return np.asarray(counts, np.int64).reshape(-1, 3)
 
 
 def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
@@ -403,6 +397,6 @@ def voxel_capacities(mesh: Mesh, grid: Grid, *, mode: Mode = CONSERVATIVE) -> Ca
         return Capacities(*(bucket(0),) * 4, ROW_CHUNK)
     lo, hi = _region_bounds(np.zeros(3, np.int32), grid.resolution)
     chunks = _chunks(_grid_triangles(mesh, grid), np.arange(mesh.num_faces))
-    columns, rows, candidates = (bucket(n) for n in _count_chunks(chunks, lo, hi, six_sep)[0].sum(0))
+    columns, rows, candidates = (bucket(n) for n in _count_chunks(chunks, lo, hi, six_sep).sum(0))
     voxels = bucket(int(voxelize(mesh, grid, mode=mode).count))
     return Capacities(columns, rows, candidates, voxels, ROW_CHUNK)
