@@ -1,4 +1,5 @@
-"""`jaxvox._core.scan`: `cumsum` against numpy's prefix sums, `compact_indices` against numpy."""
+"""`jaxvox._core.scan`: `cumsum` against numpy's prefix sums, `mark`, `nth_marked` and
+`compact_indices` against numpy's `flatnonzero`."""
 
 from __future__ import annotations
 
@@ -20,10 +21,10 @@ def test_cumsum_matches_numpy(n):
     assert run(flags).dtype == np.int32
 
 
-@pytest.mark.parametrize("n", [1, 100, 3000])
+@pytest.mark.parametrize("n", [1, 100, 3000, 40_000])
 def test_compact_indices_matches_numpy(n):
-    """The marked indices in order, `fill` past their count, cut at `size` (the three
-    compactions it replaced: the lanes' queue, `on_marked`, the staged loops' nonzero)."""
+    """The marked indices in order, `fill` past their count, cut at `size` (the lanes'
+    queue)."""
     from jaxvox._core.scan import compact_indices
 
     mask = np.random.default_rng(n).random(n) < 0.3
@@ -34,3 +35,17 @@ def test_compact_indices_matches_numpy(n):
             expected[: len(marked)] = marked
             got = jax.jit(compact_indices, static_argnums=1, static_argnames="fill")(mask, size, fill=fill)
             np.testing.assert_array_equal(np.asarray(got), expected)
+
+
+@pytest.mark.parametrize("n", [1, 31, 32, 33, 1000, 70_001])
+@pytest.mark.parametrize("density", [0.0, 0.003, 0.5, 1.0])
+def test_nth_marked_finds_every_marked_entry(n, density):
+    """Word edges (31, 32, 33 entries), runs of empty words, no marks and all marks."""
+    from jaxvox._core.scan import mark, nth_marked
+
+    mask = np.random.default_rng(n).random(n) < density
+    marks = jax.jit(mark)(mask)
+    expected = np.flatnonzero(mask)
+    assert int(marks.count) == len(expected)
+    got = jax.jit(nth_marked)(marks, np.arange(len(expected), dtype=np.int32))
+    np.testing.assert_array_equal(np.asarray(got), expected)

@@ -27,7 +27,7 @@ from jaxvox._core.scan import compact_indices
 def run_in_lanes(
     init: Callable[[Any, jax.Array], Any],
     step: Callable[[Any, Any], Any],
-    finish: Callable[[Any], Any],
+    finish: Callable[[Any, Any], Any],
     rows: Any,
     status: jax.Array,
     out: Any,
@@ -45,7 +45,8 @@ def run_in_lanes(
         status `idle`).
       step: ``(rows [W], state [W]) -> state [W]``, one step of every lane; it must leave
         lanes that are not `RUNNING` as they are (their result is read later).
-      finish: ``state [W] -> results [W, ...]``, a lane's result (a pytree like `out`).
+      finish: ``(rows [W], state [W]) -> results [W, ...]``, a lane's result (a pytree
+        like `out`).
       rows: pytree of per-row arrays [n, ...] (the inputs `init` and `step` read).
       status: [n] int32; the `RUNNING` rows are queued, the others keep `out`.
       out: pytree of arrays [n, ...], the results of rows that never run.
@@ -56,13 +57,14 @@ def run_in_lanes(
       steps_per_refill: static steps per round of the loop.
 
     Returns:
-      `out` with every queued row's result ``finish(state)`` at its end.
+      `out` with every queued row's result ``finish(row, state)`` at its end.
     """
     n = status.shape[0]
     width = max(min(lanes, n), 1)
     running = status == RUNNING
     queue = compact_indices(running, n)  # the rows to run, in order
     queued = jnp.sum(running)
+    queue_row = lambda pos: queue[jnp.clip(pos, 0, n - 1)]
     take = lambda ids: jax.tree.map(lambda a: a[ids], (rows, status))
 
     def fetch(ids, valid):
@@ -79,7 +81,7 @@ def run_in_lanes(
 
     first = jnp.arange(width, dtype=jnp.int32)
     valid = first < queued
-    ids0 = queue[jnp.minimum(first, n - 1)]
+    ids0 = queue_row(first)
     row0, state0 = fetch(ids0, valid)
     carry = Carry(jnp.where(valid, ids0, n), row0, state0, jnp.zeros(width, jnp.int32), jnp.minimum(queued, width), out)
 
@@ -98,10 +100,10 @@ def run_in_lanes(
 
     def refill(c: Carry, state, steps, done) -> Carry:
         slot = jnp.where(done, c.ids, n)
-        out = jax.tree.map(lambda o, r: o.at[slot].set(r, mode="drop"), c.out, finish(state))
+        out = jax.tree.map(lambda o, r: o.at[slot].set(r, mode="drop"), c.out, finish(c.row, state))
         pos = c.next + jnp.cumsum(done) - 1
         fresh = done & (pos < queued)
-        new_ids = queue[jnp.clip(pos, 0, n - 1)]
+        new_ids = queue_row(pos)
         new_row, new_state = fetch(new_ids, fresh)
         swap = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
         return Carry(
@@ -128,7 +130,7 @@ def run_states_in_lanes(
     return run_in_lanes(
         lambda r, status: r[1]._replace(status=status),
         lambda r, s: step(r[0], s),
-        lambda s: s,
+        lambda r, s: s,
         (rows, start),
         start.status,
         start,

@@ -27,9 +27,23 @@ _METHODS: dict[str, tuple[Callable, Callable, Callable]] = {
 }
 
 
+def _hit_fields(res: int, ray: Ray, status, cell):
+    """One ray's `Hit` fields but the index, from its final status and mirrored cell (3 x
+    [] int32): (t [], voxel [3] int32, normal [3] float32, status [])."""
+    hit = status == HIT
+    t0 = [(cell[a] - ray.o[a]) * ray.inv[a] for a in range(3)]  # per axis, see `setup_ray`
+    t_in = max3(t0)
+    entry = jnp.where(hit & (t_in > 0), argmax3(t0), -1)
+    flip = [((ray.flip >> a) & 1) == 1 for a in range(3)]
+    voxel = jnp.stack([jnp.where(hit, jnp.where(flip[a], res - 1 - cell[a], cell[a]), -1) for a in range(3)])
+    normal = jnp.stack([jnp.where(entry == a, jnp.where(flip[a], 1.0, -1.0), 0.0) for a in range(3)])
+    return jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf), voxel, normal.astype(jnp.float32), status
+
+
 def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
-    """One lane per ray: a vmapped while loop. Returns (status [N], voxel [N, 3])."""
+    """One lane per ray: a vmapped while loop. Returns the `_hit_fields` of the [N] rays."""
     init, step, voxel = _METHODS[method]
+    res = structure.grid.resolution
 
     def one(ray, st):
         def cond(c):
@@ -38,17 +52,20 @@ def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
         s, _ = jax.lax.while_loop(
             cond, lambda c: (step(structure, ray, c[0]), c[1] + 1), (init(structure, ray, st), jnp.int32(0))
         )
-        return jnp.where(s.status == RUNNING, STEP_CAP, s.status), jnp.stack(voxel(structure, s))
+        return _hit_fields(res, ray, jnp.where(s.status == RUNNING, STEP_CAP, s.status), voxel(structure, s))
 
     return jax.vmap(one)(rays, status)
 
 
 def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int):
     """Persistent lanes fed from a queue of the rays that enter the grid box
-    (`jaxvox._core.lanes.run_in_lanes`). Returns (status [N], voxel [N, 3] mirrored)."""
+    (`jaxvox._core.lanes.run_in_lanes`). Returns the `_hit_fields` of the [N] rays, each
+    written when its lane ends (the rays that never run keep their status)."""
     init, step, voxel = _METHODS[method]
-    finish = jax.vmap(lambda s: (s.status, jnp.stack(voxel(structure, s))))
-    out = (status, jnp.full((status.shape[0], 3), -1, jnp.int32))
+    res = structure.grid.resolution
+    finish = jax.vmap(lambda ray, s: _hit_fields(res, ray, s.status, voxel(structure, s)))
+    n = status.shape[0]
+    out = (jnp.full(n, jnp.inf), jnp.full((n, 3), -1, jnp.int32), jnp.zeros((n, 3), jnp.float32), status)
     return run_in_lanes(
         jax.vmap(lambda ray, st: init(structure, ray, st)),
         jax.vmap(lambda ray, s: step(structure, ray, s)),
@@ -75,23 +92,10 @@ def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
         rays = rays._replace(t_start=jnp.maximum(rays.t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam)))
     if lanes is None or o[0].shape[0] == 0:
-        status, cell = _vmapped(structure, rays, status, method, max_steps)
+        t, voxel, normal, status = _vmapped(structure, rays, status, method, max_steps)
     else:
-        status, cell = _lanes(structure, rays, status, method, max_steps, min(lanes, o[0].shape[0]))
-    hit = status == HIT
-    t0 = [(cell[:, a] - rays.o[a]) * rays.inv[a] for a in range(3)]  # per axis, see `setup_ray`
-    t_in = max3(t0)
-    # computed once: the [N, 3] results below would recompute them for each of their columns
-    t_in, entry = fusion_barrier((t_in, jnp.where(hit & (t_in > 0), argmax3(t0), -1)), barrier_token(structure))
-    axes = jnp.arange(3, dtype=jnp.int32)
-    flip = ((rays.flip[:, None] >> axes) & 1) == 1  # [N, 3]
-    return Hit(
-        t=jnp.where(hit, jnp.maximum(t_in, 0.0), jnp.inf),
-        voxel=jnp.where(hit[:, None], jnp.where(flip, res - 1 - cell, cell), -1),
-        normal=jnp.where(entry[:, None] == axes, jnp.where(flip, 1.0, -1.0), 0.0).astype(jnp.float32),
-        index=jnp.zeros_like(status),
-        status=status,
-    )
+        t, voxel, normal, status = _lanes(structure, rays, status, method, max_steps, min(lanes, o[0].shape[0]))
+    return Hit(t=t, voxel=voxel, normal=normal, index=jnp.zeros_like(status), status=status)
 
 
 def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=None, index=None):
