@@ -25,7 +25,7 @@ from jaxvox._core.scan import compact_indices
 
 
 def run_in_lanes(
-    init: Callable[[Any, jax.Array], Any],
+    init: Callable[[Any, jax.Array], tuple[Any, Any]],
     step: Callable[[Any, Any], Any],
     finish: Callable[[Any, Any], Any],
     rows: Any,
@@ -40,14 +40,15 @@ def run_in_lanes(
     """Runs every row whose `status` is `RUNNING` to its end on `lanes` persistent lanes.
 
     Args:
-      init: ``(rows [W], status [W]) -> state [W]``, the lanes' state for the rows given
-        (a pytree of arrays with an int32 ``status`` field; lanes without a row get the
-        status `idle`).
-      step: ``(rows [W], state [W]) -> state [W]``, one step of every lane; it must leave
-        lanes that are not `RUNNING` as they are (their result is read later).
-      finish: ``(rows [W], state [W]) -> results [W, ...]``, a lane's result (a pytree
-        like `out`).
-      rows: pytree of per-row arrays [n, ...] (the inputs `init` and `step` read).
+      init: ``(rows [W], status [W]) -> (inputs [W], state [W])``, for the rows given:
+        the inputs the lanes' steps read (the rows, or values derived from them once per
+        row) and the lanes' state (a pytree of arrays with an int32 ``status`` field;
+        lanes without a row get the status `idle`).
+      step: ``(inputs [W], state [W]) -> state [W]``, one step of every lane; it must
+        leave lanes that are not `RUNNING` as they are (their result is read later).
+      finish: ``(inputs [W], state [W]) -> results [W, ...]``, a lane's result (a
+        pytree like `out`).
+      rows: pytree of per-row arrays [n, ...] (what `init` reads).
       status: [n] int32; the `RUNNING` rows are queued, the others keep `out`.
       out: pytree of arrays [n, ...], the results of rows that never run.
       lanes: static lane count (at most n is used).
@@ -57,7 +58,7 @@ def run_in_lanes(
       steps_per_refill: static steps per round of the loop.
 
     Returns:
-      `out` with every queued row's result ``finish(row, state)`` at its end.
+      `out` with every queued row's result ``finish(inputs, state)`` at its end.
     """
     n = status.shape[0]
     width = max(min(lanes, n), 1)
@@ -69,11 +70,11 @@ def run_in_lanes(
 
     def fetch(ids, valid):
         row, st = take(jnp.where(valid, ids, 0))
-        return row, init(row, jnp.where(valid, st, idle))
+        return init(row, jnp.where(valid, st, idle))
 
     class Carry(NamedTuple):
         ids: jax.Array  # [W] int32 row of each lane, n when idle
-        row: Any  # [W] the lanes' rows
+        row: Any  # [W] the lanes' inputs (from `init`)
         state: Any  # [W]
         steps: jax.Array  # [W] int32
         next: jax.Array  # [] int32 queue position of the next row
@@ -128,7 +129,7 @@ def run_states_in_lanes(
     runs from `start` (a pytree of [n] arrays with a ``status`` field) until no row is
     `RUNNING`; returns the final states [n]."""
     return run_in_lanes(
-        lambda r, status: r[1]._replace(status=status),
+        lambda r, status: (r, r[1]._replace(status=status)),
         lambda r, s: step(r[0], s),
         lambda r, s: s,
         (rows, start),

@@ -57,20 +57,27 @@ def _vmapped(structure, rays: Ray, status, method: str, max_steps: int):
     return jax.vmap(one)(rays, status)
 
 
-def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int):
+def _lanes(structure, rows, status, method: str, max_steps: int, lanes: int):
     """Persistent lanes fed from a queue of the rays that enter the grid box
-    (`jaxvox._core.lanes.run_in_lanes`). Returns the `_hit_fields` of the [N] rays, each
-    written when its lane ends (the rays that never run keep their status)."""
-    init, step, voxel = _METHODS[method]
+    (`jaxvox._core.lanes.run_in_lanes`). `rows` are the rays as given (world units),
+    ``(o [N, 3], d [N, 3], t_max [N], t_beam [N] or None)``: a lane sets its ray up when it takes
+    it, so that no [N] array of set-up rays is made. Returns the `_hit_fields` of the [N]
+    rays, each written when its lane ends (the rays that never run keep their status)."""
+    start, step, voxel = _METHODS[method]
     res = structure.grid.resolution
+
+    def init(row, st):
+        ray = _set_up(structure.grid, *row)
+        return ray, start(structure, ray, st)
+
     finish = jax.vmap(lambda ray, s: _hit_fields(res, ray, s.status, voxel(structure, s)))
     n = status.shape[0]
     out = (jnp.full(n, jnp.inf), jnp.full((n, 3), -1, jnp.int32), jnp.zeros((n, 3), jnp.float32), status)
     return run_in_lanes(
-        jax.vmap(lambda ray, st: init(structure, ray, st)),
+        jax.vmap(init),
         jax.vmap(lambda ray, s: step(structure, ray, s)),
         finish,
-        rays,
+        rows,
         status,
         out,
         lanes=lanes,
@@ -79,34 +86,48 @@ def _lanes(structure, rays: Ray, status, method: str, max_steps: int, lanes: int
     )
 
 
+def _grid_units(grid, o, d):
+    """World origins and directions (per axis, 3 x [...] float32) in grid units."""
+    return tuple((o[a] - grid.origin[a]) / grid.voxel_size for a in range(3)), tuple(c / grid.voxel_size for c in d)
+
+
+def _set_up(grid, o, d, t_max, t_beam):
+    """One ray (world origin and direction, [3] each) set up in grid units (`setup_ray`),
+    starting no earlier than `t_beam` (None: no beam)."""
+    ray, _ = setup_ray(*_grid_units(grid, tuple(o), tuple(d)), t_max, grid.resolution)
+    return ray if t_beam is None else ray._replace(t_start=jnp.maximum(ray.t_start, t_beam))
+
+
 def _trace_flat(structure, o, d, t_max, layout, *, method, max_steps, lanes):
-    """Traces [N] rays in grid units; returns a flat `Hit` (index left 0). With a beam
-    `layout` (or None), the rays start at their group's beam distance."""
-    res = structure.grid.resolution
-    # per axis, each axis read out of the [N, 3] rows once (XLA's fusions would read the
-    # strided columns in each of their many consumers)
-    o, d = fusion_barrier(tuple(tuple(x[:, a] for a in range(3)) for x in (o, d)), barrier_token(structure))
-    rays, status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res))(o, d, t_max)
-    if layout is not None and o[0].shape[0] > 0:
-        t_beam = beam_starts(structure, o, d, status == RUNNING, layout)
+    """Traces [N] rays (world units, [N, 3] origins and directions); returns a flat `Hit`
+    (index left 0). With a beam `layout` (or None), the rays start at their group's beam
+    distance."""
+    grid, res, n = structure.grid, structure.grid.resolution, o.shape[0]
+    # per axis in grid units, each axis read out of the [N, 3] rows once (XLA's fusions
+    # would read the strided columns in each of their many consumers)
+    columns = _grid_units(grid, *(tuple(x[:, a] for a in range(3)) for x in (o, d)))
+    columns = fusion_barrier(columns, barrier_token(structure))
+    status = jax.vmap(lambda a, b, c: setup_ray(a, b, c, res)[1])(*columns, t_max)
+    t_beam = None
+    if layout is not None and n > 0:
+        t_beam = beam_starts(structure, *columns, status == RUNNING, layout)
         status = jnp.where((status == RUNNING) & jnp.isinf(t_beam), MISS, status)
-        rays = rays._replace(t_start=jnp.maximum(rays.t_start, jnp.where(jnp.isinf(t_beam), 0.0, t_beam)))
-    if lanes is None or o[0].shape[0] == 0:
+        t_beam = jnp.where(jnp.isinf(t_beam), 0.0, t_beam)
+    if lanes is None or n == 0:
+        rays = jax.vmap(lambda a, b, c, e: _set_up(grid, a, b, c, e))(o, d, t_max, t_beam)
         t, voxel, normal, status = _vmapped(structure, rays, status, method, max_steps)
     else:
-        t, voxel, normal, status = _lanes(structure, rays, status, method, max_steps, min(lanes, o[0].shape[0]))
+        t, voxel, normal, status = _lanes(structure, (o, d, t_max, t_beam), status, method, max_steps, min(lanes, n))
     return Hit(t=t, voxel=voxel, normal=normal, index=jnp.zeros_like(status), status=status)
 
 
 def trace_rays(structure, origins, directions, t_max, *, method, max_steps, lanes, shard, beam=None, index=None):
-    """Shared front end: grid units, flattening, sharding over devices. Returns a `Hit`.
+    """Shared front end: flattening, sharding over devices. Returns a `Hit`.
     With `beam` (a `beam_layout` of the flat rays), the rays start at their group's beam
     distance, computed by each device on its own rays. `index(structure, hit)` fills ``Hit.index`` on each
     device's own rays (work on a sharded array across devices would be partitioned by
     XLA, with communication in every step of its loops)."""
-    grid = structure.grid
-    o = grid.to_grid_units(origins)
-    d = jnp.asarray(directions, jnp.float32) / grid.voxel_size
+    o, d = jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32)
     shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
     o, d = jnp.broadcast_to(o, shape + (3,)).reshape(-1, 3), jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
     t_max = jnp.broadcast_to(jnp.asarray(t_max, jnp.float32), shape).reshape(-1)
