@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -21,7 +22,7 @@ def test_cumsum_matches_numpy(n):
     assert run(flags).dtype == np.int32
 
 
-@pytest.mark.parametrize("n", [1, 100, 3000, 40_000])
+@pytest.mark.parametrize("n", [1, 3000, 40_000])
 def test_compact_indices_matches_numpy(n):
     """The marked indices in order, `fill` past their count, cut at `size` (the lanes'
     queue)."""
@@ -37,15 +38,16 @@ def test_compact_indices_matches_numpy(n):
             np.testing.assert_array_equal(np.asarray(got), expected)
 
 
-@pytest.mark.parametrize("n", [1, 31, 32, 33, 1000, 70_001])
-@pytest.mark.parametrize("density", [0.0, 0.003, 0.5, 1.0])
-def test_nth_marked_finds_every_marked_entry(n, density):
-    """Word edges (31, 32, 33 entries), runs of empty words, no marks and all marks."""
+@pytest.mark.parametrize("n", [33, 70_001])
+def test_nth_marked_finds_every_marked_entry(n):
+    """Word edges (entries 31, 32, 33), runs of empty words, no marks and all marks."""
     from jaxvox._core.scan import mark, nth_marked
 
-    mask = np.random.default_rng(n).random(n) < density
-    marks = jax.jit(mark)(mask)
-    expected = np.flatnonzero(mask)
-    assert int(marks.count) == len(expected)
-    got = jax.jit(nth_marked)(marks, np.arange(len(expected), dtype=np.int32))
-    np.testing.assert_array_equal(np.asarray(got), expected)
+    rng = np.random.default_rng(n)
+    find = jax.jit(lambda mask: nth_marked(mark(mask), jnp.arange(n, dtype=jnp.int32)))
+    count = jax.jit(lambda mask: mark(mask).count)
+    for density in (0.0, 0.003, 0.5, 1.0):
+        mask = rng.random(n) < density
+        expected = np.flatnonzero(mask)
+        assert int(count(mask)) == len(expected)
+        np.testing.assert_array_equal(np.asarray(find(mask))[: len(expected)], expected)
