@@ -80,11 +80,11 @@ def run_in_lanes(
         next: jax.Array  # [] int32 queue position of the next row
         out: Any  # [n, ...]
 
-    first = jnp.arange(width, dtype=jnp.int32)
-    valid = first < queued
-    ids0 = queue_row(first)
-    row0, state0 = fetch(ids0, valid)
-    carry = Carry(jnp.where(valid, ids0, n), row0, state0, jnp.zeros(width, jnp.int32), jnp.minimum(queued, width), out)
+    # The lanes start idle and the loop's first refill fills them: `init` is traced once.
+    empty = jnp.full(width, n, jnp.int32)
+    row0, state0 = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fetch, empty, empty < 0))
+    state0 = state0._replace(status=jnp.full(width, idle, state0.status.dtype))
+    carry = Carry(empty, row0, state0, jnp.zeros(width, jnp.int32), jnp.int32(0), out)
 
     def body(c: Carry) -> Carry:
         # a loop, not unrolled: XLA would fuse consecutive steps and recompute each one
@@ -93,32 +93,33 @@ def run_in_lanes(
         if max_steps is not None:
             capped = (state.status == RUNNING) & (steps >= max_steps)
             state = state._replace(status=jnp.where(capped, STEP_CAP, state.status).astype(state.status.dtype))
-        done = (state.status != RUNNING) & (c.ids < n)
-        # Refilling waits until an eighth of the lanes are done (ended rows keep their
+        free = state.status != RUNNING  # the lanes whose row ended, and idle ones
+        # Refilling waits until an eighth of the lanes are free (ended rows keep their
         # state meanwhile) or the queue is empty.
-        refill_now = (jnp.sum(done) * 8 >= width) | (c.next >= queued)
-        return jax.lax.cond(refill_now, refill, lambda c, s, t, _: c._replace(state=s, steps=t), c, state, steps, done)
+        refill_now = (jnp.sum(free) * 8 >= width) | (c.next >= queued)
+        return jax.lax.cond(refill_now, refill, lambda c, s, t, _: c._replace(state=s, steps=t), c, state, steps, free)
 
-    def refill(c: Carry, state, steps, done) -> Carry:
-        slot = jnp.where(done, c.ids, n)
+    def refill(c: Carry, state, steps, free) -> Carry:
+        slot = jnp.where(free, c.ids, n)  # idle lanes have no row: n, dropped
         out = jax.tree.map(lambda o, r: o.at[slot].set(r, mode="drop"), c.out, finish(c.row, state))
-        pos = c.next + jnp.cumsum(done) - 1
-        fresh = done & (pos < queued)
+        pos = c.next + jnp.cumsum(free) - 1
+        fresh = free & (pos < queued)
         new_ids = queue_row(pos)
         new_row, new_state = fetch(new_ids, fresh)
-        swap = lambda a, b: jnp.where(jnp.reshape(done, done.shape + (1,) * (a.ndim - 1)), a, b)
+        swap = lambda a, b: jnp.where(jnp.reshape(free, free.shape + (1,) * (a.ndim - 1)), a, b)
         return Carry(
-            jnp.where(fresh, new_ids, jnp.where(done, n, c.ids)),
+            jnp.where(fresh, new_ids, jnp.where(free, n, c.ids)),
             jax.tree.map(swap, new_row, c.row),
             jax.tree.map(swap, new_state, state),
-            jnp.where(done, 0, steps),
-            c.next + jnp.sum(done),
+            jnp.where(free, 0, steps),
+            c.next + jnp.sum(free),
             out,
         )
 
     if n == 0:
         return out
-    return jax.lax.while_loop(lambda c: jnp.any(c.ids < n), body, carry).out
+    more = lambda c: jnp.any(c.ids < n) | (c.next < queued)
+    return jax.lax.while_loop(more, body, carry).out
 
 
 def run_states_in_lanes(

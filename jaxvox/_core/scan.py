@@ -63,20 +63,19 @@ def nth_marked(marks: Marks, pos: jax.Array) -> jax.Array:
     them. A binary search over the words' prefix counts, then one over the word's bits by
     popcounts of its halves."""
     words = marks.bits.shape[0]
-    word = jnp.zeros(jnp.shape(pos), jnp.int32)  # the last word whose start is at most pos
-    step = 1 << max(words - 1, 1).bit_length() - 1
-    while step:  # unrolled (a loop's steps cost more than its work here)
-        probe = word + step
-        word = jnp.where((probe < words) & (marks.starts[jnp.minimum(probe, words - 1)] <= pos), probe, word)
-        step >>= 1
+    word = jnp.clip(jnp.searchsorted(marks.starts, pos, side="right", method="scan") - 1, 0, words - 1)
+    word = word.astype(jnp.int32)
     bits = marks.bits[word]
-    rank = (pos - marks.starts[word]).astype(jnp.uint32)  # the rank-th set bit of the word
-    at = jnp.zeros_like(rank)
-    for width in (16, 8, 4, 2, 1):
-        low = jax.lax.population_count((bits >> at) & jnp.uint32((1 << width) - 1))
+
+    def halve(k, carry):  # the set bit lies in the low or the high `width` bits from `at`
+        at, rank = carry
+        width = jnp.right_shift(jnp.uint32(16), k.astype(jnp.uint32))
+        low = jax.lax.population_count((bits >> at) & ((jnp.uint32(1) << width) - 1))
         skip = rank >= low
-        at = at + jnp.where(skip, jnp.uint32(width), jnp.uint32(0))
-        rank = rank - jnp.where(skip, low, jnp.uint32(0))
+        return at + jnp.where(skip, width, jnp.uint32(0)), rank - jnp.where(skip, low, jnp.uint32(0))
+
+    rank = (pos - marks.starts[word]).astype(jnp.uint32)  # the rank-th set bit of the word
+    at, _ = jax.lax.fori_loop(0, 5, halve, (jnp.zeros_like(rank), rank))
     return word * 32 + at.astype(jnp.int32)
 
 
