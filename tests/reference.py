@@ -74,6 +74,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 __all__ = [
     "MODES",
@@ -473,10 +474,11 @@ def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
     if len(tri) == 0:
         return out
     lo, hi = tri.min(1), tri.max(1)  # [F, 3]
+    corners = cKDTree(np.asarray(vertices, np.float64)[np.unique(np.asarray(faces, np.int64))])
     step = max(1, chunk // len(tri))
     for s in range(0, len(points), step):
         p = points[s : s + step]
-        vertex2 = np.min([((p[:, None] - tri[None, :, k]) ** 2).sum(-1).min(1) for k in range(3)], 0)
+        vertex2 = corners.query(p)[0] ** 2  # the nearest triangle corner (a k-d tree, float64)
         box2 = sum(
             np.maximum(np.maximum(lo[None, :, k] - p[:, k, None], p[:, k, None] - hi[None, :, k]), 0) ** 2
             for k in range(3)
