@@ -461,12 +461,13 @@ def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
     return np.where(inside[..., None], proj, best)
 
 
-def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
+def mesh_distance(vertices, faces, points, chunk: int = 1 << 14) -> np.ndarray:
     """Unsigned distance (float64 ``[P]``) from points ``[P, 3]`` to a triangle mesh, brute force.
 
     ``+inf`` for a mesh without faces. Only (point, triangle) pairs that can hold the
     minimum are evaluated exactly: the distance to the nearest vertex bounds the result
-    from above, and a triangle whose bounding box lies farther than that cannot be closest.
+    from above, and a triangle whose bounding box lies farther than that cannot be closest
+    (`chunk` points at a time).
     """
     tri = np.asarray(vertices, np.float64)[np.asarray(faces, np.int64).reshape(-1, 3)]
     points = np.asarray(points, np.float64).reshape(-1, 3)
@@ -475,19 +476,24 @@ def mesh_distance(vertices, faces, points, chunk: int = 1 << 19) -> np.ndarray:
         return out
     lo, hi = tri.min(1), tri.max(1)  # [F, 3]
     corners = cKDTree(np.asarray(vertices, np.float64)[np.unique(np.asarray(faces, np.int64))])
-    step = max(1, chunk // len(tri))
-    for s in range(0, len(points), step):
-        p = points[s : s + step]
-        vertex2 = corners.query(p)[0] ** 2  # the nearest triangle corner (a k-d tree, float64)
-        box2 = sum(
-            np.maximum(np.maximum(lo[None, :, k] - p[:, k, None], p[:, k, None] - hi[None, :, k]), 0) ** 2
-            for k in range(3)
-        )
-        i, f = np.nonzero(box2 <= vertex2[:, None] * (1 + 1e-9))
+    # The triangles whose box can lie within the nearest corner's distance: the box
+    # centres within that distance plus the largest box half-diagonal (a k-d tree), then
+    # the exact box test.
+    centres = cKDTree((lo + hi) / 2)
+    reach = np.sqrt(((hi - lo) ** 2).sum(-1)).max() / 2
+    for s in range(0, len(points), chunk):
+        p = points[s : s + chunk]
+        vertex2 = corners.query(p)[0] ** 2  # the nearest triangle corner (float64)
+        near = centres.query_ball_point(p, np.sqrt(vertex2) * (1 + 1e-9) + reach * (1 + 1e-9) + 1e-300)
+        i = np.repeat(np.arange(len(p)), [len(x) for x in near])
+        f = np.concatenate([np.asarray(x, np.int64) for x in near]) if len(p) else np.zeros(0, np.int64)
+        box2 = sum(np.maximum(np.maximum(lo[f, k] - p[i, k], p[i, k] - hi[f, k]), 0) ** 2 for k in range(3))
+        keep = box2 <= vertex2[i] * (1 + 1e-9)
+        i, f = i[keep], f[keep]
         q = closest_point_on_triangles(p[i], tri[f, 0], tri[f, 1], tri[f, 2])
         d2 = np.full(len(p), np.inf)
         np.minimum.at(d2, i, ((q - p[i]) ** 2).sum(-1))
-        out[s : s + step] = np.sqrt(d2)
+        out[s : s + chunk] = np.sqrt(d2)
     return out
 
 
