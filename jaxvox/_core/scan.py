@@ -40,7 +40,7 @@ class Marks(NamedTuple):
 
     bits: jax.Array  # [ceil(N / 32)] uint32 bit i of word w: entry 32 w + i is marked
     starts: jax.Array  # [ceil(N / 32)] int32 marked entries before word w
-    count: jax.Array  # [] int32 marked entries
+    total: jax.Array  # [] int32 marked entries
 
 
 def mark(mask: jax.Array) -> Marks:
@@ -58,7 +58,7 @@ def mark(mask: jax.Array) -> Marks:
 
 
 def nth_marked(marks: Marks, pos: jax.Array) -> jax.Array:
-    """The index of the `pos`-th marked entry ([...] int32 positions below ``marks.count``):
+    """The index of the `pos`-th marked entry ([...] int32 positions below ``marks.total``):
     [...] int32. Other positions give an index below 32 words (unspecified): callers mask
     them. A binary search over the words' prefix counts, then one over the word's bits by
     popcounts of its halves."""
@@ -93,9 +93,9 @@ def compact_indices(mask: jax.Array, size: int, *, fill: int = 0) -> jax.Array:
         pos = k * chunk + jnp.arange(chunk, dtype=jnp.int32)
         return k + 1, jax.lax.dynamic_update_slice(out, nth_marked(marks, pos), (k * chunk,))
 
-    more = lambda c: (c[0] * chunk < marks.count) & (c[0] * chunk < size)
+    more = lambda c: (c[0] * chunk < marks.total) & (c[0] * chunk < size)
     out = jax.lax.while_loop(more, body, (jnp.int32(0), jnp.zeros(padded, jnp.int32)))[1]
-    return jnp.where(jnp.arange(size) < marks.count, out[:size], fill)
+    return jnp.where(jnp.arange(size) < marks.total, out[:size], fill)
 
 
 def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: int) -> jax.Array:
@@ -117,7 +117,7 @@ def on_marked(fn, marked: jax.Array, rows: jax.Array, fill: jax.Array, chunk: in
     if n == 0:
         return jnp.full(0, fill)
     marks = mark(marked)
-    count = marks.count
+    count = marks.total
 
     def body(carry):
         k, out = carry
