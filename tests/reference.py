@@ -408,7 +408,7 @@ def winding_number(vertices, faces, points) -> np.ndarray:
     tri = np.asarray(vertices, np.float64)[np.asarray(faces)]  # [F, 3, 3]
     points = np.asarray(points, np.float64).reshape(-1, 3)
     out = np.empty(len(points))
-    block = max(1, (1 << 21) // max(len(tri), 1))  # points per block: [block, F] temporaries
+    block = max(1, (1 << 17) // max(len(tri), 1))  # points per block: [block, F] temporaries of 1 MiB, in the cache
     corner = [[tri[None, :, k, axis] for axis in range(3)] for k in range(3)]  # [1, F] per axis
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     zero_area = (np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]) == 0).all(-1)  # [F]
