@@ -413,7 +413,7 @@ def test_beam_groups_round_trip():
         tiled = tiles(x, layout)
         assert tiled.shape[2] * tiled.shape[4] == BEAM_RAYS
         # each ray gets its group's least value: the first ray of its tile (x grows in row order)
-        firsts = ungroup_values(per_group(jnp.min, jnp.where(tiled > 0, tiled, jnp.inf)), layout, n)
+        firsts = ungroup_values(per_group((jax.lax.min,), (jnp.where(tiled > 0, tiled, jnp.inf),))[0], layout, n)
         assert (np.asarray(firsts)[n - 7 :] == 0).all()
         if len(batch) >= 2:  # the corner of each ray's tile
             index = np.indices(batch)

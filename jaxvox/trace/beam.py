@@ -85,10 +85,15 @@ def tiles(x, layout):
     return img.reshape(count, img.shape[1] // a, a, img.shape[2] // b, b)
 
 
-def per_group(reduce, t):
-    """One value per group ([images, rows, cols]) of a `tiles` array, by `reduce` over a
-    row of a tile, then over the tile's rows."""
-    return reduce(reduce(t, axis=4), axis=2)
+def per_group(ops, values):
+    """One value per group ([images, rows, cols]) of each of several `tiles` arrays, by
+    `ops` (`jax.lax.max`, `min`, `add` or `bitwise_or`, one per value) over a row of a
+    tile, then over the tile's rows: one variadic reduction per tile axis, so the values
+    are read together instead of each written out for a reduction of its own."""
+    neutral = {jax.lax.max: -np.inf, jax.lax.min: np.inf, jax.lax.add: 0, jax.lax.bitwise_or: False}
+    inits = tuple(np.array(neutral[op], v.dtype) for op, v in zip(ops, values))
+    combine = lambda xs, ys: tuple(op(x, y) for op, x, y in zip(ops, xs, ys))
+    return jax.lax.reduce(jax.lax.reduce(tuple(values), inits, combine, (4,)), inits, combine, (2,))
 
 
 def to_tiles(g):
@@ -164,19 +169,24 @@ def beam_starts(tree: Octree | CompactDag, o, d, entering, layout: tuple):
     unit = tuple(c / size for c in d)
     inv = tuple(1.0 / jnp.where(c == 0, 2.0**-100, c) for c in d)
     exit_t = functools.reduce(jnp.minimum, (jnp.maximum(-p * i, (res - p) * i) for p, i in zip(o, inv)))
-    far = per_group(jnp.max, jnp.where(on, exit_t * size, 0.0))
-    anyone = per_group(jnp.any, on)
-    # the origins' box: its centre is the reference point, half its diagonal `e`
-    lo = tuple(per_group(jnp.min, jnp.where(on, p, jnp.inf)) for p in o)
-    hi = tuple(per_group(jnp.max, jnp.where(on, p, -jnp.inf)) for p in o)
+    # the origins' box (its centre is the reference point, half its diagonal `e`) and the
+    # sum of the unit directions, in one reduction
+    mx, mn, add = jax.lax.max, jax.lax.min, jax.lax.add
+    stats = per_group(
+        (mx, jax.lax.bitwise_or) + (mn,) * 3 + (mx,) * 3 + (add,) * 3,
+        (jnp.where(on, exit_t * size, 0.0), on)
+        + tuple(jnp.where(on, p, jnp.inf) for p in o)
+        + tuple(jnp.where(on, p, -jnp.inf) for p in o)
+        + tuple(jnp.where(on, u, 0.0) for u in unit),
+    )
+    far, anyone, lo, hi, mean = stats[0], stats[1], stats[2:5], stats[5:8], stats[8:11]
     origin = tuple(jnp.where(anyone, (l + h) * 0.5, 0.0) for l, h in zip(lo, hi))
     e = jnp.where(anyone, 0.5 * jnp.sqrt(square(tuple(h - l for l, h in zip(lo, hi)))), 0.0)
-    mean = tuple(per_group(jnp.sum, jnp.where(on, u, 0.0)) for u in unit)
     scale = jnp.maximum(jnp.sqrt(square(mean)), 1e-30)
     axis = tuple(m / scale for m in mean)
     # the largest distance of a unit direction from the axis: the root of the largest square
     gap = square(tuple(u - to_tiles(c) for u, c in zip(unit, axis)))
-    delta = jnp.sqrt(per_group(jnp.max, jnp.where(on, gap, 0.0)))
+    delta = jnp.sqrt(per_group((mx,), (jnp.where(on, gap, 0.0),))[0])
     groups = far.shape  # [images, rows, cols]
     far, anyone, e, delta = (x.reshape(-1) for x in (far, anyone, e, delta))
     origin, axis = (tuple(c.reshape(-1) for c in x) for x in (origin, axis))
