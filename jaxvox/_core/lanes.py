@@ -80,7 +80,8 @@ def run_in_lanes(
         next: jax.Array  # [] int32 queue position of the next row
         out: Any  # [n, ...]
 
-    # The lanes start idle and the loop's first refill fills them: `init` is traced once.
+    # The lanes start idle and the loop's first refill fills them: `init` appears once in
+    # the program (`eval_shape` only reads its output's shapes).
     empty = jnp.full(width, n, jnp.int32)
     row0, state0 = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(fetch, empty, empty < 0))
     state0 = state0._replace(status=jnp.full(width, idle, state0.status.dtype))

@@ -46,7 +46,7 @@ class Marks(NamedTuple):
 def mark(mask: jax.Array) -> Marks:
     """`Marks` of [N] bool `mask`: one pass over the mask and a prefix sum of N / 32
     words. It stands in for a compaction (a prefix sum of N entries and a scatter), which
-    took about 20 times as long on 1M entries on XLA:CPU: the queue of the persistent lanes
+    costs far more on XLA:CPU (docs/design-history.md): the queue of the persistent lanes
     and `on_marked` look up only the positions they read (`nth_marked`)."""
     n = mask.shape[0]
     words = max(1, -(-n // 32))
@@ -59,8 +59,8 @@ def mark(mask: jax.Array) -> Marks:
 
 def nth_marked(marks: Marks, pos: jax.Array) -> jax.Array:
     """The index of the `pos`-th marked entry ([...] int32 positions below ``marks.total``):
-    [...] int32. Other positions give an index below 32 words (unspecified): callers mask
-    them. A binary search over the words' prefix counts, then one over the word's bits by
+    [...] int32. Other positions give some index below ``32 * len(marks.bits)``:
+    callers mask them. A binary search over the words' prefix counts, then one over the word's bits by
     popcounts of its halves."""
     words = marks.bits.shape[0]
     word = jnp.clip(jnp.searchsorted(marks.starts, pos, side="right", method="scan") - 1, 0, words - 1)
