@@ -41,11 +41,15 @@ TEST_DATA = REPO_ROOT / "tests" / "data"  # the test meshes, with their sources 
 LONGEST_FIRST = ("test_codegen", "test_notebooks", "test_clipmap", "test_render", "test_sparse_field", "test_distance")
 
 
+CODEGEN_FILES: list[str] = []  # the test files that hold tests marked codegen (set when collected)
+
+
 def pytest_collection_modifyitems(config, items):
     # When test_codegen runs the tests marked codegen with the default emitters, they do
     # not run here as well (a run of those tests alone still runs them here).
     if not DEFAULT_EMITTERS and any(item.module.__name__.endswith("test_codegen") for item in items):
         twice = [item for item in items if item.get_closest_marker("codegen")]
+        CODEGEN_FILES[:] = sorted({str(item.path.relative_to(REPO_ROOT)) for item in twice})
         if twice:
             config.hook.pytest_deselected(items=twice)
             items[:] = [item for item in items if not item.get_closest_marker("codegen")]

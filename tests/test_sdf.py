@@ -332,6 +332,29 @@ def test_sphere_trace_edge_cases():
     assert int(clipped.status) == MISS and np.isinf(float(clipped.t))  # batch shape () too
 
 
+def test_hits_keep_their_distance_where_the_gradient_is_not_finite():
+    """A scene whose value is finite but whose gradient is NaN (a "where" over a NaN
+    branch): the hit keeps its traced distance (the implicit correction, 0 in value, must
+    not make it NaN), with a zero normal, as where the gradient is zero; its distance's
+    gradient with respect to the origin is finite."""
+    from jaxvox.sdf.base import SDF, node
+
+    @node
+    class NanGradientPlane(SDF):  # the plane x = 0, outside towards +x
+        def _distance(self, p):
+            return jnp.where(p[..., 1] < 100.0, p[..., 0], jnp.sqrt(p[..., 1] - 100.0))
+
+    scene = NanGradientPlane()
+    assert np.isnan(np.asarray(jax.grad(scene._distance)(jnp.float32([1.0, 0.0, 0.0])))).any()
+    o, d = np.float32([[2.0, 0.1, 0.2], [3.0, -0.5, 0.0]]), np.float32([[-1.0, 0.0, 0.0], [-1.0, 0.2, 0.1]])
+    hit = jv.sphere_trace(scene, o, d, t_max=10.0)  # (the octree's tracing ends in the same `surface_hit`)
+    assert np.asarray(hit.status).tolist() == [HIT, HIT]
+    np.testing.assert_allclose(np.asarray(hit.t), [2.0, 3.0 * np.linalg.norm(d[1])], rtol=1e-5)
+    assert (np.asarray(hit.normal) == 0).all()
+    dt = jax.grad(lambda origin: jv.sphere_trace(scene, origin, d[0], t_max=10.0).t)(jnp.asarray(o[0]))
+    assert np.isfinite(np.asarray(dt)).all()
+
+
 def test_relaxation_batch_shapes_and_jit():
     scene = sdf.union(
         sdf.sphere(0.6, center=(-0.5, 0.0, 0.0)),

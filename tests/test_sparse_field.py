@@ -175,8 +175,8 @@ def test_large_triangles_are_tiled():
     the minimum of both."""
     v = np.array([[0.02, 0.03, 0.1], [0.97, 0.05, 0.4], [0.95, 0.96, 0.9], [0.04, 0.94, 0.6]], np.float32)
     quad = jv.Mesh(v, np.array([[0, 1, 2], [0, 2, 3]], np.int32))
-    grid = jv.Grid(np.zeros(3), 1 / 128, 128)
-    assert 128 > 8 * TILE
+    grid = jv.Grid(np.zeros(3), 1 / 64, 64)
+    assert 64 > 8 * TILE
     field = jv.sparse_distance_field(quad, grid, band=1, signed=False)
     check_field(quad, grid, field, signed=False)
 

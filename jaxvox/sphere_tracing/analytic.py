@@ -268,16 +268,20 @@ def surface_hit(scene, o, u, t, status, on_surface) -> Hit:
     """
     frozen_scene = jax.lax.stop_gradient(scene)
     t_star = jnp.where(status == HIT, jax.lax.stop_gradient(t), 0.0)  # a finite point for misses ("safe where")
-    x_star = jax.lax.stop_gradient(o + t_star[:, None] * u)
-    f = scene._distance(o + t_star[:, None] * u)
+    x = o + t_star[:, None] * u
+    x_star = jax.lax.stop_gradient(x)
+    f_star, g = jax.vmap(jax.value_and_grad(frozen_scene._distance))(x_star)  # [n], [n, 3]
     # A scene that overflows float32 at the hit (NaN or inf there) gives no usable hit.
-    status = jnp.where((status == HIT) & ~jnp.isfinite(jax.lax.stop_gradient(f)), INVALID, status)
+    status = jnp.where((status == HIT) & ~jnp.isfinite(f_star), INVALID, status)
     is_hit = status == HIT
-    g = jax.vmap(jax.grad(frozen_scene._distance))(x_star)  # [n, 3]
     g_norm = safe_norm(g)
     n = jnp.where((is_hit & (g_norm > 0))[:, None], g / jnp.where(g_norm > 0, g_norm, 1.0)[:, None], 0.0)
     den = jnp.sum(g * jax.lax.stop_gradient(u), axis=-1)
-    den_ok = is_hit & on_surface & (den != 0)
+    # A gradient that is not finite at the hit (a scene's kink, or float code that meets
+    # 0 * inf there) gives no normal and no implicit gradient, and reaches neither t nor
+    # its gradient: f is taken at the fixed point there ("safe where").
+    den_ok = is_hit & on_surface & (den != 0) & jnp.isfinite(den)
+    f = scene._distance(jnp.where(den_ok[:, None], x, x_star))
     correction = jnp.where(den_ok, (f - jax.lax.stop_gradient(f)) / jnp.where(den_ok, den, 1.0), 0.0)
     return Hit(
         t=jnp.where(is_hit, t_star - correction, jnp.inf),
