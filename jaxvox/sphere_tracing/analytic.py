@@ -346,13 +346,13 @@ def sphere_trace(
       A `jaxvox.Hit`: ``t`` [...] float32 distance along the unit direction (inf unless
       `HIT`; the loop's ``t`` when no sign change lies within reach of the hit point, e.g.
       below about 0.45 degrees of incidence; `t_min` for a ray that starts inside);
-      ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`; not
-      differentiated);
+      ``normal`` [..., 3] unit SDF gradient at the hit (zero unless `HIT`, and where the
+      gradient is zero or not finite; not differentiated);
       ``voxel`` -1 and ``index`` -1 (no voxels here); ``status`` [...] int32 `HIT`, `MISS`,
       `STEP_CAP` or `INVALID` (NaN origin, zero or NaN direction, NaN distance). With
       ``return_steps``, ``(hit, steps)`` with steps [...] int32. ``t`` is differentiable
       with respect to the scene parameters and the origins by the implicit function
-      theorem, ``dt = -df / (grad f . u)``.
+      theorem, ``dt = -df / (grad f . u)`` (0 where ``grad f . u`` is 0 or not finite).
 
     Raises:
       JaxvoxError: bad shapes, ``max_steps < 1``, or (when concrete) ``epsilon <= 0``,
