@@ -64,36 +64,45 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
         if counts.sum() <= 8 * f_count + (1 << 20):
             break
         size *= 2
-    owner = np.repeat(np.arange(f_count), counts)
+    owner = np.repeat(np.arange(f_count, dtype=np.int32), counts)
     rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-    n = per_axis[owner]
-    cell = first[owner] + np.stack([rank // (n[:, 1] * n[:, 2]), (rank // n[:, 2]) % n[:, 1], rank % n[:, 2]], -1)
-    base = cell.min(0)
-    cell -= base
-    first -= base
-    span = cell.max(0) + 1
-    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    # Each item's cell (z fastest), one axis at a time, and at_first: bit k set where the
+    # item's cell is its triangle's first cell along axis k.
+    base = first.min(0)
+    span = last.max(0) - base + 1
+    key = np.zeros(len(owner), np.int64)
+    at_first = np.zeros(len(owner), np.uint8)
+    offsets = []
+    for k in (2, 1, 0):
+        n_k = per_axis[owner, k]
+        offsets.append(rank % n_k if k else rank)
+        if k:
+            rank = rank // n_k
+    for k, offset in zip((0, 1, 2), offsets[::-1]):
+        key = key * span[k] + (first[owner, k] - base[k] + offset)
+        at_first |= (offset == 0).astype(np.uint8) << k
     order = np.argsort(key, kind="stable")
-    key, owner = key[order], owner[order]
+    key, owner, at_first = key[order], owner[order], at_first[order]
     end = np.searchsorted(key, key, side="right")  # one past each entry's run
     later = end - 1 - np.arange(len(key))  # entries after it in its run
     a = np.repeat(np.arange(len(key)), later)
     b = a + 1 + (np.arange(len(a)) - np.repeat(np.cumsum(later) - later, later))
     # Two triangles share every cell of the intersection of their cell ranges: the pair is
-    # kept in the first of them only (the largest of their first cells), so it is unique.
-    i, j = owner[a], owner[b]
-    home = np.zeros(len(a), np.int64)
-    for k in range(3):  # one axis at a time: 1-D gathers
-        axis = np.ascontiguousarray(first[:, k])
-        home = home * (span[k] if k else 1) + np.maximum(axis[i], axis[j])
-    keep = key[a] == home
-    i, j = np.minimum(i[keep], j[keep]), np.maximum(i[keep], j[keep])
+    # kept in the first of them only (on each axis the larger of their first cells, so
+    # the cell is one of theirs), so it is unique.
+    keep = (at_first[a] | at_first[b]) == 7
+    i, j = owner[a[keep]], owner[b[keep]]
     for k in range(3):  # the boxes overlap, axis by axis
         low, high = np.ascontiguousarray(lo[:, k]), np.ascontiguousarray(hi[:, k])
         keep = (low[i] <= high[j]) & (low[j] <= high[i])
         i, j = i[keep], j[keep]
-    keep = ~(faces[i][:, :, None] == faces[j][:, None, :]).any((1, 2))
-    i, j = i[keep], j[keep]
+    corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
+    shared = np.zeros(len(i), bool)
+    for k in range(3):
+        of_i = corner[k][i]
+        for m in range(3):
+            shared |= of_i == corner[m][j]
+    i, j = i[~shared], j[~shared]
     for s in range(0, len(i), 1 << 18):
         ti, tj = tris[i[s : s + (1 << 18)]], tris[j[s : s + (1 << 18)]]
         hit = np.zeros(len(ti), bool)

@@ -234,20 +234,18 @@ class _PointTree(NamedTuple):
     triangles: jax.Array
 
 
-def _dipole_nodes(tris: np.ndarray, size: int) -> np.ndarray:
+def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarray:
     """[7, n] centre xyz, radius, area vector xyz of consecutive groups of `size`
-    triangles [n * size, 3, 3] (area-weighted centre, radius about it)."""
-    g = tris.reshape(-1, size, 3, 3)
-    area = 0.5 * np.cross(g[:, :, 1] - g[:, :, 0], g[:, :, 2] - g[:, :, 0])  # [n, size, 3]
-    weight = np.linalg.norm(area, axis=-1)
+    triangles [n * size, 3, 3] (area-weighted centre, radius about it), from the
+    triangles' `per_triangle` (area vector [F, 3], its length [F], centroid [F, 3])."""
+    area, weight, centroid = (x.reshape(-1, size, *x.shape[1:]) for x in per_triangle)
     total = weight.sum(1)
-    centroid = g.mean(2)
     centre = np.where(
         (total > 0)[:, None],
         (weight[..., None] * centroid).sum(1) / np.where(total > 0, total, 1.0)[:, None],
         centroid.mean(1),
     )
-    radius = np.linalg.norm(g.reshape(len(g), -1, 3) - centre[:, None], axis=-1).max(1)
+    radius = np.linalg.norm(tris.reshape(len(centre), -1, 3) - centre[:, None], axis=-1).max(1)
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
@@ -260,7 +258,10 @@ def point_tree(tris: np.ndarray) -> _PointTree:
     tris = np.concatenate([tris, pad])
     f32 = lambda x: jnp.asarray(x, jnp.float32)
     rows = jnp.asarray(split_rows(tris.reshape(-1, 9).T))
-    return _PointTree(f32(_dipole_nodes(tris, TOP * LEAF)), f32(_dipole_nodes(tris, LEAF)), rows)
+    area = 0.5 * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # [F, 3]
+    per_triangle = area, np.linalg.norm(area, axis=-1), tris.mean(1)
+    top, leaf = (_dipole_nodes(tris, size, per_triangle) for size in (TOP * LEAF, LEAF))
+    return _PointTree(f32(top), f32(leaf), rows)
 
 
 def split_rows(rows: np.ndarray) -> np.ndarray:
