@@ -310,16 +310,27 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
     def collect(n: int, t0: int, t1: int, n_units, calls) -> int:
         """Waits for a round's kernels, keeps each cell's closest triangle within the band
         and writes it at row n of the outputs; returns the next free row."""
-        d2 = np.concatenate([np.asarray(dc)[:m] for (dc, _), m in calls])  # [units, TILE^3]
-        tri = np.concatenate([np.asarray(tc)[:m] for (_, tc), m in calls])
-        first = np.cumsum(n_units) - n_units  # each tile's first unit
-        best_d2, best_tri = d2[first], tri[first]
-        for j in range(1, int(n_units.max())):  # later units hold higher triangle ids
-            more = np.flatnonzero(n_units > j)
-            cand = first[more] + j
-            better = d2[cand] < best_d2[more]
-            best_d2[more] = np.where(better, d2[cand], best_d2[more])
-            best_tri[more] = np.where(better, tri[cand], best_tri[more])
+        # Each unit's (distance, triangle) per cell as one uint64 key: the bits of a
+        # non-negative float32 order as the float does, so the least key of a tile's
+        # units is the least distance, ties to the lowest triangle id.
+        key = np.empty((int(n_units.sum()), _CELLS), np.uint64)
+        u = 0
+        for (dc, tc), m in calls:
+            part = key[u : u + m]
+            np.left_shift(np.asarray(dc)[:m].view(np.uint32), np.uint64(32), out=part, dtype=np.uint64)
+            part |= np.asarray(tc)[:m].view(np.uint32)
+            u += m
+        # The tiles with the most units first: those with more than j units are a prefix.
+        order = np.argsort(-n_units, kind="stable")
+        first = (np.cumsum(n_units) - n_units)[order]  # each tile's first unit
+        more = np.searchsorted(-n_units[order], -np.arange(int(n_units.max())), side="left")  # tiles with > j units
+        best_sorted = key[first]
+        for j in range(1, len(more)):
+            np.minimum(best_sorted[: more[j]], key[first[: more[j]] + j], out=best_sorted[: more[j]])
+        best = np.empty_like(best_sorted)
+        best[order] = best_sorted
+        best_d2 = (best >> np.uint64(32)).astype(np.uint32).view(np.float32)
+        best_tri = best.astype(np.uint32).view(np.int32)  # (the low 32 bits)
         flat = np.flatnonzero(best_d2.reshape(-1) <= limit)  # tile order, then Morton order within
         part = slice(n, n + len(flat))
         # A cell's code is its tile's code, then its own bits: flat + (code - row) * 2^bits.
