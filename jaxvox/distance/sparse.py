@@ -313,20 +313,20 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
         # Each unit's (distance, triangle) per cell as one uint64 key: the bits of a
         # non-negative float32 order as the float does, so the least key of a tile's
         # units is the least distance, ties to the lowest triangle id.
-        key = np.empty((int(n_units.sum()), _CELLS), np.uint64)
+        packed = np.empty((int(n_units.sum()), _CELLS), np.uint64)
         u = 0
         for (dc, tc), m in calls:
-            part = key[u : u + m]
-            np.left_shift(np.asarray(dc)[:m].view(np.uint32), np.uint64(32), out=part, dtype=np.uint64)
-            part |= np.asarray(tc)[:m].view(np.uint32)
+            units = packed[u : u + m]
+            np.left_shift(np.asarray(dc)[:m].view(np.uint32), np.uint64(32), out=units, dtype=np.uint64)
+            units |= np.asarray(tc)[:m].view(np.uint32)
             u += m
         # The tiles with the most units first: those with more than j units are a prefix.
         order = np.argsort(-n_units, kind="stable")
         first = (np.cumsum(n_units) - n_units)[order]  # each tile's first unit
         more = np.searchsorted(-n_units[order], -np.arange(int(n_units.max())), side="left")  # tiles with > j units
-        best_sorted = key[first]
+        best_sorted = packed[first]
         for j in range(1, len(more)):
-            np.minimum(best_sorted[: more[j]], key[first[: more[j]] + j], out=best_sorted[: more[j]])
+            np.minimum(best_sorted[: more[j]], packed[first[: more[j]] + j], out=best_sorted[: more[j]])
         best = np.empty_like(best_sorted)
         best[order] = best_sorted
         best_d2 = (best >> np.uint64(32)).astype(np.uint32).view(np.float32)
