@@ -66,9 +66,11 @@ from jaxvox import morton
 from jaxvox._core.geometry import rows_dist2, solid_angle_parts, triangle_rows
 from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
 from jaxvox.distance.topology import (
+    EdgeTable,
     boundary_chain,
     connected_components,
     crossing_faces,
+    edge_table,
     irregular_edge_faces,
     pinched_vertex_faces,
     regular_edge_pairs,
@@ -335,24 +337,25 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
       (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
       their sides (`Sides.finish`).
     """
-    welded, suspect, chain = _sign_topology(np.asarray(mesh.vertices), np.asarray(mesh.faces), tris)
+    welded, suspect, chain, edges = _sign_topology(np.asarray(mesh.vertices), np.asarray(mesh.faces), tris)
     if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
         return lambda ijk, keys, dist, tri, behind, on: behind
-    return Components(tris, welded, suspect, chain, band).inside
+    return Components(tris, welded, suspect, chain, band, edges).inside
 
 
 def _sign_topology(vertices: np.ndarray, faces: np.ndarray, tris: np.ndarray):
     """(welded faces, [F] bool faces that may make pseudo-normal sides wrong: zero area,
-    crossings, irregular edges, pinched vertices; the boundary chain)."""
+    crossings, irregular edges, pinched vertices; the boundary chain; the `EdgeTable`)."""
     welded = welded_faces(vertices, faces)
+    edges = edge_table(welded)
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     suspect = (
         (np.linalg.norm(cross, axis=1) == 0)
         | crossing_faces(tris, welded)
-        | irregular_edge_faces(welded)
+        | irregular_edge_faces(welded, edges)
         | pinched_vertex_faces(welded)
     )
-    return welded, suspect, boundary_chain(welded)
+    return welded, suspect, boundary_chain(welded, edges), edges
 
 
 def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
@@ -365,7 +368,7 @@ def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
     if len(boundary_chain(welded_faces(vertices, faces))):
         return False
     tris = vertices[faces]
-    welded, suspect, _ = _sign_topology(vertices, faces, tris)
+    welded, suspect, _, _ = _sign_topology(vertices, faces, tris)
     return not suspect.any() and not nested_shells(tris, welded)
 
 
@@ -450,7 +453,10 @@ class Components:
     """Signs by components of mesh plus caps (module docstring): the mesh's caps, bounds
     and free triangles at construction, the voxels' components per call of `inside`."""
 
-    def __init__(self, tris, welded, suspect, chain, band):
+    def __init__(self, tris, welded, suspect, chain, band, edges: EdgeTable | None = None):
+        """tris [F, 3, 3] float64 (grid units), welded [F, 3] faces, suspect [F] bool,
+        chain the boundary chain, band the half width; edges the faces' `EdgeTable`
+        (computed when not given)."""
         self.tris = tris
         caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
         centroid = tris.mean(1)
@@ -459,8 +465,8 @@ class Components:
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0
         self.caps = caps  # [C, 3, 3] float64 fan triangles (centre, b, a) over the boundary edges a -> b
-        self.blocks = triangle_blocks(caps, _FAR)  # padding far away: it must not be the nearest
-        self.rows = triangle_blocks(caps, _FAR, triangle_rows)  # the same blocks, for distances
+        self.blocks = triangle_blocks(caps, float(_FAR))  # padding far away: it must not be the nearest
+        self.rows = triangle_blocks(caps, float(_FAR), triangle_rows)  # the same blocks, for distances
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))
@@ -477,7 +483,7 @@ class Components:
         gap32 = tri_gap.astype(np.float32)
         self.tri_gap32 = np.where(gap32 > tri_gap, np.nextafter(gap32, np.float32(-np.inf)), gap32)
         self.capped = tri_bound >= CAP_BOUND  # per triangle: the cap term is summed exactly
-        pairs = regular_edge_pairs(welded)
+        pairs = regular_edge_pairs(welded, edges)
         self.pairs = pairs[self.free[pairs].all(1)]
         self.tree = point_tree(tris)
 

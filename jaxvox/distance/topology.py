@@ -7,6 +7,8 @@ coordinates are not holes), and the checks run on the welded faces.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 
@@ -28,19 +30,58 @@ def welded_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return weld(vertices, faces)[1]
 
 
-def irregular_edge_faces(faces: np.ndarray) -> np.ndarray:
-    """[F] bool: faces with an edge shared by more than two faces, or by two faces with the
-    same direction (inconsistent orientation); `faces` welded ([F, 3] int)."""
+class EdgeTable(NamedTuple):
+    """A mesh's edges, three per face (a -> b, b -> c, c -> a of welded faces [F, 3]),
+    ordered by their undirected key ``(lo, hi)``, the faces' order kept among equal
+    keys (`edge_table`): entries [3F], and the runs of equal keys [E]."""
+
+    lo: np.ndarray  # [3F] int64 the smaller vertex id
+    hi: np.ndarray  # [3F] int64 the larger one
+    owner: np.ndarray  # [3F] int64 the face
+    forward: np.ndarray  # [3F] bool the face goes lo -> hi
+    start: np.ndarray  # [E] int64 first entry of each distinct edge
+    entries: np.ndarray  # [E] int64 its entries
+
+
+def edge_table(faces: np.ndarray) -> EdgeTable:
+    """The `EdgeTable` of welded faces [F, 3] (one sort, shared by the edge checks)."""
     f = np.asarray(faces, np.int64)
     directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    owner = np.tile(np.arange(len(f)), 3)
+    lo, hi = directed.min(1), directed.max(1)
     base = int(f.max()) + 1 if len(f) else 1
-    _, same_way, repeats = np.unique(directed[:, 0] * base + directed[:, 1], return_inverse=True, return_counts=True)
-    undirected = np.sort(directed, 1)
-    _, any_way, shares = np.unique(undirected[:, 0] * base + undirected[:, 1], return_inverse=True, return_counts=True)
-    bad = (repeats[same_way] > 1) | (shares[any_way] > 2)
-    out = np.zeros(len(f), bool)
-    out[owner[bad]] = True
+    key = lo * base + hi
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if len(key) else np.zeros(0, np.int64)
+    return EdgeTable(
+        lo[order],
+        hi[order],
+        np.tile(np.arange(len(f)), 3)[order],
+        (directed[:, 0] == lo)[order],
+        start,
+        np.diff(np.append(start, len(key))),
+    )
+
+
+def _forward_counts(edges: EdgeTable) -> np.ndarray:
+    """[E] int64 entries of each edge that go lo -> hi."""
+    if not len(edges.start):
+        return np.zeros(0, np.int64)
+    return np.add.reduceat(edges.forward.astype(np.int64), edges.start)
+
+
+def irregular_edge_faces(faces: np.ndarray, edges: EdgeTable | None = None) -> np.ndarray:
+    """[F] bool: faces with an edge shared by more than two faces, or by two faces with the
+    same direction (inconsistent orientation); `faces` welded ([F, 3] int), `edges` their
+    `edge_table` (computed when not given)."""
+    edges = edge_table(faces) if edges is None else edges
+    run = np.repeat(np.arange(len(edges.start)), edges.entries)
+    forward = _forward_counts(edges)[run]
+    count = edges.entries[run]
+    same_way = np.where(edges.forward, forward, count - forward)  # entries of the same direction
+    same_way = np.where(edges.lo == edges.hi, count, same_way)  # (a, a): one direction
+    out = np.zeros(len(faces), bool)
+    out[edges.owner[(same_way > 1) | (count > 2)]] = True
     return out
 
 
@@ -151,37 +192,29 @@ def connected_components(count: int, u: np.ndarray, v: np.ndarray) -> np.ndarray
             label = up
 
 
-def boundary_chain(faces: np.ndarray) -> np.ndarray:
+def boundary_chain(faces: np.ndarray, edges: EdgeTable | None = None) -> np.ndarray:
     """[E, 2] int64 directed edges (a, b) of the mesh's boundary as a chain: each face
     (a, b, c) contributes a -> b, b -> c, c -> a, opposite directions cancel, and an edge
-    left over k times is listed k times (welded faces [F, 3]; empty when every edge is met
-    equally often in both directions)."""
-    f = np.asarray(faces, np.int64)
-    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    directed = directed[directed[:, 0] != directed[:, 1]]
-    lo, hi = directed.min(1), directed.max(1)
-    base = int(f.max()) + 1 if len(f) else 1
-    key, inverse = np.unique(lo * base + hi, return_inverse=True)
-    net = np.bincount(inverse, np.where(directed[:, 0] == lo, 1, -1), len(key)).astype(np.int64)
+    left over k times is listed k times (welded faces [F, 3], `edges` their `edge_table`
+    (computed when not given); empty when every edge is met equally often in both
+    directions). Ordered by the edges' undirected keys."""
+    edges = edge_table(faces) if edges is None else edges
+    first = edges.start
+    net = 2 * _forward_counts(edges) - edges.entries
+    net[edges.lo[first] == edges.hi[first]] = 0  # (a, a): no edge
     keep = np.flatnonzero(net)
-    a, b = key[keep] // base, key[keep] % base
+    a, b = edges.lo[first[keep]], edges.hi[first[keep]]
     forward = net[keep] > 0
-    edges = np.stack([np.where(forward, a, b), np.where(forward, b, a)], 1)
-    return np.repeat(edges, np.abs(net[keep]), axis=0)
+    chain = np.stack([np.where(forward, a, b), np.where(forward, b, a)], 1)
+    return np.repeat(chain, np.abs(net[keep]), axis=0)
 
 
-def regular_edge_pairs(faces: np.ndarray) -> np.ndarray:
-    """[P, 2] int64 pairs of faces sharing an edge that no third face uses (welded faces)."""
-    f = np.asarray(faces, np.int64)
-    undirected = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), 1)
-    owner = np.tile(np.arange(len(f)), 3)
-    base = int(f.max()) + 1 if len(f) else 1
-    key = undirected[:, 0] * base + undirected[:, 1]
-    order = np.argsort(key, kind="stable")
-    key, owner = key[order], owner[order]
-    _, first, counts = np.unique(key, return_index=True, return_counts=True)
-    pair = first[counts == 2]
-    return np.stack([owner[pair], owner[pair + 1]], 1)
+def regular_edge_pairs(faces: np.ndarray, edges: EdgeTable | None = None) -> np.ndarray:
+    """[P, 2] int64 pairs of faces sharing an edge that no third face uses (welded faces,
+    `edges` their `edge_table`, computed when not given)."""
+    edges = edge_table(faces) if edges is None else edges
+    pair = edges.start[edges.entries == 2]
+    return np.stack([edges.owner[pair], edges.owner[pair + 1]], 1)
 
 
 def pinched_vertex_faces(faces: np.ndarray) -> np.ndarray:
