@@ -353,7 +353,7 @@ def _sign_topology(vertices: np.ndarray, faces: np.ndarray, tris: np.ndarray):
         (np.linalg.norm(cross, axis=1) == 0)
         | crossing_faces(tris, welded)
         | irregular_edge_faces(welded, edges)
-        | pinched_vertex_faces(welded)
+        | pinched_vertex_faces(welded, edges)
     )
     return welded, suspect, boundary_chain(welded, edges), edges
 

@@ -38,6 +38,7 @@ class EdgeTable(NamedTuple):
     lo: np.ndarray  # [3F] int64 the smaller vertex id
     hi: np.ndarray  # [3F] int64 the larger one
     owner: np.ndarray  # [3F] int64 the face
+    side: np.ndarray  # [3F] int64 which of its edges: 0 (a -> b), 1 (b -> c), 2 (c -> a)
     forward: np.ndarray  # [3F] bool the face goes lo -> hi
     start: np.ndarray  # [E] int64 first entry of each distinct edge
     entries: np.ndarray  # [E] int64 its entries
@@ -57,6 +58,7 @@ def edge_table(faces: np.ndarray) -> EdgeTable:
         lo[order],
         hi[order],
         np.tile(np.arange(len(f)), 3)[order],
+        np.repeat(np.arange(3), len(f))[order],
         (directed[:, 0] == lo)[order],
         start,
         np.diff(np.append(start, len(key))),
@@ -217,23 +219,27 @@ def regular_edge_pairs(faces: np.ndarray, edges: EdgeTable | None = None) -> np.
     return np.stack([edges.owner[pair], edges.owner[pair + 1]], 1)
 
 
-def pinched_vertex_faces(faces: np.ndarray) -> np.ndarray:
+def pinched_vertex_faces(faces: np.ndarray, edges: EdgeTable | None = None) -> np.ndarray:
     """[F] bool: faces at a vertex whose faces form more than one fan (two cones or sheets
-    touching at a point), where one pseudo-normal cannot tell the sides (welded faces)."""
+    touching at a point), where one pseudo-normal cannot tell the sides (welded faces,
+    `edges` their `edge_table`, computed when not given)."""
     f = np.asarray(faces, np.int64)
-    corner_vertex = f.reshape(-1)  # corner 3 i + k of face i
-    corners = np.arange(3 * len(f))
-    # A corner at v touches the edges (v, next) and (v, previous) of its face: corners of
-    # the same vertex sharing such an edge belong to one fan.
+    edges = edge_table(f) if edges is None else edges
+    # A corner at v touches the edges (v, next) and (v, previous) of its face: the corners
+    # at either end of one edge, over the faces that share it, belong to one fan. Corner
+    # 3 i + k of face i is at f[i, k]; its edge k starts there and ends at corner k + 1.
+    start = 3 * edges.owner + edges.side
+    end = 3 * edges.owner + (edges.side + 1) % 3
+    at_lo, at_hi = np.where(edges.forward, start, end), np.where(edges.forward, end, start)
+    later = np.ones(len(start), bool)  # entries after the first of their edge
+    later[edges.start] = False
+    later = np.flatnonzero(later)
+    loop = np.flatnonzero(edges.lo == edges.hi)  # (v, v): both ends at v
+    u = np.concatenate([at_lo[later - 1], at_hi[later - 1], at_lo[loop]])
+    v = np.concatenate([at_lo[later], at_hi[later], at_hi[loop]])
+    corners = 3 * len(f)
+    fan = connected_components(corners, u, v)
+    pairs = np.unique(f.reshape(-1) * corners + fan)  # (vertex, fan), packed
     base = int(f.max()) + 1 if len(f) else 1
-    nxt = f[:, [1, 2, 0]].reshape(-1)
-    prev = f[:, [2, 0, 1]].reshape(-1)
-    key = np.concatenate([corner_vertex * base + nxt, corner_vertex * base + prev])
-    who = np.concatenate([corners, corners])
-    order = np.argsort(key, kind="stable")
-    key, who = key[order], who[order]
-    same = np.flatnonzero(key[1:] == key[:-1])
-    fan = connected_components(len(corners), who[same], who[same + 1])
-    pairs = np.unique(corner_vertex * len(corners) + fan)  # (vertex, fan), packed
-    fans_per_vertex = np.bincount(pairs // len(corners), minlength=base)
+    fans_per_vertex = np.bincount(pairs // corners, minlength=base)
     return np.asarray((fans_per_vertex[f] > 1).any(1))
