@@ -109,20 +109,20 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
         size *= 2
     owner = np.repeat(np.arange(f_count, dtype=np.int32), counts)
     rank = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-    # Each item's cell (z fastest), one axis at a time, and at_first: bit k set where the
-    # item's cell is its triangle's first cell along axis k.
+    # Each item's cell as a key (x major, z fastest), one axis at a time from z, and
+    # at_first: bit k set where the item's cell is its triangle's first cell along axis k.
     base = first.min(0)
     span = last.max(0) - base + 1
     key = np.zeros(len(owner), np.int64)
     at_first = np.zeros(len(owner), np.uint8)
-    offsets = []
+    scale = 1
     for k in (2, 1, 0):
-        n_k = per_axis[owner, k]
-        offsets.append(rank % n_k if k else rank)
         if k:
-            rank = rank // n_k
-    for k, offset in zip((0, 1, 2), offsets[::-1]):
-        key = key * span[k] + (first[owner, k] - base[k] + offset)
+            rank, offset = np.divmod(rank, per_axis[owner, k])
+        else:  # (rank is below the x extent)
+            offset = rank
+        key += (first[owner, k] - base[k] + offset) * scale
+        scale *= int(span[k])
         at_first |= (offset == 0).astype(np.uint8) << k
     order = np.argsort(key, kind="stable")
     key, owner, at_first = key[order], owner[order], at_first[order]
