@@ -394,12 +394,17 @@ def _take(tree, index):
     return jax.tree.map(lambda x: np.asarray(x)[index], tree)
 
 
-def _grow(capacities: Capacities, tree_capacities: tuple[int, ...], flags: int):
-    """Doubles (on the ladder) every capacity whose overflow bit is set in `flags`."""
+def _grow(capacities: Capacities, tree_capacities: tuple[int, ...], flags: int, needed):
+    """Capacities for a re-run: each at least what `needed` (the `batch_capacities` of the
+    items that overflowed) asks, since an overflowing stage hides what the stages after it
+    need, and each whose overflow bit is set in `flags` at least doubled on the ladder
+    (`OVERFLOW_NODES`: every octree level)."""
+    counted, counted_tree = needed
     bits = (OVERFLOW_COLUMNS, OVERFLOW_ROWS, OVERFLOW_CANDIDATES, OVERFLOW_VOXELS)
-    sizes = [bucket(2 * c) if flags & bit else c for c, bit in zip(capacities[:4], bits)]
+    sizes = [max(bucket(2 * c) if flags & bit else c, n) for c, n, bit in zip(capacities[:4], counted[:4], bits)]
     if flags & OVERFLOW_NODES:
         tree_capacities = _tree_capacities((1,) + tuple(2 * c for c in tree_capacities[1:]))
+    tree_capacities = tuple(max(a, b) for a, b in zip(tree_capacities, counted_tree))
     return Capacities._make([*sizes, capacities.row_chunk]), tree_capacities
 
 
@@ -422,8 +427,10 @@ def run_batch(
 
     The meshes are stacked with `stack_meshes` and run in one compiled program. Items
     whose ``tree.overflow`` is nonzero are re-run alone (as a sub-batch padded to a
-    power-of-two size by repeating its first item) with every flagged capacity doubled on
-    the ladder (`OVERFLOW_NODES` doubles every octree level), until none overflows.
+    power-of-two size by repeating its first item) with the capacities raised to what
+    `batch_capacities` counts for those items, and every flagged one at least doubled on
+    the ladder (`OVERFLOW_NODES`: every octree level): one re-run, one more compiled
+    program, is enough.
 
     Args:
       meshes: B `Mesh` objects (unpadded).
@@ -490,8 +497,9 @@ def run_batch(
             break
         pending = pending[flags != 0]
         if attempt + 1 < max_tries:
+            needed = batch_capacities([meshes[i] for i in pending], [grid_list[i] for i in pending], mode=mode)
             capacities, tree_capacities = _grow(
-                capacities, tuple(tree_capacities), int(np.bitwise_or.reduce(flags[flags != 0]))
+                capacities, tuple(tree_capacities), int(np.bitwise_or.reduce(flags[flags != 0])), needed
             )
     else:
         raise JaxvoxError(

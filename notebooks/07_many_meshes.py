@@ -161,7 +161,7 @@ print(f"second batch: {second:.3f} s, {second_compiles} compiles, overflow flags
 # ## Items that do not fit
 # With a voxel capacity below the largest item's count (half the power of two above it),
 # the items with the most voxels overflow: their flags are set, and `run_batch` re-runs
-# only those (with the capacity doubled, as a smaller batch) until none does. Its per-item results (host voxels, compact DAGs, hits) are
+# only those, as a smaller batch, with the capacities `batch_capacities` counts for them. Its per-item results (host voxels, compact DAGs, hits) are
 # those of the host path.
 
 # %%

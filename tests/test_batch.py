@@ -184,8 +184,7 @@ def test_tiny_capacities_flag_items_and_only_those_are_rerun(batch):
         meshes, grids, batch["origins"], batch["directions"], capacities=tiny, tree_capacities=tiny_tree
     )
     rerun = tuple(b for b in range(len(meshes)) if int(tree.overflow[b]))
-    assert result.retried[0] == rerun
-    assert all(set(later) <= set(earlier) for earlier, later in zip(result.retried, result.retried[1:]))
+    assert result.retried == (rerun,)  # the re-run takes the counted capacities: once is enough
     assert result.capacities.voxels > tiny.voxels
     for b, ref in enumerate(batch["refs"]):
         assert_item_equal(result.voxels[b], result.trees[b], item(result.hits, b), ref)
