@@ -245,7 +245,8 @@ def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarra
         (weight[..., None] * centroid).sum(1) / np.where(total > 0, total, 1.0)[:, None],
         centroid.mean(1),
     )
-    radius = np.linalg.norm(tris.reshape(len(centre), -1, 3) - centre[:, None], axis=-1).max(1)
+    corner = tris.reshape(len(centre), -1, 3) - centre[:, None]
+    radius = np.sqrt(np.max((corner * corner).sum(-1), 1))  # (the root of the largest square only)
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
