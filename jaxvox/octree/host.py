@@ -58,8 +58,8 @@ def unique_rows(rows: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray]:
     for start in range(0, 8, per_word):
         key = np.zeros(len(rows), np.uint64)
         for s in range(start, min(start + per_word, 8)):
-            col = rows[:, s]
-            key = (key << np.uint64(bits)) | np.where(col == EMPTY, top, col.astype(np.uint64))
+            key <<= np.uint64(bits)
+            key |= np.minimum(rows[:, s], top)  # EMPTY, the largest uint32, becomes top (>= bound)
         keys.append(key)
     # One key (ids below 255, the common case) takes numpy's vectorized sort.
     order = np.argsort(keys[0]) if len(keys) == 1 else np.lexsort(keys[::-1])  # the last key is the primary one
@@ -106,14 +106,15 @@ def row_level(below: Nodes, dag: bool) -> tuple[Level, Nodes]:
     """The level above `below`: each parent's child row and prefix sums (a DAG keeps the
     distinct rows in lexicographic order) and its nodes."""
     cells, first, starts = _parents(below.cells)
-    row = np.cumsum(first) - 1  # each cell's parent
-    slot = (below.cells & np.uint64(7)).astype(np.int64)
+    at = np.cumsum(first) - 1  # each cell's parent, then its entry in the flat [parents * 8] rows
+    at <<= 3
+    at |= (below.cells & np.uint64(7)).astype(np.int64)
     child = np.full((len(cells), 8), EMPTY, np.uint32)
-    child[row, slot] = below.ids
+    child.reshape(-1)[at] = below.ids
     # uint32: a tree holds at most 2^32 - 1 voxels (`jaxvox.octree.stream.MAX_VOXELS`), and
     # the prefix sums are stored as uint32 anyway; half the fresh memory of int64 rows
     per_slot = np.zeros((len(cells), 8), np.uint32)
-    per_slot[row, slot] = below.counts
+    per_slot.reshape(-1)[at] = below.counts
     counts = np.add.reduceat(below.counts, starts) if len(starts) else np.zeros(0, np.int64)  # children in order
     if dag:
         rep, ids = unique_rows(child, below.rows)
