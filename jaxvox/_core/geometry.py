@@ -204,6 +204,7 @@ def morton_order(points: np.ndarray) -> np.ndarray:
     """Indices sorting points [n, 3] (host) along a 10-bit-per-axis Morton curve of their
     bounding box, stably: the order of the triangle trees (winding numbers, point queries)."""
     lo, hi = points.min(0), points.max(0)
-    q = ((points - lo) / np.maximum(hi - lo, 1e-30) * 1023).astype(np.intp)
+    q = np.nan_to_num((points - lo) / np.maximum(hi - lo, 1e-30) * 1023)  # in [0, 1023] where finite
+    q = np.clip(q, 0, 1023).astype(np.intp)  # (table rows, whatever a point holds)
     code = _SPREAD10[q[:, 0]] | (_SPREAD10[q[:, 1]] << 1) | (_SPREAD10[q[:, 2]] << 2)
     return np.argsort(code, kind="stable")

@@ -307,9 +307,8 @@ def _nearest(ratio, k: int):
     use), and whether a row has more than k near entries.
 
     A row's near entries are compacted by a running count and a binary search for each
-    slot's rank, O(n + k log n) per row (`jax.lax.top_k`, which orders the row, took three
-    times as long on the CPU); a crowded row's value is replaced, so which k it keeps
-    does not matter."""
+    slot's rank, O(n + k log n) per row, where `jax.lax.top_k` orders the whole row; a
+    crowded row's value is replaced, so which k it keeps does not matter."""
     k = min(k, ratio.shape[1])
     rank = jnp.cumsum(ratio <= 1.0, axis=1, dtype=jnp.int32)  # [P, n]: near entries up to each
     slots = jnp.arange(1, k + 1, dtype=jnp.int32)
