@@ -12,7 +12,7 @@ pieces around that:
 * `voxelize_build_trace`: the jittable, vmapped voxelize -> build -> trace, with overflow
   flags per item (``vox.overflow``, ``tree.overflow``);
 * `run_batch`: the host helper: runs the pipeline, re-runs only the items that overflowed
-  with doubled capacities, and returns per-item results equal to the one-by-one host path
+  with the capacities counted for them, and returns per-item results equal to the one-by-one host path
   (`voxelize`, `build_dag` / `build_octree`, `compact`, `trace`).
 
 Bit-for-bit equality with the host path holds when the grids' voxel sizes are powers of
