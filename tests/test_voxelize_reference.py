@@ -608,6 +608,24 @@ def test_huge_triangles_match_up_to_near_ties(tri):
     _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
 
 
+@pytest.mark.parametrize("axes", [(0, 1, 2), (1, 2, 0), (2, 0, 1)])
+def test_a_corner_a_tiny_float_off_a_voxel_plane(axes):
+    """A corner at x = 1.2e-38, the smallest normal float32 (found by hypothesis): a
+    half-plane's coefficient of that size made its bounds infinite, and an infinite slope
+    times 0 is NaN, which dropped the columns (conservative: 2 of 8 voxels; 6-separating:
+    none). Every order of the axes, both modes; a corner at x = 0 gives the same voxels."""
+    tri = np.array([[0.0, 4.0, 0.0], [1.0, 0.0, 1.0], [1.1754943508222875e-38, 0.0, 1.0]], np.float32)
+    grid = _unit_grid(R_FLOAT)
+    _check_triangle(tri[:, list(axes)].astype(np.float64), grid, exact=False)
+    on_plane = tri.copy()
+    on_plane[2, 0] = 0.0
+    mesh = lambda t: jv.Mesh(t[:, list(axes)], np.array([[0, 1, 2]], np.int32))
+    for mode in MODES:
+        np.testing.assert_array_equal(
+            jv.voxelize(mesh(tri), grid, mode=mode).to_numpy(), jv.voxelize(mesh(on_plane), grid, mode=mode).to_numpy()
+        )
+
+
 @pytest.mark.parametrize("axes", [(0, 1, 2), (1, 2, 0), (2, 0, 1), (1, 0, 2)])
 @pytest.mark.parametrize("offset", [2.0**-52, 1e-30, -(2.0**-40)])
 def test_a_corner_offset_lost_in_float32_keeps_every_projection_inward(axes, offset):

@@ -15,6 +15,7 @@ from jaxvox._core.shapes import expand_counts
 
 _TOL = 2.0**-19  # relative half-plane widening, see the docstring of `jaxvox.voxelize`
 _BIG = float(1 << 30)  # clamp for interval bounds before integer conversion
+_FLAT = 2.0**-60  # a half-plane's coefficient this small beside its others is taken as zero (`_linear_bounds`)
 
 
 # ----------------------------------------------------------------------------- setup
@@ -133,19 +134,26 @@ def _interval(coef, rest, lo, hi):
 def _linear_bounds(free, other, gamma):
     """Splits half-planes ``free * t + other * s + gamma >= 0`` by the sign of `free`.
 
+    A half-plane whose `free` is zero, or below `_FLAT` times ``|other| + |gamma|``, bounds
+    s alone. Dividing by such a `free` could overflow to an infinite bound whose slope
+    times s = 0 is NaN, which drops the whole column (a corner at x = 1.2e-38 did).
+    Its t term, at most ``|free| * _BIG`` for every t a bound is clamped to, goes into
+    the constant instead: a wider half-plane, so the voxels stay conservative.
+
     Returns:
-      ([4, H] bounds on t linear in s: lower_p, lower_q, upper_p, upper_q), and
-      ([2, H] constraints ``coef * s + rest >= 0`` on s alone from half-planes with
-      ``free == 0``; the others become the neutral ``0 * s + 1``).
+      ([4, H] bounds on t linear in s: lower_p, lower_q, upper_p, upper_q, all finite),
+      and ([2, H] constraints ``coef * s + rest >= 0`` on s alone from the flat
+      half-planes; the others become the neutral ``0 * s + 1``).
     """
-    flat = free == 0
+    flat = jnp.abs(free) <= _FLAT * (jnp.abs(other) + jnp.abs(gamma))
     safe = jnp.where(flat, 1.0, free)
     p, q = -gamma / safe, -other / safe
-    lower, upper = free > 0, free < 0
+    lower, upper = (free > 0) & ~flat, (free < 0) & ~flat
     bounds = jnp.stack(
         [jnp.where(lower, p, -_BIG), jnp.where(lower, q, 0.0), jnp.where(upper, p, _BIG), jnp.where(upper, q, 0.0)]
     )
-    return bounds, jnp.stack([jnp.where(flat, other, 0.0), jnp.where(flat, gamma, 1.0)])
+    rest = gamma + jnp.abs(free) * _BIG
+    return bounds, jnp.stack([jnp.where(flat, other, 0.0), jnp.where(flat, rest, 1.0)])
 
 
 def _setup_triangle(p, region_lo, region_hi, six_sep):
