@@ -67,6 +67,15 @@ def encode_word_host(ijk: np.ndarray) -> np.ndarray:
     return axis(0) | (axis(1) << 1) | (axis(2) << 2)
 
 
+def curve_order_host(points: np.ndarray) -> np.ndarray:
+    """Indices sorting points [n, 3] (host floats) along a 10-bit-per-axis Morton curve of
+    their bounding box, stably: the order of the triangle trees (winding numbers, point
+    queries). Non-finite coordinates take some cell of the box."""
+    lo, hi = points.min(0), points.max(0)
+    q = np.nan_to_num((points - lo) / np.maximum(hi - lo, 1e-30) * WORD_MASK)  # in [0, 1023] where finite
+    return np.argsort(encode_word_host(np.clip(q, 0, WORD_MASK).astype(np.intp)), kind="stable")
+
+
 def encode_host(ijk: np.ndarray) -> np.ndarray:
     """The whole Morton code in numpy (compiles nothing): int [..., 3] (< 2^20) -> uint64 [...]."""
     u = np.asarray(ijk)

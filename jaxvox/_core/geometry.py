@@ -187,24 +187,3 @@ def rows_dist2(p, r, o):
     s, t, h = dot(q, u), dot(q, v), dot(q, n)
     inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
     return jnp.where(inside, jnp.minimum(h * h, edges), edges)
-
-
-def _spread10() -> np.ndarray:
-    """[1024] uint32: bit b of each 10-bit value moved to bit 3b (a Morton code's axis)."""
-    values, out = np.arange(1024, dtype=np.uint32), np.zeros(1024, np.uint32)
-    for bit in range(10):
-        out |= ((values >> bit) & 1) << (3 * bit)
-    return out
-
-
-_SPREAD10 = _spread10()
-
-
-def morton_order(points: np.ndarray) -> np.ndarray:
-    """Indices sorting points [n, 3] (host) along a 10-bit-per-axis Morton curve of their
-    bounding box, stably: the order of the triangle trees (winding numbers, point queries)."""
-    lo, hi = points.min(0), points.max(0)
-    q = np.nan_to_num((points - lo) / np.maximum(hi - lo, 1e-30) * 1023)  # in [0, 1023] where finite
-    q = np.clip(q, 0, 1023).astype(np.intp)  # (table rows, whatever a point holds)
-    code = _SPREAD10[q[:, 0]] | (_SPREAD10[q[:, 1]] << 1) | (_SPREAD10[q[:, 2]] << 2)
-    return np.argsort(code, kind="stable")

@@ -344,18 +344,22 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
 
 
 def _sign_topology(vertices: np.ndarray, faces: np.ndarray, tris: np.ndarray):
-    """(welded faces, [F] bool faces that may make pseudo-normal sides wrong: zero area,
-    crossings, irregular edges, pinched vertices; the boundary chain; the `EdgeTable`)."""
+    """(welded faces, `_suspect_faces`, the boundary chain, the `EdgeTable`)."""
     welded = welded_faces(vertices, faces)
     edges = edge_table(welded)
+    return welded, _suspect_faces(tris, welded, edges), boundary_chain(welded, edges), edges
+
+
+def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable) -> np.ndarray:
+    """[F] bool faces that may make pseudo-normal sides wrong: zero area, crossings,
+    irregular edges, pinched vertices (triangles [F, 3, 3], welded faces and their edges)."""
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    suspect = (
+    return (
         (np.linalg.norm(cross, axis=1) == 0)
         | crossing_faces(tris, welded)
         | irregular_edge_faces(welded, edges)
         | pinched_vertex_faces(welded, edges)
     )
-    return welded, suspect, boundary_chain(welded, edges), edges
 
 
 def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
@@ -365,11 +369,12 @@ def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
     first, so an open mesh costs no crossing test."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces)
-    if len(boundary_chain(welded_faces(vertices, faces))):
+    welded = welded_faces(vertices, faces)
+    edges = edge_table(welded)
+    if len(boundary_chain(welded, edges)):
         return False
     tris = vertices[faces]
-    welded, suspect, _, _ = _sign_topology(vertices, faces, tris)
-    return not suspect.any() and not nested_shells(tris, welded)
+    return not _suspect_faces(tris, welded, edges).any() and not nested_shells(tris, welded)
 
 
 NESTED_WORK = 1 << 26  # (point, triangle) pairs `nested_shells` sums at most

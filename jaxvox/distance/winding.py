@@ -40,8 +40,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float32
 
+from jaxvox import morton
 from jaxvox._core.checks import check_int, check_number, check_type, refuse
-from jaxvox._core.geometry import morton_order, solid_angle_parts
+from jaxvox._core.geometry import solid_angle_parts
 from jaxvox._core.shapes import bucket, chunk_rows, expand_counts, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
@@ -68,7 +69,7 @@ class _Tree(NamedTuple):
 
 def _build_tree(tris: np.ndarray) -> _Tree:
     """The triangle tree of float64 triangles [F, 3, 3] (grid units), F >= 1."""
-    tris = tris[morton_order(tris.mean(1))]
+    tris = tris[morton.curve_order_host(tris.mean(1))]
     area = 0.5 * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     centre = tris.mean(1)
     radius = np.linalg.norm(tris - centre[:, None], axis=-1).max(1)
@@ -253,7 +254,7 @@ def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarra
 def point_tree(tris: np.ndarray) -> _PointTree:
     """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder:
     built once for several calls of `point_winding_numbers` on one mesh."""
-    tris = tris[morton_order(tris.mean(1))]
+    tris = tris[morton.curve_order_host(tris.mean(1))]
     padded = bucket(max(len(tris), TOP * LEAF))
     pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
     tris = np.concatenate([tris, pad])

@@ -29,8 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float32, Int32
 
+from jaxvox import morton
 from jaxvox._core.checks import check_int, refuse
-from jaxvox._core.geometry import morton_order, triangle_rows
+from jaxvox._core.geometry import triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket
 from jaxvox.distance.band_sign import pseudo_normals, pseudonormal_sides_exact
@@ -216,7 +217,7 @@ def mesh_index(mesh: Mesh, *, capacity: int | None = None) -> MeshIndex:
     lo, hi = v[f.ravel()].min(0), v[f.ravel()].max(0)
     centre = (lo + hi) / 2
     tris = v[f] - centre
-    order = morton_order(tris.mean(1))
+    order = morton.curve_order_host(tris.mean(1))
     slots = np.concatenate([order, np.arange(len(f), cap)])
     valid = slots < len(f)
     padded_tris = np.concatenate([tris, np.repeat(tris[:1, :1], cap - len(f), 0).repeat(3, 1)])[slots]

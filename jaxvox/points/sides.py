@@ -49,7 +49,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxvox._core.geometry import morton_order, solid_angle_rounding
+from jaxvox import morton
+from jaxvox._core.geometry import solid_angle_rounding
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import bucket, pad_rows
 from jaxvox.distance.topology import boundary_chain, connected_components, weld
@@ -148,7 +149,7 @@ def _cap_balls(tris: np.ndarray, loop: np.ndarray) -> np.ndarray:
     loop_area = np.bincount(loop, area, loops)
     group = np.arange(loops)
     if loops > CAP_GROUPS:
-        group[morton_order(loop_centre)] = np.arange(loops) * CAP_GROUPS // loops
+        group[morton.curve_order_host(loop_centre)] = np.arange(loops) * CAP_GROUPS // loops
     groups = int(group.max()) + 1 if loops else 0
     out = np.zeros((CAP_GROUPS, 5))
     for g in range(groups):
