@@ -22,13 +22,16 @@ os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
 # * The suite compiles about 2,800 programs, and compiling is most of its time. XLA's
 #   loop emitters (``--xla_cpu_use_fusion_emitters=false``) compile them in about two
 #   thirds of the time of its default fusion emitters, whose code runs faster (what users
-#   get, and what the benchmarks time). The tests marked ``codegen`` also run with the
-#   default emitters (`tests/test_codegen.py`, ``JAXVOX_TEST_EMITTERS=default``), so the
-#   code users run is checked against the references too.
+#   get, and what the benchmarks time), and LLVM's level 1 optimizations
+#   (``--xla_backend_optimization_level=1``) take a sixth less of the suite's time than
+#   the default level 2 (`docs/design-history.md`). The tests marked ``codegen`` also run
+#   with XLA's defaults (`tests/test_codegen.py`, ``JAXVOX_TEST_EMITTERS=default``), so
+#   the code users run is checked against the references too.
 # * Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already
 #   keep the cores busy, and a thread pool per worker on top only oversubscribes them.
 DEFAULT_EMITTERS = os.environ.get("JAXVOX_TEST_EMITTERS") == "default"
-_flags = [] if DEFAULT_EMITTERS else ["--xla_cpu_use_fusion_emitters=false"]
+SUITE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=1")  # not users' defaults
+_flags = [] if DEFAULT_EMITTERS else list(SUITE_FLAGS)
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     _flags.append("--xla_cpu_multi_thread_eigen=false")
 os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *_flags]).strip()
