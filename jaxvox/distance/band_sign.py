@@ -231,22 +231,27 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     tri = v[np.asarray(faces, np.int64)]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-    vertex_n = np.zeros((int(f.max()) + 1 if f.size else 0, 3))
-    for corner in range(3):
-        e1 = tri[:, (corner + 1) % 3] - tri[:, corner]
-        e2 = tri[:, (corner + 2) % 3] - tri[:, corner]
-        cos = np.einsum("ij,ij->i", e1, e2) / np.maximum(
-            np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1), 1e-300
-        )
-        np.add.at(vertex_n, f[:, corner], np.arccos(np.clip(cos, -1, 1))[:, None] * n)
+    e1 = np.roll(tri, -1, axis=1) - tri  # [F, 3, 3] from each corner to the next
+    e2 = np.roll(tri, -2, axis=1) - tri  # and to the one after
+    cos = np.einsum("fcj,fcj->fc", e1, e2) / np.maximum(np.linalg.norm(e1, axis=2) * np.linalg.norm(e2, axis=2), 1e-300)
+    angle = np.arccos(np.clip(cos, -1, 1))  # [F, 3] corner angles
+    vertex_n = _sums(f.T.reshape(-1), (angle.T[..., None] * n).reshape(-1, 3), int(f.max()) + 1 if f.size else 0)
     edges = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1)  # [F, 3, 2]
     key = np.sort(edges, axis=2)
     key = key[..., 0] * (len(vertex_n) + 1) + key[..., 1]
     uniq, inverse = np.unique(key.reshape(-1), return_inverse=True)
-    edge_n = np.zeros((len(uniq), 3))
-    np.add.at(edge_n, inverse, np.repeat(n, 3, axis=0))
-    out = np.concatenate([n[:, None], edge_n[inverse].reshape(-1, 3, 3), vertex_n[f]], axis=1)
-    return out.astype(np.float32)
+    edge_n = _sums(inverse, np.repeat(n, 3, axis=0), len(uniq))
+    out = np.empty((len(f), 7, 3), np.float32)
+    out[:, 0] = n
+    out[:, 1:4] = edge_n[inverse].reshape(-1, 3, 3)
+    out[:, 4:] = vertex_n[f]
+    return out
+
+
+def _sums(index: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
+    """[size, 3] float64 sums of rows [n, 3] by index [n] int, added in order (as
+    ``np.add.at``, so the same float64 sums)."""
+    return np.stack([np.bincount(index, rows[:, j], minlength=size) for j in range(3)], axis=1)
 
 
 def _start_chunks(fn, rows, *rest) -> list:
