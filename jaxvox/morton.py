@@ -95,6 +95,40 @@ def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     return (word(WORD_BITS, WORD_MASK) << np.uint64(3 * WORD_BITS)) | word(0, WORD_MASK)
 
 
+def box_cells(ids: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every cell of every box, ordered by the cell's Morton code, then by box (host).
+
+    Args:
+      ids: [n] int the boxes' ids, ascending; first, last: [n, 3] int each box's first
+        and last cell (inclusive, < 2^20, last >= first).
+
+    Returns:
+      (id [m] int64 the box, code [m] uint64 `encode_host` of the cell) over all boxes'
+      cells, ordered by code, then by id.
+    """
+    per_axis = last - first + 1
+    counts = per_axis.prod(1)
+    # Each item's cell, one axis at a time (1-D arrays: the [m, 3] ones cost more in fresh
+    # memory than in arithmetic).
+    rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    along = lambda k: np.repeat(per_axis[:, k], counts)
+    n2 = along(2)
+    k_axis = rank % n2
+    rank //= n2
+    n1 = along(1)
+    j_axis = rank % n1
+    rank //= n1
+    corner = lambda k: np.repeat(first[:, k], counts)
+    code = encode_axes_host(corner(0) + rank, corner(1) + j_axis, corner(2) + k_axis)
+    item = np.repeat(np.asarray(ids, np.int64), counts)  # ascending
+    if len(code) and int(code.max()) < (1 << 32) and int(item.max()) < (1 << 32):
+        key = code << np.uint64(32) | item.astype(np.uint64)  # one sort of packed keys
+        key.sort()
+        return (key & np.uint64(0xFFFFFFFF)).astype(np.int64), key >> np.uint64(32)
+    order = np.argsort(code, kind="stable")
+    return item[order], code[order]
+
+
 def _encode16(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     """`encode_axes_host` of axes of one shape with values in [0, 2^16): one table lookup
     per axis, block by block so that the temporaries stay in the cache (several times

@@ -199,28 +199,7 @@ def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
     hi = np.minimum(np.floor(tris.max(1) + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
-    first, last = lo[ids] // cell, hi[ids] // cell
-    per_axis = last - first + 1
-    counts = per_axis.prod(1)
-    # Each item's cell, one axis at a time (1-D arrays: the [n, 3] ones cost more in fresh
-    # memory than in arithmetic).
-    rank = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
-    along = lambda k: np.repeat(per_axis[:, k], counts)
-    n2 = along(2)
-    k_axis = rank % n2
-    rank //= n2
-    n1 = along(1)
-    j_axis = rank % n1
-    rank //= n1
-    corner = lambda k: np.repeat(first[:, k], counts)
-    code = morton.encode_axes_host(corner(0) + rank, corner(1) + j_axis, corner(2) + k_axis)
-    tri = np.repeat(ids, counts)  # ascending
-    if len(code) and int(code.max()) < (1 << 32) and len(tris) < (1 << 32):
-        key = code << np.uint64(32) | tri.astype(np.uint64)  # one sort of packed keys
-        key.sort()
-        return (key & np.uint64(0xFFFFFFFF)).astype(np.int64), key >> np.uint64(32)
-    order = np.argsort(code, kind="stable")
-    return tri[order], code[order]
+    return morton.box_cells(ids, lo[ids] // cell, hi[ids] // cell)
 
 
 def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = None, out: tuple | None = None):

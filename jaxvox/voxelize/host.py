@@ -256,17 +256,11 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
     lo = np.clip(np.floor((tris_np.min(1) - 1.0) / region_size), 0, n - 1).astype(np.int64)
     hi = np.clip(np.floor(tris_np.max(1) / region_size), 0, n - 1).astype(np.int64)
     inside = (tris_np.max(1) >= 0).all(1) & (tris_np.min(1) <= resolution).all(1)
-    touched: set[tuple[int, ...]] = set()
-    for a, b in {(tuple(l), tuple(h)) for l, h in zip(lo[inside], hi[inside])}:
-        first = np.array(a)
-        touched.update(tuple(first + c) for c in np.ndindex(*(np.array(b) - first + 1)))
-    cells = np.array(sorted(touched), np.int64).reshape(-1, 3)
-    order = np.argsort(morton.encode_word_host(cells), kind="stable")
-    out = []
-    for c in cells[order]:
-        hit = inside & (lo <= c).all(1) & (hi >= c).all(1)
-        out.append(((c * region_size).astype(np.int32), np.flatnonzero(hit)))
-    return out
+    ids = np.flatnonzero(inside)
+    tri, code = morton.box_cells(ids, lo[ids], hi[ids])
+    starts = np.flatnonzero(np.concatenate([[True], code[1:] != code[:-1]])) if len(code) else np.zeros(0, np.int64)
+    cells = morton.decode_host(code[starts]) * region_size
+    return [(c.astype(np.int32), part) for c, part in zip(cells, np.split(tri, starts[1:]))]
 
 
 def region_voxels(
