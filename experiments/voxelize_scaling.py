@@ -7,7 +7,8 @@ grid with `jaxvox.voxelize.host.region_voxels`, the region loop that `jv.voxeliz
 only as a count, so 16384^3 fits in memory): a first pass (compilation included, unless
 the persistent cache is warm) and, up to ``--repeat-max`` (4096), a second pass. Per
 pass: seconds, voxels, nanoseconds per voxel, and the time in each host step (the
-emit calls, the host sort), from wrappers around them. With
+emit calls; the host sort, on a worker thread beside the next region's emits), from
+wrappers around them. With
 ``--hako PATH`` (the seed author's single-threaded C++ from ``shared/anchors/hako``, built
 with its README), the same run also times its voxelize + sort + unique (median of 3; up
 to ``--hako-max``, 8192), on its own grid fit (bounding-box minimum, longest side / R,

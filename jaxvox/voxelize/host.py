@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._core.buffers import aligned_empty, join_rows, progress_off
+from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, reserved_empty
 from jaxvox._core.checks import check_choice, check_int, check_type, refuse
 from jaxvox._core.errors import JaxvoxError
 from jaxvox._core.shapes import bucket, voxel_bucket
@@ -44,6 +45,7 @@ _WINDOW_ROWS = 1 << 16
 _WINDOW_CANDIDATES = 1 << 17
 _SLOTS = 1 << 19  # candidate slots one emit call writes
 _FILL = 0.8  # share of `_SLOTS` that a run of triangles is sized to fill
+_MOST_VOXELS = 2**31 - 1  # voxels a `voxelize` result may hold (`Voxels.count` is int32)
 
 
 def _walk(tris_grid, region_lo, region_hi, six_sep, visit, carry):
@@ -206,15 +208,14 @@ def _count_chunks(chunks, lo, hi, six_sep: bool) -> np.ndarray:
     return np.asarray(counts, np.int64).reshape(-1, 3)
 
 
-def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
-    """Host-side passes for one region: runs of triangles write their candidates
+def _emit_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
+    """The emit passes of one region: runs of triangles write their candidates
     (`_emit_chunk`), each run sized from the candidates per triangle of the last one;
-    the triangles whose candidates did not all fit start the next run, and one sort
-    makes the kept candidates unique.
+    the triangles whose candidates did not all fit start the next run.
 
     Returns:
-      (keys [n] uint32 Morton words of the voxels, see `region_coords`; triangle [n]
-      int32 ids or None) host arrays.
+      (parts: the written slots, as `_sort_region` takes them; total: the candidates
+      counted) for `_unique_region`.
     """
     lo, hi = _region_bounds(region_lo, region_size)
     emit = functools.partial(_emit_chunk, region_lo=lo, region_hi=hi, six_sep=six_sep, with_ids=with_ids)
@@ -237,6 +238,16 @@ def _voxelize_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: 
         total += int(ends[done - 1])
         pos += done
         run = int(np.clip(_FILL * _SLOTS * done / max(ends[done - 1], 1), 1, _CHUNK))
+    return parts, total
+
+
+def _unique_region(parts: list[tuple[np.ndarray, ...]], total: int, with_ids: bool):
+    """One sort makes a region's candidates (`_emit_region`) unique.
+
+    Returns:
+      (keys [n] uint32 Morton words of the voxels, see `region_coords`; triangle [n]
+      int32 ids or None) host arrays.
+    """
     keys, triangle, written = _sort_region(parts, with_ids)
     # Every kept candidate was counted by the same walk that wrote it; a walk that wrote
     # fewer (or more) would lose voxels, so it raises.
@@ -290,8 +301,18 @@ def region_voxels(
 
     mine = list(enumerate(regions))[share[0] :: share[1]]
     disable = progress_off(progress, len(mine))
-    for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
-        yield (position, region_lo, *_voxelize_region(tris, idx, region_lo, region_size, six_sep, triangle_ids))
+    # A region's candidates are sorted on a worker thread while this one emits the next
+    # region's (XLA's runs and numpy's sort release the GIL).
+    with ThreadPoolExecutor(1) as sorter:
+        pending = None
+        for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
+            parts, total = _emit_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+            if pending is not None:
+                yield pending[0], pending[1], *pending[2].result()
+            pending = position, region_lo, sorter.submit(_unique_region, parts, total, triangle_ids)
+            del parts
+        if pending is not None:
+            yield pending[0], pending[1], *pending[2].result()
 
 
 def _pad_rows(parts: list[np.ndarray], shape: tuple[int, ...]) -> np.ndarray:
@@ -344,29 +365,43 @@ def voxelize(
     if region_size & (region_size - 1):
         raise refuse("voxelize region_size", f"must be a power of two <= {REGION_SIZE}", region_size)
     region_size = min(region_size, grid.resolution)
-    parts: list[tuple[np.ndarray, np.ndarray]] = []
     tri_parts: list[np.ndarray] = []
     walk = region_voxels(
         mesh, grid, six_sep=six_sep, region_size=region_size, triangle_ids=triangle_ids, progress=progress
     )
-    for _, region_lo, keys, triangle in walk:
-        parts.append((region_lo, keys))  # on the host as we go: device memory holds one region
-        if triangle is not None:  # with triangle_ids
-            tri_parts.append(triangle)
-    total = sum(len(k) for _, k in parts)
-    if total > 2**31 - 1:  # `Voxels.count` is int32
+    # Each region's keys are decoded on a worker thread straight into the result (address
+    # space for the most voxels a result may hold, `reserved_empty`), while this thread
+    # runs the next region; where the system refuses such a map, after the last region.
+    most = voxel_bucket(min(grid.resolution**3, _MOST_VOXELS), grid.resolution)
+    coords = reserved_empty((most, 3), np.int32)
+    parts: list[tuple[np.ndarray, np.ndarray]] = []  # (region_lo, keys) left to decode
+    total = 0
+    with ThreadPoolExecutor(1) as worker:
+        decoded = []
+        for _, region_lo, keys, triangle in walk:
+            if triangle is not None:  # with triangle_ids
+                tri_parts.append(triangle)
+            if coords is not None and total + len(keys) <= _MOST_VOXELS:
+                decoded.append(worker.submit(region_coords, keys, region_lo, coords[total : total + len(keys)]))
+            else:
+                parts.append((region_lo, keys))  # on the host as we go: device memory holds one region
+            total += len(keys)
+        for done in decoded:
+            done.result()
+    if total > _MOST_VOXELS:  # `Voxels.count` is int32
         raise JaxvoxError(
             f"voxelize: {total:,} voxels at {grid.resolution}^3, more than an int32 count holds; "
             "build the DAG region by region with mesh_to_dag"
         )
     cap = voxel_bucket(total, grid.resolution)
-    coords = aligned_empty((cap, 3), np.int32)
-    start = 0
-    for region_lo, keys in parts:  # decoded straight into the result
-        region_coords(keys, region_lo, out=coords[start : start + len(keys)])
-        start += len(keys)
-    coords[start:] = UNUSED
+    if coords is None:
+        coords, start = aligned_empty((cap, 3), np.int32), 0
+        for region_lo, keys in parts:  # decoded straight into the result
+            region_coords(keys, region_lo, out=coords[start : start + len(keys)])
+            start += len(keys)
     del parts
+    coords = coords[:cap]
+    coords[total:] = UNUSED
     triangle = _pad_rows(tri_parts, (cap,)) if triangle_ids else None
     to_device = functools.partial(jax.device_put, may_alias=True)  # aligned buffers: no copy
     return Voxels(
