@@ -340,7 +340,8 @@ def voxelize(
     Grids above `region_size`^3 are streamed: the grid is cut into aligned cubic
     regions, visited in Morton order, each voxelized from the triangles whose bounding
     boxes touch it, so working memory follows the surface inside one region and the
-    concatenated result is already in Morton order.
+    concatenated result is already in Morton order. A region's sort and the decoding of
+    its voxels into the result run on worker threads beside the next region's emit calls.
 
     Args:
       mesh: the `Mesh` (validated: NaN/inf vertices or bad face indices raise).
