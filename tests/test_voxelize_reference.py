@@ -18,6 +18,7 @@ float32 and float64 alike and must match exactly.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import os
 
@@ -171,6 +172,28 @@ def test_morton_helper_matches_python_ints(points):
     assert [int(c) for c in codes] == [_morton_python(*p) for p in points]
     ordered = morton_order(np.array(points))
     assert [tuple(p) for p in ordered.tolist()] == sorted(map(tuple, points), key=lambda p: _morton_python(*p))
+
+
+_BOX = st.tuples(*[st.integers(0, 2**20 - 4)] * 3, *[st.integers(0, 3)] * 3)  # first cell, extent
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(_BOX, max_size=12), st.booleans())
+def test_box_cells_are_every_cell_in_morton_then_id_order(boxes, small):
+    """`jaxvox.morton.box_cells` (the voxelizer's regions, the sparse field's tiles) against
+    Python loops over each box's cells, with Python-int Morton codes; `small` keeps the
+    codes below 2^32 (the packed sort), else they may pass it (the stable argsort)."""
+    first = np.array([b[:3] for b in boxes], np.int64).reshape(-1, 3) % (16 if small else 2**20 - 4)
+    last = first + np.array([b[3:] for b in boxes], np.int64).reshape(-1, 3)
+    ids = np.arange(len(boxes), dtype=np.int64) * 3  # ascending, not 0..n-1
+    expected = sorted(
+        (_morton_python(*cell), int(box_id))
+        for box_id, lo, hi in zip(ids, first, last)
+        for cell in itertools.product(*(range(a, b + 1) for a, b in zip(lo, hi)))
+    )
+    got_ids, got_codes = jv.morton.box_cells(ids, first, last)
+    assert got_ids.dtype == np.int64 and got_codes.dtype == np.uint64
+    assert list(zip(got_codes.tolist(), got_ids.tolist())) == expected
 
 
 def _ref1(tri, resolution=8, mode=CONSERVATIVE) -> Reference:
