@@ -161,6 +161,20 @@ def test_streaming_regions_match_single_pass(meshes_dir):
         np.testing.assert_array_equal(streamed.to_numpy(), whole.to_numpy())
 
 
+def test_regions_decoded_after_the_loop_where_no_address_space_is_lent(meshes_dir, monkeypatch):
+    """Where the system refuses `reserved_empty`'s map (strict overcommit), `voxelize`
+    decodes the regions after the last one: the same voxels, capacity and padding."""
+    from jaxvox.voxelize import host
+
+    mesh = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(mesh, resolution=128)
+    threaded = jv.voxelize(mesh, grid, region_size=32)
+    monkeypatch.setattr(host, "reserved_empty", lambda shape, dtype: None)
+    after = jv.voxelize(mesh, grid, region_size=32)
+    assert int(after.count) == int(threaded.count) > 0
+    np.testing.assert_array_equal(np.asarray(after.coords), np.asarray(threaded.coords))
+
+
 def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
     """The bunny at 256^3 has about 640K candidates in its one region, more than one emit
     call writes (`_SLOTS`): the voxels and their triangle ids are those of 64^3 regions."""
