@@ -202,7 +202,14 @@ def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     return morton.box_cells(ids, lo[ids] // cell, hi[ids] // cell)
 
 
-def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = None, out: tuple | None = None):
+def band_pairs(
+    tris: np.ndarray,
+    shape,
+    band: int,
+    on_round: Callable | None = None,
+    out: tuple | None = None,
+    decoder: ThreadPoolExecutor | None = None,
+):
     """Per-voxel minima over all triangles in the box of voxels ``0 <= ijk < shape``.
 
     Args:
@@ -219,6 +226,8 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
         results into, from their first row; m at least every cell of every tile that
         holds a triangle within `band` (e.g. the box's volume, in whole tiles). Default
         (and for each part given as None): new page-aligned arrays.
+      decoder: an executor that decodes each round's voxels (and calls `on_round`), in
+        order, while this thread finds the next round; None: this thread does.
 
     Returns:
       (ijk int32 [n, 3], d2 float32 [n] squared distance in grid units, tri int32 [n]
@@ -314,19 +323,29 @@ def band_pairs(tris: np.ndarray, shape, band: int, on_round: Callable | None = N
         part = slice(n, n + len(flat))
         # A cell's code is its tile's code, then its own bits: flat + (code - row) * 2^bits.
         keys[part] = flat + ((tile_code[t0:t1] - np.arange(t1 - t0)) << _CELL_BITS)[flat >> _CELL_BITS]
-        morton.decode_word_host(keys[part], out=ijk[part])
         band_d2[part], band_tri[part] = best_d2.reshape(-1)[flat], best_tri.reshape(-1)[flat]
-        if on_round is not None and len(flat):
-            on_round(ijk[part], band_tri[part])
+        if decoder is None:
+            decode_round(part)
+        else:
+            decoding.append(decoder.submit(decode_round, part))
         return n + len(flat)
+
+    def decode_round(part: slice) -> None:
+        """Decodes the voxels of rows `part` from their keys and hands them to `on_round`."""
+        morton.decode_word_host(keys[part], out=ijk[part])
+        if on_round is not None and part.stop > part.start:
+            on_round(ijk[part], band_tri[part])
 
     # The kernels of each round run (asynchronously, on XLA's threads) while the host
     # prepares the next round and collects the previous one.
     n, pending = 0, dispatch(0)
+    decoding: list = []  # the decoder's pending rounds
     while pending is not None:
         started = dispatch(pending[1]) if pending[1] < len(starts) else None
         n = collect(n, *pending)
         pending = started
+    for done in decoding:
+        done.result()
     return ijk[:n], band_d2[:n], band_tri[:n], keys[:n].view(np.uint64)  # non-negative int64
 
 
@@ -481,7 +500,9 @@ def band_regions(
     while the worker builds. The worker takes the tasks
     in order, so `build` sees the regions in Morton order. The kernels of the voxels'
     pseudo-normal sides (`band_sign.Sides`) start round by round during the tile pairs
-    (`band_pairs`'s ``on_round``), so they run while the next rounds are found.
+    (`band_pairs`'s ``on_round``), so they run while the next rounds are found. With one
+    region the worker, once the signs are prepared, also decodes the pairs' rounds and
+    starts their sides (`band_pairs`'s ``decoder``): it has nothing else to do until then.
     """
     band = int(band)
     origin = np.asarray(grid.origin, np.float64)
@@ -496,6 +517,9 @@ def band_regions(
 
     with ThreadPoolExecutor(1) as worker:
         signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        # With one region the worker has nothing else to do after the signs' preparation:
+        # it decodes the pairs' rounds (and starts their sides) while this thread finds the next.
+        decoder = worker if len(starts) == 1 else None
         sides = Sides(mesh, tris) if signs is not None else None  # beside the worker
 
         def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
@@ -529,7 +553,7 @@ def band_regions(
             started: list = []  # the sides' kernels, started round by round
             start = None if sides is None else functools.partial(_start_sides, sides, started, region_lo, mine)
             rows = None if out is None else tuple(None if part is None else part[n:] for part in out)
-            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start, rows)
+            ijk, d2, tri, keys = band_pairs(tris[mine] - region_lo, size, band, start, rows, decoder)
             if not len(ijk):
                 continue
             n += len(ijk)
