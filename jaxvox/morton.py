@@ -95,6 +95,14 @@ def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
     return (word(WORD_BITS, WORD_MASK) << np.uint64(3 * WORD_BITS)) | word(0, WORD_MASK)
 
 
+def run_starts(values: np.ndarray) -> np.ndarray:
+    """First index of each run of equal entries of a sorted 1-D array (codes, keys):
+    int64 [runs], empty for an empty array."""
+    if not len(values):
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.concatenate([[True], values[1:] != values[:-1]]))
+
+
 def box_cells(ids: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Every cell of every box, ordered by the cell's Morton code, then by box (host).
 

@@ -196,6 +196,16 @@ def test_box_cells_are_every_cell_in_morton_then_id_order(boxes, small):
     assert list(zip(got_codes.tolist(), got_ids.tolist())) == expected
 
 
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 5), max_size=30))
+def test_run_starts_are_the_first_index_of_each_run(values):
+    """`jaxvox.morton.run_starts` (regions, tiles, blocks, edges) against a Python loop."""
+    keys = np.sort(np.array(values, np.uint64))
+    expected = [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]]
+    got = jv.morton.run_starts(keys)
+    assert got.dtype == np.int64 and got.tolist() == expected
+
+
 def _ref1(tri, resolution=8, mode=CONSERVATIVE) -> Reference:
     return reference_voxelize(
         np.asarray(tri, np.float32), [[0, 1, 2]], np.zeros(3, np.float32), np.float32(1.0), resolution, mode

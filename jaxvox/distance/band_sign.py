@@ -538,7 +538,7 @@ class Components:
                 break
             radius = np.sqrt(3.0) * ((1 << bits) - 1) / 2  # from a block's centre to its farthest voxel centre
             block = keys[rest] >> np.uint64(3 * bits)
-            starts = np.flatnonzero(np.concatenate([[True], block[1:] != block[:-1]]))
+            starts = morton.run_starts(block)
             q = (ijk[rest[starts]] >> bits << bits) + (1 << bits) / 2  # float64 block centres
             term, d2, slope = self.cap_terms(q, distance=True, radius=radius)
             reach = np.sqrt(d2) - np.float32(radius)

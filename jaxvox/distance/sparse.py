@@ -256,7 +256,7 @@ def band_pairs(
     ids, code = ids[keep], code[keep]
     if not len(ids):
         return nothing
-    starts = np.flatnonzero(np.concatenate([[True], code[1:] != code[:-1]]))
+    starts = morton.run_starts(code)
     counts = np.diff(np.append(starts, len(ids)))
     tile_code = code[starts].astype(np.int64)
     limit = np.float32(band * band)  # compared in float32, as d2 is
@@ -510,7 +510,7 @@ def band_regions(
     tris = (host_triangles(mesh) - origin) / h
     large = longest_edges(tris) > REFINE_EDGE
     ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
-    starts = np.flatnonzero(np.concatenate([[True], codes[1:] != codes[:-1]])) if len(ids) else np.zeros(0, np.int64)
+    starts = morton.run_starts(codes)
     ends = np.append(starts[1:], len(ids))
     shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm

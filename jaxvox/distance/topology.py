@@ -11,6 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxvox import morton
+
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(positions [V', 3], faces [F, 3] int64): the distinct positions of vertices [V, 3]
@@ -53,7 +55,7 @@ def edge_table(faces: np.ndarray) -> EdgeTable:
     key = lo * base + hi
     order = np.argsort(key, kind="stable")
     key = key[order]
-    start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]])) if len(key) else np.zeros(0, np.int64)
+    start = morton.run_starts(key)
     return EdgeTable(
         lo[order],
         hi[order],

@@ -269,7 +269,7 @@ def _regions(tris_np: np.ndarray, resolution: int, region_size: int):
     inside = (tris_np.max(1) >= 0).all(1) & (tris_np.min(1) <= resolution).all(1)
     ids = np.flatnonzero(inside)
     tri, code = morton.box_cells(ids, lo[ids], hi[ids])
-    starts = np.flatnonzero(np.concatenate([[True], code[1:] != code[:-1]])) if len(code) else np.zeros(0, np.int64)
+    starts = morton.run_starts(code)
     cells = morton.decode_host(code[starts]) * region_size
     return [(c.astype(np.int32), part) for c, part in zip(cells, np.split(tri, starts[1:]))]
 
