@@ -24,13 +24,19 @@ os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
 #   thirds of the time of its default fusion emitters, whose code runs faster (what users
 #   get, and what the benchmarks time), and LLVM's level 1 optimizations
 #   (``--xla_backend_optimization_level=1``) take a sixth less of the suite's time than
-#   the default level 2 (`docs/design-history.md`). The tests marked ``codegen`` also run
+#   the default level 2, and LLVM told to optimize for size, without loop unrolling or the
+#   SLP vectorizer (``--xla_backend_extra_options``, XLA's CPU options; none changes what
+#   is computed) a further fifth (`docs/design-history.md`). The tests marked ``codegen`` also run
 #   with XLA's defaults (`tests/test_codegen.py`, ``JAXVOX_TEST_EMITTERS=default``), so
 #   the code users run is checked against the references too.
 # * Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already
 #   keep the cores busy, and a thread pool per worker on top only oversubscribes them.
 DEFAULT_EMITTERS = os.environ.get("JAXVOX_TEST_EMITTERS") == "default"
-SUITE_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=1")  # not users' defaults
+SUITE_FLAGS = (  # not users' defaults
+    "--xla_cpu_use_fusion_emitters=false",
+    "--xla_backend_optimization_level=1",
+    "--xla_backend_extra_options=xla_cpu_optimize_for_size,xla_cpu_disable_loop_unrolling,xla_cpu_disable_slp_vectorizer",
+)
 _flags = [] if DEFAULT_EMITTERS else list(SUITE_FLAGS)
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     _flags.append("--xla_cpu_multi_thread_eigen=false")
