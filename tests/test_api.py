@@ -8,6 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import jaxvox as jv
 from tests.reference import morton_encode as ref_morton
@@ -191,6 +193,28 @@ def test_regions_of_several_emit_calls_match_regions_of_one(meshes_dir):
         small = jv.voxelize(mesh, grid, mode=mode, triangle_ids=True, region_size=64)
         np.testing.assert_array_equal(whole.to_numpy(), small.to_numpy())
         np.testing.assert_array_equal(whole.triangle_ids(), small.triangle_ids())
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 40), max_size=30), min_size=1, max_size=5), st.booleans())
+def test_parts_sorted_as_they_come_merge_to_the_sorted_unique_keys(parts, on_a_thread):
+    """A region's runs sorted one by one (`_sorted_keys`, on a worker thread or not) and
+    merged give the distinct written keys in order and the candidates written, as one
+    sort of all of them; `EMPTY` (unwritten slots) counts for nothing."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from jaxvox import morton
+    from jaxvox.voxelize import host
+
+    empty = int(morton.EMPTY)
+    runs = [(np.array([empty if k == 40 else k for k in part], np.uint32),) for part in parts]
+    everything = np.concatenate([run[0] for run in runs])
+    written = everything[everything != empty]
+    with ThreadPoolExecutor(1) as worker:
+        given_parts = [worker.submit(host._sorted_keys, run) if on_a_thread else run for run in runs]
+        keys, triangle, count = host._sort_region(given_parts, with_ids=False)
+    np.testing.assert_array_equal(keys, np.unique(written))
+    assert keys.dtype == np.uint32 and triangle is None and count == len(written)
 
 
 def test_runs_that_overflow_an_emit_call_keep_every_triangle(monkeypatch):

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -144,24 +145,50 @@ def _sort_region(parts, with_ids: bool):
 
     Args:
       parts: the region's written slots, each (keys,) or (keys, distance bits, triangle
-        ids) of uint32 [n_i] (keys region-relative Morton words).
+        ids) of uint32 [n_i] (keys region-relative Morton words); without ids they may
+        also be `_sorted_keys` results, or futures of them.
 
     Returns:
       (keys [n] uint32: the voxels' Morton words (`region_coords` decodes them), in
       Morton order; triangle [n] int32 or None; written: the number of candidates in the
       parts, keys other than `morton.EMPTY`).
     """
+    if not with_ids:
+        runs = [part.result() if isinstance(part, Future) else part for part in parts]
+        runs = [run if isinstance(run, _SortedKeys) else _sorted_keys(run) for run in runs]
+        keys = np.concatenate([run.keys for run in runs])
+        if len(runs) > 1:
+            keys.sort(kind="stable")  # a merge of the sorted runs (timsort)
+        return _first_of_runs(keys), None, sum(run.written for run in runs)
     keys, *payload = (np.concatenate([part[i] for part in parts]) for i in range(len(parts[0])))
-    if with_ids:
-        order = np.lexsort((payload[1], payload[0], keys))
-        keys, tri = keys[order], payload[1][order]
-    else:
-        keys.sort()  # in place: the concatenation is a copy of its own
+    order = np.lexsort((payload[1], payload[0], keys))
+    keys, tri = keys[order], payload[1][order]
     written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
     first = np.ones(len(keys), bool)
     first[1:] = keys[1:] != keys[:-1]
     first[written:] = False
-    return keys[first], (tri[first].astype(np.int32) if with_ids else None), written
+    return keys[first], tri[first].astype(np.int32), written
+
+
+class _SortedKeys(NamedTuple):
+    keys: np.ndarray  # [n] uint32 distinct written keys in ascending order
+    written: int  # the candidates (keys other than `morton.EMPTY`) they came from
+
+
+def _first_of_runs(keys: np.ndarray) -> np.ndarray:
+    """The distinct values of a sorted array (the first of each run of equal keys)."""
+    first = np.ones(len(keys), bool)
+    first[1:] = keys[1:] != keys[:-1]
+    return keys[first]
+
+
+def _sorted_keys(part: tuple[np.ndarray, ...]) -> _SortedKeys:
+    """One emit call's written keys (a part of `_emit_region`, without ids), sorted and
+    distinct: a region's parts are sorted one by one as they come (on the worker
+    thread, while the next ones are emitted), then merged (`_sort_region`)."""
+    keys = np.sort(part[0])
+    written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
+    return _SortedKeys(_first_of_runs(keys[:written]), written)
 
 
 def region_coords(keys: np.ndarray, region_lo, out: np.ndarray | None = None) -> np.ndarray:
@@ -208,18 +235,46 @@ def _count_chunks(chunks, lo, hi, six_sep: bool) -> np.ndarray:
     return np.asarray(counts, np.int64).reshape(-1, 3)
 
 
-def _emit_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int, six_sep: bool, with_ids: bool):
-    """The emit passes of one region: runs of triangles write their candidates
-    (`_emit_chunk`), each run sized from the candidates per triangle of the last one;
-    the triangles whose candidates did not all fit start the next run.
+def _emit_region(
+    tris: np.ndarray,
+    idx: np.ndarray,
+    region_lo,
+    region_size: int,
+    six_sep: bool,
+    with_ids: bool,
+    sorter: Executor | None = None,
+    helper: Executor | None = None,
+):
+    """The emit passes of one region (`_emit_runs`). With a `helper` thread, the second
+    half of the region's triangles is emitted there while this thread emits the first
+    (the emit programs of two threads run side by side). Without ids, each run's keys
+    are sorted on `sorter` (`_sorted_keys`) while the next runs are emitted.
 
     Returns:
-      (parts: the written slots, as `_sort_region` takes them; total: the candidates
-      counted) for `_unique_region`.
+      (parts: the written slots, in no particular order, as `_sort_region` takes them;
+      total: the candidates counted) for `_unique_region`.
     """
     lo, hi = _region_bounds(region_lo, region_size)
     emit = functools.partial(_emit_chunk, region_lo=lo, region_hi=hi, six_sep=six_sep, with_ids=with_ids)
-    parts: list[tuple[np.ndarray, ...]] = []
+    parts: list = []
+    keep = parts.append if with_ids or sorter is None else lambda part: parts.append(sorter.submit(_sorted_keys, part))
+    if helper is None or len(idx) <= _CHUNK:
+        return parts, _emit_runs(emit, tris, idx, keep)
+    half = len(idx) // 2
+    second = helper.submit(_emit_runs, emit, tris, idx[half:], keep)
+    total = _emit_runs(emit, tris, idx[:half], keep)
+    return parts, total + second.result()
+
+
+def _emit_runs(emit, tris: np.ndarray, idx: np.ndarray, keep) -> int:
+    """Runs of the triangles `idx` write their candidates (`emit`, an `_emit_chunk` of
+    the region), each run sized from the candidates per triangle of the last one; the
+    triangles whose candidates did not all fit start the next run. Each run's written
+    slots go to `keep`.
+
+    Returns:
+      The candidates counted.
+    """
     total, pos, run = 0, 0, _CHUNK
     while pos < len(idx):
         part = idx[pos : pos + run]
@@ -228,17 +283,17 @@ def _emit_region(tris: np.ndarray, idx: np.ndarray, region_lo, region_size: int,
         ends = np.cumsum(np.asarray(per, np.int64)[: len(part)])
         done = int(np.searchsorted(ends, _SLOTS, side="right"))  # triangles whose candidates all fit
         if done:
-            parts.append(tuple(np.asarray(b)[: ends[done - 1]] for b in slots))
+            keep(tuple(np.asarray(b)[: ends[done - 1]] for b in slots))
         else:  # one triangle holds more than `_SLOTS` candidates (all the slots): the rest part by part
             done, ((t, ids),) = 1, _chunks(tris, idx[pos : pos + 1])
-            parts.append(tuple(np.asarray(b) for b in slots))
+            keep(tuple(np.asarray(b) for b in slots))
             for start in range(_SLOTS, int(ends[0]), _SLOTS):
                 slots = emit(t, ids, offset=np.int32(-start))[0]
-                parts.append(tuple(np.asarray(b)[: ends[0] - start] for b in slots))
+                keep(tuple(np.asarray(b)[: ends[0] - start] for b in slots))
         total += int(ends[done - 1])
         pos += done
         run = int(np.clip(_FILL * _SLOTS * done / max(ends[done - 1], 1), 1, _CHUNK))
-    return parts, total
+    return total
 
 
 def _unique_region(parts: list[tuple[np.ndarray, ...]], total: int, with_ids: bool):
@@ -302,11 +357,13 @@ def region_voxels(
     mine = list(enumerate(regions))[share[0] :: share[1]]
     disable = progress_off(progress, len(mine))
     # A region's candidates are sorted on a worker thread while this one emits the next
-    # region's (XLA's runs and numpy's sort release the GIL).
-    with ThreadPoolExecutor(1) as sorter:
+    # region's, or (without ids) its own next run's (XLA's runs and numpy's sort release
+    # the GIL).
+    # A second thread emits half of each region's triangles.
+    with ThreadPoolExecutor(1) as sorter, ThreadPoolExecutor(1) as helper:
         pending = None
         for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
-            parts, total = _emit_region(tris, idx, region_lo, region_size, six_sep, triangle_ids)
+            parts, total = _emit_region(tris, idx, region_lo, region_size, six_sep, triangle_ids, sorter, helper)
             if pending is not None:
                 yield pending[0], pending[1], *pending[2].result()
             pending = position, region_lo, sorter.submit(_unique_region, parts, total, triangle_ids)
