@@ -296,8 +296,9 @@ def _emit_runs(emit, tris: np.ndarray, idx: np.ndarray, keep) -> int:
     return total
 
 
-def _unique_region(parts: list[tuple[np.ndarray, ...]], total: int, with_ids: bool):
-    """One sort makes a region's candidates (`_emit_region`) unique.
+def _unique_region(parts: list, total: int, with_ids: bool):
+    """One sort makes a region's candidates (`_emit_region`'s parts, as `_sort_region` takes
+    them) unique.
 
     Returns:
       (keys [n] uint32 Morton words of the voxels, see `region_coords`; triangle [n]
