@@ -26,7 +26,7 @@ os.environ.setdefault("JAXVOX_CACHE_DIR", str(REPO_ROOT / ".cache" / "xla"))
 #   (``--xla_backend_optimization_level=1``) take a sixth less of the suite's time than
 #   the default level 2, and LLVM told to optimize for size, without loop unrolling or the
 #   SLP vectorizer (``--xla_backend_extra_options``, XLA's CPU options; none changes what
-#   is computed) a further fifth (`docs/design-history.md`). The tests marked ``codegen`` also run
+#   is computed) a further seventh (`docs/design-history.md`). The tests marked ``codegen`` also run
 #   with XLA's defaults (`tests/test_codegen.py`, ``JAXVOX_TEST_EMITTERS=default``), so
 #   the code users run is checked against the references too.
 # * Under pytest-xdist every worker runs XLA's CPU code on one thread: the workers already

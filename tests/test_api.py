@@ -211,7 +211,7 @@ def test_parts_sorted_as_they_come_merge_to_the_sorted_unique_keys(parts, on_a_t
     everything = np.concatenate([run[0] for run in runs])
     written = everything[everything != empty]
     with ThreadPoolExecutor(1) as worker:
-        given_parts = [worker.submit(host._sorted_keys, run) if on_a_thread else run for run in runs]
+        given_parts = [worker.submit(host._sorted_keys, run) if on_a_thread else host._sorted_keys(run) for run in runs]
         keys, triangle, count = host._sort_region(given_parts, with_ids=False)
     np.testing.assert_array_equal(keys, np.unique(written))
     assert keys.dtype == np.uint32 and triangle is None and count == len(written)

@@ -144,9 +144,9 @@ def _sort_region(parts, with_ids: bool):
     `jaxvox.voxelize.fixed.sort_unique`.
 
     Args:
-      parts: the region's written slots, each (keys,) or (keys, distance bits, triangle
-        ids) of uint32 [n_i] (keys region-relative Morton words); without ids they may
-        also be `_sorted_keys` results, or futures of them.
+      parts: the region's written slots: with ids, each (keys, distance bits, triangle
+        ids) of uint32 [n_i] (keys region-relative Morton words); without ids, each
+        run's keys as `_sorted_keys` gives them, or a future of that.
 
     Returns:
       (keys [n] uint32: the voxels' Morton words (`region_coords` decodes them), in
@@ -155,18 +155,15 @@ def _sort_region(parts, with_ids: bool):
     """
     if not with_ids:
         runs = [part.result() if isinstance(part, Future) else part for part in parts]
-        runs = [run if isinstance(run, _SortedKeys) else _sorted_keys(run) for run in runs]
         keys = np.concatenate([run.keys for run in runs])
         if len(runs) > 1:
             keys.sort(kind="stable")  # a merge of the sorted runs (timsort)
-        return _first_of_runs(keys), None, sum(run.written for run in runs)
+        return keys[morton.run_starts(keys)], None, sum(run.written for run in runs)
     keys, *payload = (np.concatenate([part[i] for part in parts]) for i in range(len(parts[0])))
     order = np.lexsort((payload[1], payload[0], keys))
     keys, tri = keys[order], payload[1][order]
     written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
-    first = np.ones(len(keys), bool)
-    first[1:] = keys[1:] != keys[:-1]
-    first[written:] = False
+    first = morton.run_starts(keys[:written])
     return keys[first], tri[first].astype(np.int32), written
 
 
@@ -175,20 +172,14 @@ class _SortedKeys(NamedTuple):
     written: int  # the candidates (keys other than `morton.EMPTY`) they came from
 
 
-def _first_of_runs(keys: np.ndarray) -> np.ndarray:
-    """The distinct values of a sorted array (the first of each run of equal keys)."""
-    first = np.ones(len(keys), bool)
-    first[1:] = keys[1:] != keys[:-1]
-    return keys[first]
-
-
 def _sorted_keys(part: tuple[np.ndarray, ...]) -> _SortedKeys:
     """One emit call's written keys (a part of `_emit_region`, without ids), sorted and
     distinct: a region's parts are sorted one by one as they come (on the worker
     thread, while the next ones are emitted), then merged (`_sort_region`)."""
     keys = np.sort(part[0])
     written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
-    return _SortedKeys(_first_of_runs(keys[:written]), written)
+    keys = keys[:written]
+    return _SortedKeys(keys[morton.run_starts(keys)], written)
 
 
 def region_coords(keys: np.ndarray, region_lo, out: np.ndarray | None = None) -> np.ndarray:
@@ -242,13 +233,14 @@ def _emit_region(
     region_size: int,
     six_sep: bool,
     with_ids: bool,
-    sorter: Executor | None = None,
-    helper: Executor | None = None,
+    sorter: Executor,
+    helper: Executor,
 ):
-    """The emit passes of one region (`_emit_runs`). With a `helper` thread, the second
-    half of the region's triangles is emitted there while this thread emits the first
-    (the emit programs of two threads run side by side). Without ids, each run's keys
-    are sorted on `sorter` (`_sorted_keys`) while the next runs are emitted.
+    """The emit passes of one region (`_emit_runs`). The second half of the region's
+    triangles (when they make more than one run) is emitted on the `helper` thread while
+    this thread emits the first: the emit programs of two threads run side by side.
+    Without ids, each run's keys are sorted on `sorter` (`_sorted_keys`) while the next
+    runs are emitted.
 
     Returns:
       (parts: the written slots, in no particular order, as `_sort_region` takes them;
@@ -257,8 +249,8 @@ def _emit_region(
     lo, hi = _region_bounds(region_lo, region_size)
     emit = functools.partial(_emit_chunk, region_lo=lo, region_hi=hi, six_sep=six_sep, with_ids=with_ids)
     parts: list = []
-    keep = parts.append if with_ids or sorter is None else lambda part: parts.append(sorter.submit(_sorted_keys, part))
-    if helper is None or len(idx) <= _CHUNK:
+    keep = parts.append if with_ids else lambda part: parts.append(sorter.submit(_sorted_keys, part))
+    if len(idx) <= _CHUNK:
         return parts, _emit_runs(emit, tris, idx, keep)
     half = len(idx) // 2
     second = helper.submit(_emit_runs, emit, tris, idx[half:], keep)
@@ -358,9 +350,8 @@ def region_voxels(
     mine = list(enumerate(regions))[share[0] :: share[1]]
     disable = progress_off(progress, len(mine))
     # A region's candidates are sorted on a worker thread while this one emits the next
-    # region's, or (without ids) its own next run's (XLA's runs and numpy's sort release
-    # the GIL).
-    # A second thread emits half of each region's triangles.
+    # region's, or (without ids) its own next runs, and a helper thread emits half of each
+    # region's triangles (XLA's runs and numpy's sort release the GIL).
     with ThreadPoolExecutor(1) as sorter, ThreadPoolExecutor(1) as helper:
         pending = None
         for position, (region_lo, idx) in tqdm(mine, desc="regions", disable=disable, leave=False):
