@@ -508,15 +508,15 @@ def band_regions(
     origin = np.asarray(grid.origin, np.float64)
     h = float(grid.voxel_size)
     tris = (host_triangles(mesh) - origin) / h
-    large = longest_edges(tris) > REFINE_EDGE
-    ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
-    starts = morton.run_starts(codes)
-    ends = np.append(starts[1:], len(ids))
-    shift = np.uint64(3 * (size.bit_length() - 1))
     from tqdm.auto import tqdm
 
     with ThreadPoolExecutor(1) as worker:
         signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        large = longest_edges(tris) > REFINE_EDGE
+        ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
+        starts = morton.run_starts(codes)
+        ends = np.append(starts[1:], len(ids))
+        shift = np.uint64(3 * (size.bit_length() - 1))
         # With one region the worker has nothing else to do after the signs' preparation:
         # it decodes the pairs' rounds (and starts their sides) while this thread finds the next.
         decoder = worker if len(starts) == 1 else None

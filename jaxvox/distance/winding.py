@@ -218,6 +218,7 @@ NEAR_LEAVES = 96  # leaves evaluated exactly per point; likewise
 POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
 F32_CLOSE = 1e-5  # float32 brute-force winding numbers this close to 1/2 are summed in float64,
 F32_CLOSE_PER_TRIANGLE = 3e-10  # and this much closer per triangle (`exact_winding_numbers`)
+HOST_POINTS = 4  # `exact_winding_numbers` of at most this many points: float64 on the host, not a padded kernel chunk
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
 
 
@@ -387,7 +388,11 @@ def exact_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | 
     lands within ``F32_CLOSE + F * F32_CLOSE_PER_TRIANGLE`` of 1/2, so that the side of
     1/2 is that of the float64 sum. (The float32 sum of F / `BRUTE_FORCE_BLOCK` block sums
     of order 1 can be off by that many float32 roundings, about F * 2.3e-10: 1.6e-5 for
-    the bunny's 69 K triangles.) `chunk` as in `brute_force_winding_numbers`."""
+    the bunny's 69 K triangles.) At most `HOST_POINTS` points are summed in float64 on
+    the host alone: cheaper than a padded chunk of the kernel, and no program. `chunk` as
+    in `brute_force_winding_numbers`."""
+    if len(points) <= HOST_POINTS:
+        return host_winding_numbers(tris, points)
     w = brute_force_winding_numbers(tris, points, chunk=chunk).astype(np.float64)
     close = np.flatnonzero(np.abs(w - 0.5) < F32_CLOSE + len(tris) * F32_CLOSE_PER_TRIANGLE)
     w[close] = host_winding_numbers(tris, np.asarray(points, np.float64)[close])
