@@ -34,8 +34,9 @@ Nothing of size R^3 is allocated (the field's buffers are reserved for every vox
 the grid as address space only, and take memory as the band is written into them); the
 work is O(sum over triangles of the tiles their dilated boxes overlap). The grid is built
 in aligned regions (`sparse_distance_field`'s ``region``), so the working memory follows
-one region, and the result is the `SparseField` itself (the bunny at 4096^3: a 6.3 GiB
-peak for a 5.1 GiB field), or one region's field at a time (`sparse_field_regions`).
+one region, and the result is the `SparseField` itself (the peak is the field plus one
+region's work), or one region's field at a time (`sparse_field_regions`); measured peaks
+are in ``experiments/results/sparse_distance.md``.
 
 Precision: the tile kernel's float32 error grows with the closest triangle's size (up to
 about `jaxvox.distance.band_sign.F32_ERROR` per grid unit of its longest edge); voxels of
@@ -425,9 +426,9 @@ def sparse_field_regions(
     progress: bool | None = None,
     compact: bool = False,
 ) -> Iterator[SparseField]:
-    """`sparse_distance_field` handed out region by region, for fields larger than memory
-    (the bunny at 8192^3, band 3: 912 M band voxels, a 20.3 GiB field whose build peaks
-    at 22.7 GiB in one piece, against 2.8 GiB by regions).
+    """`sparse_distance_field` handed out region by region, for fields larger than memory:
+    the peak follows one region's field and work, not the whole field's
+    (``experiments/sparse_distance.py --stream``).
 
     The same regions and values as `sparse_distance_field` (arguments alike); each is
     dropped by the generator once yielded, so memory follows one region. Concatenated in
