@@ -263,7 +263,7 @@ def _start_chunks(fn, rows, *rest) -> list:
     started = []
     for s in range(0, len(rows[0]), width):
         parts = [r[s : s + width] for r in rows]
-        started.append((fn(*(jnp.asarray(pad_rows(x, width)) for x in parts), *rest), len(parts[0])))
+        started.append((fn(*(jax.device_put(pad_rows(x, width)) for x in parts), *rest), len(parts[0])))
     return started
 
 
@@ -294,8 +294,8 @@ class Sides:
         rows = bucket(len(f))
         self.tris = tris
         self.feature_normals = pseudo_normals(np.asarray(mesh.vertices), f)  # [F, 7, 3] float32
-        self.normals = jnp.asarray(pad_rows(self.feature_normals, rows).reshape(-1, 3).T)
-        self.corners = jnp.asarray(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
+        self.normals = jax.device_put(pad_rows(self.feature_normals, rows).reshape(-1, 3).T)
+        self.corners = jax.device_put(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
         # float64 sides where the float32 closest point may be on the wrong side, and for
         # every voxel within ON_SURFACE (its side decides whether it joins a component)
         edge = longest_edges(tris)
@@ -507,7 +507,7 @@ class Components:
             points.astype(np.float32),
             self.blocks,
             self.rows,
-            jnp.float32(radius) if slope else None,
+            np.float32(radius) if slope else None,
         )
 
     def blocked_cap_terms(self, ijk: np.ndarray, keys: np.ndarray, gap: np.ndarray):

@@ -241,7 +241,7 @@ def band_pairs(
     if not len(ids):
         return nothing
     columns = bucket(len(tris) + 1)
-    rows = jnp.asarray(triangle_rows(pad_rows(tris, columns, _FAR)))
+    rows = jax.device_put(triangle_rows(pad_rows(tris, columns, _FAR)))
     pad_id = columns - 1
     # The cull: an item whose triangle lies farther than band + _REACH from its tile's
     # centre has no cell within `band` (about 40% of the bunny's items).
@@ -252,7 +252,7 @@ def band_pairs(
         m = len(ids[part])
         origin = morton.decode_word_host(code[part]) * TILE
         chunk = pad_rows(ids[part].astype(np.int32), width, pad_id), pad_rows(origin, width).T
-        gap2[part] = np.asarray(_tile_gaps(rows, *(jnp.asarray(np.ascontiguousarray(a)) for a in chunk)))[:m]
+        gap2[part] = np.asarray(_tile_gaps(rows, *(jax.device_put(np.ascontiguousarray(a)) for a in chunk)))[:m]
     keep = np.flatnonzero(gap2 <= np.float32((band + _REACH + CULL_SLACK) ** 2))
     ids, code = ids[keep], code[keep]
     if not len(ids):
@@ -290,8 +290,8 @@ def band_pairs(
         calls = []
         for u in range(0, len(owner), width):
             args = (
-                jnp.asarray(pad_rows(slot_ids[u : u + width].astype(np.int32), width, pad_id).T),
-                jnp.asarray(pad_rows(origin[u : u + width], width).T),
+                jax.device_put(pad_rows(slot_ids[u : u + width].astype(np.int32), width, pad_id).T),
+                jax.device_put(pad_rows(origin[u : u + width], width).T),
             )
             calls.append((_tile_units(rows, *args), min(width, len(owner) - u)))
         return t0, t1, n_units, calls
@@ -587,8 +587,8 @@ def _field(
         return SparseField(None, field_values, tree, grid, int(band))
     voxels = Voxels(
         put(_joined(coords, (capacity, 3), UNUSED, np.int32)),
-        jnp.int32(n),
-        jnp.int32(0),
+        put(np.int32(n)),
+        put(np.int32(0)),
         put(_joined(closest, (capacity,), UNUSED, np.int32)),
         grid,
         CONSERVATIVE,

@@ -259,8 +259,8 @@ def point_tree(tris: np.ndarray) -> _PointTree:
     padded = bucket(max(len(tris), TOP * LEAF))
     pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
     tris = np.concatenate([tris, pad])
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
-    rows = jnp.asarray(split_rows(tris.reshape(-1, 9).T))
+    f32 = lambda x: jax.device_put(np.asarray(x, np.float32))
+    rows = jax.device_put(split_rows(tris.reshape(-1, 9).T))
     area = 0.5 * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # [F, 3]
     per_triangle = area, np.linalg.norm(area, axis=-1), tris.mean(1)
     top, leaf = (_dipole_nodes(tris, size, per_triangle) for size in (TOP * LEAF, LEAF))
@@ -284,7 +284,7 @@ def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> jax.Array:
     extra = -len(tris) % BRUTE_FORCE_BLOCK
     padded = np.concatenate([tris, np.full((extra, 3, 3), pad)])
     rows = split_rows(padded.reshape(-1, 9).T) if layout is None else layout(padded)  # [R, F']
-    return jnp.asarray(np.ascontiguousarray(rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+    return jax.device_put(np.ascontiguousarray(rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
 
 
 def relative_corners(rows, p):
@@ -359,7 +359,7 @@ def point_winding_numbers(
     width = chunk_rows(len(points), POINT_CHUNK)
     for s in range(0, len(points), width):
         part = points[s : s + width]
-        w, c = _point_tree_sum(tree, jnp.asarray(pad_rows(part.astype(np.float32), width)), beta=float(beta))
+        w, c = _point_tree_sum(tree, jax.device_put(pad_rows(part.astype(np.float32), width)), beta=float(beta))
         values.append(np.asarray(w)[: len(part)])
         flags.append(np.asarray(c)[: len(part)])
     out = np.concatenate(values)
@@ -378,7 +378,7 @@ def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: 
     size = chunk or min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):
         part = np.asarray(points[s : s + size], np.float32)
-        out.append(np.asarray(_brute_force(parts, jnp.asarray(pad_rows(part, size))))[: len(part)])
+        out.append(np.asarray(_brute_force(parts, jax.device_put(pad_rows(part, size))))[: len(part)])
     return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 

@@ -172,7 +172,7 @@ def tree_from_levels(levels: list, grid: Grid, mode: str, voxels: int, dag: bool
         prefix=put(prefix),
         level_count=put(np.asarray(sizes, np.int32)),
         voxel_count=jax.device_put(np.uint32(voxels)),
-        overflow=jnp.int32(0),
+        overflow=jax.device_put(np.int32(0)),
         grid=grid,
         level_capacity=put(np.asarray(capacity, np.int32)),
         dag=dag,
