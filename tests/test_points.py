@@ -272,6 +272,27 @@ def test_lost_blocks_are_retried_on_the_host_and_reported_inside_jit(sphere):
         queries._PLANS[key] = saved
 
 
+def test_grown_scales_what_lies_below_an_overflowed_level():
+    """A pair level that overflowed by r passed on only 1/r of its pairs, so the needs
+    below it (deeper pairs, rows of its depth and deeper) grow by r as well; the levels
+    above it, and what had room, keep their capacities. Never smaller than before."""
+    caps = (8192, 8192, 8192, 1024, 256)  # pairs at depths 0..3 (leaves first), then the leaf rows
+    needs = (22936, 32520, 4352, 768, 470)  # depths 1 and 0 overflowed, by 3.97 and 2.8
+    grown = jp.search.grown(caps, needs, (0,))
+    over1, over0 = 32520 / 8192, 22936 / 8192
+    assert grown[1] == 65536  # no overflow above it: its own need and a quarter, on the ladder
+    assert grown[0] >= 22936 * over1 * 1.25 > 22936 * 1.25 * 2  # scaled by the overflow above it
+    assert grown[4] >= 470 * over1 * over0 * 1.25  # the leaf rows: by both
+    assert grown[2:4] == caps[2:4]
+    assert grown == jp.search.grown(grown, (0, 0, 0, 0, 0), (0,))  # nothing needed: unchanged
+    # the winding search's layout: far rows per depth (0..4), then the leaf rows
+    caps = (512,) * 4 + (256,) * 6
+    needs = (100, 2048, 100, 100) + (100,) * 6
+    grown = jp.search.grown(caps, needs, (0, 1, 2, 3, 4, 0))
+    assert grown[0] >= 100 * 4 and grown[1] >= 2048 and grown[2:4] == (512, 512)  # depth 1 overflowed 4x
+    assert grown[4] >= 400 and grown[5] >= 400 and grown[6:9] == (256, 256, 256) and grown[9] >= 400
+
+
 def test_a_second_mesh_of_the_same_bucket_compiles_nothing(sphere, hemisphere):
     # the first mesh open too (the hemisphere mirrored), so that it needs winding numbers
     mirrored = jv.Mesh(np.asarray(hemisphere.vertices) * [1, 1, -1], np.asarray(hemisphere.faces)[:, ::-1])

@@ -153,6 +153,13 @@ def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
     return _PLANS[key]
 
 
+def _row_depths(what: str, index: MeshIndex) -> tuple[int, ...]:
+    """The depth of the pairs each row capacity of a search's plan is made from, after its
+    pair capacities (`search.grown`): the leaf rows of the closest search; the far rows
+    at each depth, then the near leaf rows, of the winding search (`winding.winding_sums`)."""
+    return (0,) if what == "closest" else (*range(len(index.levels)), 0)
+
+
 def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
     """Runs the search ``body(index, points, caps=..., **static) -> (result, lost, needs)``
     over flattened points [n, 3] with the plan's capacities; on concrete inputs, again with
@@ -177,7 +184,7 @@ def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
         result, lost, needs = run(caps)
         if not host or not np.asarray(lost).any():
             return (result, lost) if parts == 1 else jax.tree_util.tree_map(lambda x: x[:n], (result, lost))
-        caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0))
+        caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0), _row_depths(what, index))
     raise JaxvoxError(f"{what} search: capacities {caps} still too small after growing them (a bug)")
 
 

@@ -231,9 +231,24 @@ def descend(select, nb: int, levels, pair_caps: tuple[int, ...]):
     return pairs, keep, lost, jnp.stack(needs[::-1]) if needs else jnp.zeros(0, jnp.int32)
 
 
-def grown(caps: tuple[int, ...], needs) -> tuple[int, ...]:
+def grown(caps: tuple[int, ...], needs, row_depths: tuple[int, ...]) -> tuple[int, ...]:
     """Capacities after a run that needed `needs` (host ints): each at least its need with
-    a quarter to spare, on the shape ladder; never smaller than before."""
+    a quarter to spare, on the shape ladder; never smaller than before.
+
+    The first ``len(caps) - len(row_depths)`` entries are the pairs at each depth (leaves
+    first, `descend`); each other entry holds rows made from the pairs at depth
+    ``row_depths[i]``. A level whose pairs overflowed by a factor r passed on only 1/r of
+    them, so every need that depends on it (the pairs below it, the rows of its depth and
+    below) is scaled by r: one retry then usually fits every level, instead of one more
+    level per retry.
+    """
+    import math
+
     from jaxvox._core.shapes import bucket
 
-    return tuple(max(c, bucket(int(n) + int(n) // 4)) for c, n in zip(caps, needs))
+    n_pairs = len(caps) - len(row_depths)
+    over = [max(1.0, int(n) / c) for c, n in zip(caps[:n_pairs], needs[:n_pairs])]
+    above = lambda depth: math.prod(over[depth:])  # the overflow of the pairs at this depth and above
+    scale = [above(d + 1) for d in range(n_pairs)] + [above(d) for d in row_depths]
+    estimate = [math.ceil(int(n) * f) for n, f in zip(needs, scale)]
+    return tuple(max(c, bucket(n + n // 4)) for c, n in zip(caps, estimate))
