@@ -118,6 +118,36 @@ def test_triangle_rows_of_slivers():
     np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
 
 
+def test_triangle_rows_of_needles():
+    """Needles along the grid's axes (integer corners, a short edge bc across the needle,
+    1e-13..1e-9 of its length) and points on the needle's line beyond either end. Found by
+    hypothesis (`test_points.py`): with ab . ac = |ab|^2 and |ac|^2 = |ab|^2 in float64,
+    the dual basis by dot products lost its component along the needle, and such a point
+    read as inside at distance 0. `rows_dist2` equals the float64 distance."""
+    from jaxvox._core.geometry import rows_dist2, triangle_rows
+    from tests.reference import closest_point_on_triangles
+
+    rng = np.random.default_rng(2)
+    n = 2000
+    axis = rng.integers(0, 3, n)
+    across = (axis + rng.integers(1, 3, n)) % 3
+    length = rng.integers(1, 9, n) * rng.choice([-1.0, 1.0], n)
+    a = rng.integers(0, 16, (n, 3)).astype(np.float64)
+    ab = np.zeros((n, 3))
+    ab[np.arange(n), axis] = length
+    off = np.zeros((n, 3))
+    off[np.arange(n), across] = np.abs(length) * 10.0 ** rng.uniform(-13, -9, n)
+    tris = np.stack([a, a + ab, a + ab + off], 1)
+    assert (np.linalg.norm(np.cross(tris[:, 1] - a, tris[:, 2] - a), axis=1) > 0).all()
+    beyond = np.where(rng.random((n, 1)) < 0.5, -rng.uniform(0.05, 1, (n, 1)), 1 + rng.uniform(0.05, 1, (n, 1)))
+    p = a + ab * beyond
+    rows = triangle_rows(tris)
+    zero = (jnp.float32(0),) * 3
+    d2 = jax.jit(rows_dist2)(tuple(jnp.asarray(p[:, k], jnp.float32) for k in range(3)), tuple(rows), zero)
+    ref = np.linalg.norm(p - closest_point_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2]), axis=1)
+    np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
+
+
 @pytest.mark.parametrize("method", list(BOUNDS))
 def test_point_sites_are_the_edt(method):
     """Zero-area triangles at voxel centres: the exact field is scipy's EDT of those voxels."""

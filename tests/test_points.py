@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import jaxvox as jv
@@ -315,6 +315,8 @@ def test_a_second_mesh_of_the_same_bucket_compiles_nothing(sphere, hemisphere):
     st.lists(st.floats(-1, 1, width=32), min_size=27, max_size=27),
     st.integers(0, 2**31 - 1),
 )
+# a needle that the points' leaves read as inside at distance 0 (`triangle_rows`)
+@example(coords=[0.5, *[0.0] * 7, 1e-12, *[0.0] * 15, 1.0, 0.0, 0.0], seed=0)
 def test_random_triangles_hypothesis(coords, seed):
     v = np.asarray(coords, np.float32).reshape(9, 3)
     f = np.arange(9, dtype=np.int32).reshape(3, 3)

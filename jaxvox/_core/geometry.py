@@ -152,7 +152,7 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
     ab, ac, bc = b - a, c - a, c - b
     dot = lambda x, y: np.einsum("ij,ij->i", x, y)
-    d00, d01, d11 = dot(ab, ab), dot(ab, ac), dot(ac, ac)
+    d00, d11 = dot(ab, ab), dot(ac, ac)
     normal = np.cross(ab, ac)
     area2 = dot(normal, normal)
     proper = area2 > 0
@@ -160,8 +160,12 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     # the cancellation that makes the difference 0 for a sliver of nonzero area
     den = np.where(proper, area2, 1.0)[:, None]
     keep = proper[:, None]
-    u = np.where(keep, (d11[:, None] * ab - d01[:, None] * ac) / den, 0.0)
-    v = np.where(keep, (d00[:, None] * ac - d01[:, None] * ab) / den, 0.0)
+    # u, v: the gradients of b's and c's barycentric coordinates, normal x (the edge
+    # opposite) over |normal|^2, as accurate as the normal; the dot-product form
+    # ``(|ac|^2 ab - (ab . ac) ac) / den`` cancels to nothing in float64 for a needle
+    # across which ab . ac and |ac|^2 round to |ab|^2
+    u = np.where(keep, np.cross(normal, -ac) / den, 0.0)
+    v = np.where(keep, np.cross(normal, ab) / den, 0.0)
     n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
     inverse = [np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0)[:, None] for ee in (d00, d11, dot(bc, bc))]
     a_hi = a.astype(np.float32)
