@@ -92,6 +92,18 @@ def test_exact_matches_float64_on_hard_cases():
             assert err.max() <= above and err.min() >= -BOUNDS[method][1], (method, err.min(), err.max())
 
 
+def _check_rows_dist2(rows, tris, p):
+    """`rows_dist2` of `triangle_rows` rows at points p [n, 3] (grid units) is the float64
+    distance to triangles tris [n, 3, 3], within 1e-4."""
+    from jaxvox._core.geometry import rows_dist2
+    from tests.reference import closest_point_on_triangles
+
+    zero = (jnp.float32(0),) * 3
+    d2 = jax.jit(rows_dist2)(tuple(jnp.asarray(p[:, k], jnp.float32) for k in range(3)), tuple(rows), zero)
+    ref = np.linalg.norm(p - closest_point_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2]), axis=1)
+    np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
+
+
 def test_triangle_rows_of_slivers():
     """`triangle_rows` of slivers (nonzero area, third vertex within 1e-9..1e-6 grid units
     of the first edge's line): finite, no RuntimeWarning, and `rows_dist2` equals the
@@ -99,8 +111,7 @@ def test_triangle_rows_of_slivers():
     (ab . ac)^2, which cancels to 0 for such triangles."""
     import warnings
 
-    from jaxvox._core.geometry import rows_dist2, triangle_rows
-    from tests.reference import closest_point_on_triangles
+    from jaxvox._core.geometry import triangle_rows
 
     rng = np.random.default_rng(1)
     a, ab = rng.uniform(0, 16, (2000, 3)), rng.uniform(-8, 8, (2000, 3))
@@ -112,10 +123,7 @@ def test_triangle_rows_of_slivers():
         warnings.simplefilter("error")
         rows = triangle_rows(tris)
     assert np.isfinite(rows).all()
-    zero = (jnp.float32(0),) * 3
-    d2 = jax.jit(rows_dist2)(tuple(jnp.asarray(p[:, k], jnp.float32) for k in range(3)), tuple(rows), zero)
-    ref = np.linalg.norm(p - closest_point_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2]), axis=1)
-    np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
+    _check_rows_dist2(rows, tris, p)
 
 
 def test_triangle_rows_of_needles():
@@ -124,8 +132,7 @@ def test_triangle_rows_of_needles():
     hypothesis (`test_points.py`): with ab . ac = |ab|^2 and |ac|^2 = |ab|^2 in float64,
     the dual basis by dot products lost its component along the needle, and such a point
     read as inside at distance 0. `rows_dist2` equals the float64 distance."""
-    from jaxvox._core.geometry import rows_dist2, triangle_rows
-    from tests.reference import closest_point_on_triangles
+    from jaxvox._core.geometry import triangle_rows
 
     rng = np.random.default_rng(2)
     n = 2000
@@ -141,11 +148,7 @@ def test_triangle_rows_of_needles():
     assert (np.linalg.norm(np.cross(tris[:, 1] - a, tris[:, 2] - a), axis=1) > 0).all()
     beyond = np.where(rng.random((n, 1)) < 0.5, -rng.uniform(0.05, 1, (n, 1)), 1 + rng.uniform(0.05, 1, (n, 1)))
     p = a + ab * beyond
-    rows = triangle_rows(tris)
-    zero = (jnp.float32(0),) * 3
-    d2 = jax.jit(rows_dist2)(tuple(jnp.asarray(p[:, k], jnp.float32) for k in range(3)), tuple(rows), zero)
-    ref = np.linalg.norm(p - closest_point_on_triangles(p, tris[:, 0], tris[:, 1], tris[:, 2]), axis=1)
-    np.testing.assert_allclose(np.sqrt(np.asarray(d2)), ref, atol=1e-4)
+    _check_rows_dist2(triangle_rows(tris), tris, p)
 
 
 @pytest.mark.parametrize("method", list(BOUNDS))

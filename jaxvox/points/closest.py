@@ -35,7 +35,7 @@ def closest_slots(index: MeshIndex, blocks: search.Blocks, caps: tuple[int, ...]
     """The closest triangle of every sorted point (module docstring), traced.
 
     `caps`: static capacities, the pairs at each depth below the root (leaves first) and
-    then the leaf rows (`capacity_count` entries). ``Found.needs`` says what each needed.
+    then the leaf rows (`row_depths`). ``Found.needs`` says what each needed.
     """
     nb = blocks.p.shape[1]
     bound = [jnp.full(nb, jnp.inf, jnp.float32)]  # the blocks' bounds, as the walk tightens them
@@ -60,9 +60,10 @@ def closest_slots(index: MeshIndex, blocks: search.Blocks, caps: tuple[int, ...]
     return Found(best, slot, lost | dropped, jnp.concatenate([needs, rows.needed[None]]))
 
 
-def capacity_count(index: MeshIndex) -> int:
-    """How many capacities `closest_slots` takes: one per depth below the root, and the rows."""
-    return len(index.levels)
+def row_depths(index: MeshIndex) -> tuple[int, ...]:
+    """The depths of the pairs that each row capacity of `closest_slots` is made from,
+    after its pair capacities (one per depth below the root): the leaf rows."""
+    return (0,)
 
 
 def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, depth: int, u):

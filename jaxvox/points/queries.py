@@ -138,6 +138,7 @@ def _host(*trees) -> bool:
     return all(is_concrete(x) for x in jax.tree_util.tree_leaves(trees))
 
 
+_ROW_DEPTHS = {"closest": closest.row_depths, "winding": winding.row_depths}  # a plan's rows, after its pairs
 _PLANS: dict[tuple, tuple[int, ...]] = {}  # (what, face capacity, blocks) -> capacities that sufficed
 
 
@@ -146,18 +147,10 @@ def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
     defaults (pairs per block by depth, `DEFAULT_PAIRS`; rows per block, `DEFAULT_ROWS`)."""
     key = (what, index.capacity, nb)  # (beta changes the program, not its capacities)
     if key not in _PLANS:
-        depths = len(index.levels)
         pairs = tuple(bucket(nb * min(size, DEFAULT_PAIRS[what])) for _, size in index.levels[:-1])
         rows = bucket(nb * DEFAULT_ROWS[what])
-        _PLANS[key] = pairs + (rows,) * (1 if what == "closest" else depths + 1)
+        _PLANS[key] = pairs + (rows,) * len(_ROW_DEPTHS[what](index))
     return _PLANS[key]
-
-
-def _row_depths(what: str, index: MeshIndex) -> tuple[int, ...]:
-    """The depth of the pairs each row capacity of a search's plan is made from, after its
-    pair capacities (`search.grown`): the leaf rows of the closest search; the far rows
-    at each depth, then the near leaf rows, of the winding search (`winding.winding_sums`)."""
-    return (0,) if what == "closest" else (*range(len(index.levels)), 0)
 
 
 def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
@@ -184,7 +177,7 @@ def _searched(what: str, body, index: MeshIndex, flat, block: int, **static):
         result, lost, needs = run(caps)
         if not host or not np.asarray(lost).any():
             return (result, lost) if parts == 1 else jax.tree_util.tree_map(lambda x: x[:n], (result, lost))
-        caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0), _row_depths(what, index))
+        caps = _PLANS[key] = search.grown(caps, np.asarray(needs).max(0), _ROW_DEPTHS[what](index))
     raise JaxvoxError(f"{what} search: capacities {caps} still too small after growing them (a bug)")
 
 

@@ -16,13 +16,14 @@ again with the capacities the lost blocks needed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxvox._core.shapes import expand_counts
+from jaxvox._core.shapes import bucket, expand_counts
 from jaxvox.points.index import FAN_OUT, MeshIndex
 
 BLOCK = 32  # points per block (design history: 16 and 64 were slower)
@@ -242,10 +243,6 @@ def grown(caps: tuple[int, ...], needs, row_depths: tuple[int, ...]) -> tuple[in
     below) is scaled by r: one retry then usually fits every level, instead of one more
     level per retry.
     """
-    import math
-
-    from jaxvox._core.shapes import bucket
-
     n_pairs = len(caps) - len(row_depths)
     over = [max(1.0, int(n) / c) for c, n in zip(caps[:n_pairs], needs[:n_pairs])]
     above = lambda depth: math.prod(over[depth:])  # the overflow of the pairs at this depth and above

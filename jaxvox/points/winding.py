@@ -38,7 +38,7 @@ def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tup
     bool blocks that lost pairs or rows to a capacity (their values are incomplete), and
     [len(caps)] int32 what each capacity needed; traced.
 
-    `caps`: static capacities (`capacity_count` entries): the pairs at each depth below
+    `caps`: static capacities (the pairs below the root, then `row_depths`): the pairs at each depth below
     the root (leaves first), the far rows at each depth (leaves first), the near leaf rows.
     """
     nb = blocks.p.shape[1]
@@ -68,9 +68,11 @@ def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tup
     return w, _add(err, far, de, nb), lost | dropped | jnp.any(jnp.stack(far_lost), 0), needed
 
 
-def capacity_count(index: MeshIndex) -> int:
-    """How many capacities `winding_sums` takes."""
-    return 2 * len(index.levels)
+def row_depths(index: MeshIndex) -> tuple[int, ...]:
+    """The depths of the pairs that each row capacity of `winding_sums` is made from,
+    after its pair capacities (one per depth below the root): the far rows at each depth
+    (leaves first), then the near leaf rows."""
+    return (*range(len(index.levels)), 0)
 
 
 def _split(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, depth: int, beta: float):

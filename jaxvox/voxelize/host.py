@@ -162,9 +162,15 @@ def _sort_region(parts, with_ids: bool):
     keys, *payload = (np.concatenate([part[i] for part in parts]) for i in range(len(parts[0])))
     order = np.lexsort((payload[1], payload[0], keys))
     keys, tri = keys[order], payload[1][order]
-    written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
-    first = morton.run_starts(keys[:written])
+    first, written = _distinct_written(keys)
     return keys[first], tri[first].astype(np.int32), written
+
+
+def _distinct_written(keys: np.ndarray) -> tuple[np.ndarray, int]:
+    """Of sorted keys [n] uint32: the first index of each distinct written key (int64) and
+    the number of written ones (keys other than `morton.EMPTY`, the largest, which sorts last)."""
+    written = int(np.searchsorted(keys, morton.EMPTY))
+    return morton.run_starts(keys[:written]), written
 
 
 class _SortedKeys(NamedTuple):
@@ -177,9 +183,8 @@ def _sorted_keys(part: tuple[np.ndarray, ...]) -> _SortedKeys:
     distinct: a region's parts are sorted one by one as they come (on the worker
     thread, while the next ones are emitted), then merged (`_sort_region`)."""
     keys = np.sort(part[0])
-    written = int(np.searchsorted(keys, morton.EMPTY))  # EMPTY, the largest key, sorts last
-    keys = keys[:written]
-    return _SortedKeys(keys[morton.run_starts(keys)], written)
+    first, written = _distinct_written(keys)
+    return _SortedKeys(keys[first], written)
 
 
 def region_coords(keys: np.ndarray, region_lo, out: np.ndarray | None = None) -> np.ndarray:
