@@ -240,8 +240,8 @@ def grown(caps: tuple[int, ...], needs, row_depths: tuple[int, ...]) -> tuple[in
     first, `descend`); each other entry holds rows made from the pairs at depth
     ``row_depths[i]``. A level whose pairs overflowed by a factor r passed on only 1/r of
     them, so every need that depends on it (the pairs below it, the rows of its depth and
-    below) is scaled by r: one retry then usually fits every level, instead of one more
-    level per retry.
+    below) is scaled by r, so that a retry can fit the levels below an overflow too
+    rather than one more level per retry.
     """
     n_pairs = len(caps) - len(row_depths)
     over = [max(1.0, int(n) / c) for c, n in zip(caps[:n_pairs], needs[:n_pairs])]
