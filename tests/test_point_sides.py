@@ -107,7 +107,8 @@ def test_caps_close_every_boundary_loop():
     assert len(sides.cap_triangles(v, np.asarray(tm.faces))[0]) == 0
 
 
-def test_many_points_take_the_cells_and_agree_with_the_per_point_path(meshes_dir):
+def test_many_points_take_the_cells_and_agree_with_the_per_point_path(meshes_dir, monkeypatch):
+    monkeypatch.setattr(queries, "GRID_MIN", 8192)
     """occupancy and signed_distance with at least GRID_MIN points (the cells) against
     query_points (winding numbers for every point), NaN points included."""
     mesh = jv.load_mesh(meshes_dir / "suzanne.obj")

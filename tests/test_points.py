@@ -384,21 +384,24 @@ def _half_sphere_query(path) -> None:
     np.savez(path, sd=np.asarray(q.signed_distance), tri=np.asarray(q.closest.triangle), w=np.asarray(q.winding))
 
 
-def test_split_over_two_devices_matches_one(tmp_path):
+def test_split_over_two_devices_matches_one(tmp_path, monkeypatch):
     """A concrete query with two JAX devices (one program, half the points on each) gives
     the one-device answer (this process's): the same closest triangles and signed
     distances; the fast winding numbers (blocks differ, so their far fields do) within
-    their error."""
+    their error. SPLIT_MIN is lowered to 1024 in both processes: the same split at a
+    sixteenth of the points."""
     import subprocess
     import sys
 
     code = (
         "import sys, jax; jax.config.update('jax_num_cpu_devices', 2)\n"
+        "from jaxvox.points import queries; queries.SPLIT_MIN = 1024\n"
         "from tests.test_points import _half_sphere_query; _half_sphere_query(sys.argv[1])"
     )
     root = pathlib.Path(__file__).resolve().parents[1]
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "2.npz")], check=True, cwd=root)
     assert jax.device_count() == 1
+    monkeypatch.setattr(jp.queries, "SPLIT_MIN", 1024)
     _half_sphere_query(tmp_path / "1.npz")
     one, two = np.load(tmp_path / "1.npz"), np.load(tmp_path / "2.npz")
     for key in ("sd", "tri"):
