@@ -219,6 +219,7 @@ POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
 F32_CLOSE = 1e-5  # float32 brute-force winding numbers this close to 1/2 are summed in float64,
 F32_CLOSE_PER_TRIANGLE = 3e-10  # and this much closer per triangle (`exact_winding_numbers`)
 HOST_POINTS = 4  # `exact_winding_numbers` of at most this many points: float64 on the host, not a padded kernel chunk
+FEW_POINTS = 32  # smallest chunk of `brute_force_winding_numbers` (a few points: not padded to the ladder's floor)
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
 
 
@@ -355,15 +356,13 @@ def point_winding_numbers(
     if not len(points) or not len(tris):
         return np.zeros(len(points), np.float32)
     tree = point_tree(np.asarray(tris, np.float64)) if tree is None else tree
-    values, flags = [], []
     width = chunk_rows(len(points), POINT_CHUNK)
+    started = []  # every chunk dispatched before the first is waited for: their kernels overlap
     for s in range(0, len(points), width):
-        part = points[s : s + width]
-        w, c = _point_tree_sum(tree, jax.device_put(pad_rows(part.astype(np.float32), width)), beta=float(beta))
-        values.append(np.asarray(w)[: len(part)])
-        flags.append(np.asarray(c)[: len(part)])
-    out = np.concatenate(values)
-    crowded = np.flatnonzero(np.concatenate(flags))
+        chunk = jax.device_put(pad_rows(points[s : s + width].astype(np.float32), width))
+        started.append(_point_tree_sum(tree, chunk, beta=float(beta)))
+    out = np.concatenate([np.asarray(w) for w, _ in started])[: len(points)]
+    crowded = np.flatnonzero(np.concatenate([np.asarray(c) for _, c in started])[: len(points)])
     if len(crowded):
         out[crowded] = brute_force_winding_numbers(tris, points[crowded])
     return out
@@ -372,10 +371,11 @@ def point_winding_numbers(
 def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
     [F, 3, 3] (host arrays), `chunk` points per call (default: at most `POINT_CHUNK`, fewer
-    for a few points; a fixed chunk keeps one compiled program per triangle count)."""
+    for a few points, down to `FEW_POINTS`; a fixed chunk keeps one compiled program per
+    triangle count)."""
     parts = triangle_blocks(np.asarray(tris, np.float64), 0.0)  # zero-area padding
     out = []
-    size = chunk or min(bucket(len(points)), POINT_CHUNK)  # a few points: a small chunk
+    size = chunk or min(bucket(len(points), FEW_POINTS), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):
         part = np.asarray(points[s : s + size], np.float32)
         out.append(np.asarray(_brute_force(parts, jax.device_put(pad_rows(part, size))))[: len(part)])
