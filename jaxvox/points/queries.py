@@ -53,7 +53,7 @@ from jaxvox.points.index import MeshIndex, mesh_index
 Sign = Literal["winding", "pseudonormal"]
 SIGNS = ("winding", "pseudonormal")
 DEFAULT_PAIRS = {"closest": 256, "winding": 512}  # first plan: pairs per block
-DEFAULT_ROWS = {"closest": 16, "winding": 32}  # first plan: rows per block
+DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
 SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
