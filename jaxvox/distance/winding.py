@@ -371,8 +371,8 @@ def point_winding_numbers(
 def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
     [F, 3, 3] (host arrays), `chunk` points per call (default: at most `POINT_CHUNK`, fewer
-    for a few points, down to `FEW_POINTS`; a fixed chunk keeps one compiled program per
-    triangle count)."""
+    for a few points, down to `FEW_POINTS`, on the shape ladder: a few compiled programs
+    per triangle count; a fixed `chunk` keeps one)."""
     parts = triangle_blocks(np.asarray(tris, np.float64), 0.0)  # zero-area padding
     out = []
     size = chunk or min(bucket(len(points), FEW_POINTS), POINT_CHUNK)  # a few points: a small chunk
