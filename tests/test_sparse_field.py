@@ -416,8 +416,8 @@ def test_regions_change_nothing(meshes_dir, name, resolution, monkeypatch):
     and merged into the DAG alone), the field equals the one built whole, and its tree is
     `build_dag` of its voxels (the canonical DAG). Where the system refuses to reserve
     the field's buffers, the regions are joined instead: the same field, padding
-    included. A closed mesh (the cow) and an open one (the teapot, signed by winding
-    numbers)."""
+    included. The cow (closed, with crossing triangles) and the teapot (open): both signed
+    by winding numbers of components."""
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
     grid = jv.Grid.fit(mesh, resolution)
     region = resolution // 2
