@@ -174,15 +174,17 @@ def _behind(ijk, tri, corners, normals):
     return sum((pk - qk) * nk for pk, qk, nk in zip(p, q, n)) < 0
 
 
-@functools.partial(jax.jit, static_argnames=("distance", "slope"))
-def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool = False):
+@functools.partial(jax.jit, static_argnames="distance")
+def _cap_terms(points, blocks, rows, radius, *, distance: bool):
     """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
     [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`; each a fan triangle
     (centre, b, a) over a boundary edge a -> b), and with `distance` also the squared
     distance [P] float32 to the nearest of them (rows [n, 28, BRUTE_FORCE_BLOCK]: their
-    `triangle_rows`); both relative to the points. With `slope` also the bound [P]
-    float32 on the term's gradient in the ball of radius `radius` ([] float32) about each
-    point (inf where a boundary edge comes that close; see `Components.blocked_cap_terms`)."""
+    `triangle_rows`), both relative to the points, and the bound [P] float32 on the
+    term's gradient in the ball of radius `radius` ([] float32) about each point (inf
+    where a boundary edge comes that close; see `Components.blocked_cap_terms`). One
+    program gives distances with and without the bound: the bound costs little beside
+    the distances, and a program of its own cost a compile on a mesh's first call."""
     p = [points[None, :, k] for k in range(3)]  # points along the minor axis (as `winding._brute_force`)
     zero = [jnp.float32(0)] * 3
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
@@ -192,9 +194,8 @@ def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool
         corners, tri_rows = block
         centre, b, a = relative_corners(corners[:, :, None], p)  # [block, P]
         w = w + jnp.sum(solid_angle_parts(centre, b, a), 0)
-        if distance:
+        if distance:  # and the bound: over the edges, sum len / (4 pi gap^2), gap = distance to the edge - radius
             d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows[:, :, None]), p), 0))
-        if slope:  # sum over the edges of len / (4 pi gap^2), gap = distance to the edge - radius
             ab = tuple(y - x for x, y in zip(a, b))
             length2 = dot(ab, ab)
             t = jnp.clip(-dot(a, ab) / jnp.where(length2 > 0, length2, 1.0), 0.0, 1.0)
@@ -207,7 +208,7 @@ def _cap_terms(points, blocks, rows, radius=None, *, distance: bool, slope: bool
     n = points.shape[0]
     start = (jnp.zeros(n, jnp.float32), jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, jnp.float32))
     w, d2, bound = jax.lax.scan(step, start, (blocks, rows))[0]
-    return (w, d2, bound) if slope else (w, d2) if distance else w
+    return (w, d2, bound) if distance else w
 
 
 def longest_edges(tris: np.ndarray) -> np.ndarray:
@@ -501,14 +502,14 @@ class Components:
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
         also the squared distance [P] to the nearest cap; with a `radius` also the bound of
         `_cap_terms` on the term's gradient within it."""
-        slope = radius is not None
-        return _chunked(
-            functools.partial(_cap_terms, distance=distance, slope=slope),
+        out = _chunked(
+            functools.partial(_cap_terms, distance=distance),
             points.astype(np.float32),
             self.blocks,
             self.rows,
-            np.float32(radius) if slope else None,
+            np.float32(radius or 0.0),
         )
+        return out[:2] if distance and radius is None else out
 
     def blocked_cap_terms(self, ijk: np.ndarray, keys: np.ndarray, gap: np.ndarray):
         """The caps' winding numbers and distances at voxels ijk [n, 3] (Morton order,
