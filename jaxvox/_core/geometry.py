@@ -173,10 +173,11 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
 
 
-def rows_dist2(p, r, o):
+def rows_dist2(p, r, o, *, edge_bc: bool = False):
     """Squared distance from points p (3 arrays, grid units relative to o) to triangles
     given by `triangle_rows` rows r (28 arrays, broadcast against p), o: 3 float32 arrays
-    the origin the points are relative to."""
+    the origin the points are relative to; with `edge_bc` also the squared distance to
+    each triangle's edge bc (a pair of arrays)."""
     dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
     q = tuple(p[k] - ((r[k] - o[k]) + r[3 + k]) for k in range(3))  # p - a
     ab, ac, bc, u, v, n = (tuple(r[6 + 3 * i + k] for k in range(3)) for i in range(6))
@@ -187,7 +188,9 @@ def rows_dist2(p, r, o):
         return dot(off, off)
 
     qb = tuple(qi - ei for qi, ei in zip(q, ab))
-    edges = jnp.minimum(jnp.minimum(segment(q, ab, r[24]), segment(q, ac, r[25])), segment(qb, bc, r[26]))
+    to_bc = segment(qb, bc, r[26])
+    edges = jnp.minimum(jnp.minimum(segment(q, ab, r[24]), segment(q, ac, r[25])), to_bc)
     s, t, h = dot(q, u), dot(q, v), dot(q, n)
     inside = (s >= 0) & (t >= 0) & (s + t <= 1) & (r[27] > 0)
-    return jnp.where(inside, jnp.minimum(h * h, edges), edges)
+    d2 = jnp.where(inside, jnp.minimum(h * h, edges), edges)
+    return (d2, to_bc) if edge_bc else d2

@@ -187,21 +187,20 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
     the distances, and a program of its own cost a compile on a mesh's first call."""
     p = [points[None, :, k] for k in range(3)]  # points along the minor axis (as `winding._brute_force`)
     zero = [jnp.float32(0)] * 3
-    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
     def step(carry, block):
         w, d2, bound = carry
         corners, tri_rows = block
-        centre, b, a = relative_corners(corners[:, :, None], p)  # [block, P]
-        w = w + jnp.sum(solid_angle_parts(centre, b, a), 0)
-        if distance:  # and the bound: over the edges, sum len / (4 pi gap^2), gap = distance to the edge - radius
-            d2 = jnp.minimum(d2, jnp.min(rows_dist2(zero, list(tri_rows[:, :, None]), p), 0))
-            ab = tuple(y - x for x, y in zip(a, b))
-            length2 = dot(ab, ab)
-            t = jnp.clip(-dot(a, ab) / jnp.where(length2 > 0, length2, 1.0), 0.0, 1.0)
-            nearest = tuple(x + t * e for x, e in zip(a, ab))  # the edge's point nearest to the centre
-            gap = jnp.sqrt(dot(nearest, nearest)) - radius
-            term = jnp.sqrt(length2) / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
+        w = w + jnp.sum(solid_angle_parts(*relative_corners(corners[:, :, None], p)), 0)  # [block, P] summed
+        if distance:
+            near2, edge2 = rows_dist2(zero, list(tri_rows[:, :, None]), p, edge_bc=True)
+            d2 = jnp.minimum(d2, jnp.min(near2, 0))
+            # The bound: over the boundary edges a -> b (each fan triangle's edge bc), the sum
+            # of len / (4 pi gap^2), gap = distance to the edge - radius.
+            inverse = tri_rows[26, :, None]  # 1 / |bc|^2, 0 for a point edge
+            length = jnp.where(inverse > 0, jax.lax.rsqrt(jnp.where(inverse > 0, inverse, 1.0)), 0.0)
+            gap = jnp.sqrt(edge2) - radius
+            term = length / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
             bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), 0)
         return (w, d2, bound), None
 
