@@ -20,7 +20,14 @@ from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox import morton
-from jaxvox.distance.band_sign import CAP_BOUND, MOVE, Components, nested_shells, pseudo_normals
+from jaxvox.distance.band_sign import (
+    CAP_BOUND,
+    MOVE,
+    Components,
+    nested_shells,
+    pseudo_normals,
+    pseudonormal_sides_exact,
+)
 from jaxvox.distance.sparse import SLOTS, TILE, UNUSED_VALUE
 from jaxvox.distance.topology import boundary_chain, welded_faces
 from tests.reference import mesh_distance, winding_number
@@ -410,15 +417,17 @@ def test_cap_blocks_settle_only_where_the_bound_holds():
     np.testing.assert_allclose(got[off], exact[off], atol=1e-4)
 
 
-@pytest.mark.parametrize("name, resolution", [("cow", 32), ("teapot", 64)])
+@pytest.mark.parametrize("name, resolution", [("cow", 32), ("teapot", 64), ("spot", 32)])
 def test_regions_change_nothing(meshes_dir, name, resolution, monkeypatch):
-    """Built in 8 regions (each region's voxels distanced, signed by its own components
-    and merged into the DAG alone), the field equals the one built whole, and its tree is
+    """Built in 8 regions (each region's voxels distanced, signed on its own and merged
+    into the DAG alone), the field equals the one built whole, and its tree is
     `build_dag` of its voxels (the canonical DAG). Where the system refuses to reserve
     the field's buffers, the regions are joined instead: the same field, padding
-    included. The cow (closed, with crossing triangles) and the teapot (open): both signed
-    by winding numbers of components."""
+    included. The cow (closed, with crossing triangles) and the teapot (open) are signed
+    by winding numbers of components, spot (watertight, no crossings) by pseudo-normal
+    sides."""
     mesh = jv.load_mesh(meshes_dir / f"{name}.obj")
+    assert pseudonormal_sides_exact(np.asarray(mesh.vertices), np.asarray(mesh.faces)) == (name == "spot")
     grid = jv.Grid.fit(mesh, resolution)
     region = resolution // 2
     whole = jv.sparse_distance_field(mesh, grid, band=3)
