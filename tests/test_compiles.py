@@ -74,3 +74,24 @@ def test_counting_sees_compiles():
     with count_compiles() as again:
         f(np.ones(7919, np.float32)).block_until_ready()
     assert first[0] >= 1 and again[0] == 0
+
+
+def test_sparse_fields_of_meshes_with_new_holes_compile_nothing(meshes_dir):
+    """Spot with holes of new shapes (other numbers of cap triangles, the same face
+    bucket) runs the sparse field's programs of the first holed spot: the caps' blocks
+    are on the shape ladder (`jaxvox.distance.winding.TriangleBlocks`), and each field
+    still has an inside."""
+    spot = jv.load_mesh(meshes_dir / "spot.obj")
+    faces = np.asarray(spot.faces)
+
+    def field(every: int) -> jv.SparseField:
+        """Spot without every `every`-th face (a hole each), at 16^3."""
+        mesh = jv.Mesh(np.asarray(spot.vertices), np.delete(faces, np.s_[::every], axis=0))
+        return jax.block_until_ready(jv.sparse_distance_field(mesh, jv.Grid.fit(mesh, 16), band=2))
+
+    field(50)  # warm-up: 117 holes
+    for every in (9, 20):  # 650 and 293 holes
+        with count_compiles() as n:
+            got = field(every)
+        assert (np.asarray(got.values[: int(got.count)]) < 0).any()
+        assert n[0] == 0, f"{n[0]} programs compiled for spot without every {every}th face"

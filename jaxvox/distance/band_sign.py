@@ -176,11 +176,11 @@ def _behind(ijk, tri, corners, normals):
 
 @functools.partial(jax.jit, static_argnames="distance")
 def _cap_terms(points, blocks, rows, radius, *, distance: bool):
-    """Winding number [P] float32 at points [P, 3] of the cap triangles blocks
-    [n, 18, BRUTE_FORCE_BLOCK] (corners' xyz rows, `split_rows`; each a fan triangle
-    (centre, b, a) over a boundary edge a -> b), and with `distance` also the squared
-    distance [P] float32 to the nearest of them (rows [n, 28, BRUTE_FORCE_BLOCK]: their
-    `triangle_rows`), both relative to the points, and the bound [P] float32 on the
+    """Winding number [P] float32 at points [P, 3] of the cap triangles `blocks`
+    (`jaxvox.distance.winding.TriangleBlocks` of the corners' xyz rows, `split_rows`; each
+    a fan triangle (centre, b, a) over a boundary edge a -> b), and with `distance` also
+    the squared distance [P] float32 to the nearest of them (`rows`: the same blocks of
+    their `triangle_rows`), both relative to the points, and the bound [P] float32 on the
     term's gradient in the ball of radius `radius` ([] float32) about each point (inf
     where a boundary edge comes that close; see `Components.blocked_cap_terms`). One
     program gives distances with and without the bound: the bound costs little beside
@@ -188,9 +188,9 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
     p = [points[None, :, k] for k in range(3)]  # points along the minor axis (as `winding._brute_force`)
     zero = [jnp.float32(0)] * 3
 
-    def step(carry, block):
+    def step(i, carry):
         w, d2, bound = carry
-        corners, tri_rows = block
+        corners, tri_rows = blocks.rows[i], rows.rows[i]
         w = w + jnp.sum(solid_angle_parts(*relative_corners(corners[:, :, None], p)), 0)  # [block, P] summed
         if distance:
             near2, edge2 = rows_dist2(zero, list(tri_rows[:, :, None]), p, edge_bc=True)
@@ -202,11 +202,11 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
             gap = jnp.sqrt(edge2) - radius
             term = length / (4 * jnp.pi * jnp.where(gap > 0, gap * gap, 1.0))
             bound = bound + jnp.sum(jnp.where(gap > 0, term, jnp.inf), 0)
-        return (w, d2, bound), None
+        return w, d2, bound
 
     n = points.shape[0]
     start = (jnp.zeros(n, jnp.float32), jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, jnp.float32))
-    w, d2, bound = jax.lax.scan(step, start, (blocks, rows))[0]
+    w, d2, bound = jax.lax.fori_loop(0, blocks.count, step, start)
     return (w, d2, bound) if distance else w
 
 

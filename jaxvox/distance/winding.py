@@ -221,6 +221,7 @@ F32_CLOSE_PER_TRIANGLE = 3e-10  # and this much closer per triangle (`exact_wind
 HOST_POINTS = 4  # `exact_winding_numbers` of at most this many points: float64 on the host, not a padded kernel chunk
 FEW_POINTS = 32  # smallest chunk of `brute_force_winding_numbers` (a few points: not padded to the ladder's floor)
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
+FEW_BLOCKS = 16  # `TriangleBlocks` hold at least this many blocks: one program below 4096 triangles (or caps)
 
 
 class _PointTree(NamedTuple):
@@ -277,15 +278,34 @@ def split_rows(rows: np.ndarray) -> np.ndarray:
     return np.concatenate([hi, (rows - hi).astype(np.float32)])
 
 
-def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> jax.Array:
-    """Float64 triangles [F, 3, 3] as device blocks [n, R, BRUTE_FORCE_BLOCK] of rows,
-    padded with degenerate triangles whose corners are all `pad`. `layout` maps the padded
-    triangles [F', 3, 3] to their rows [R, F'] (default: the corners' `split_rows`, R = 18;
+class TriangleBlocks(NamedTuple):
+    """Triangles as device blocks of rows for the brute-force kernels (`_brute_force`,
+    the caps' terms of `jaxvox.distance.band_sign`).
+
+    rows: [n, R, BRUTE_FORCE_BLOCK] float32, n on the shape ladder (`bucket`, at least
+    `FEW_BLOCKS`), the blocks in use first, then blocks of padding; count: [] int32 the
+    blocks in use. The kernels loop over those only, so the padding costs memory, not
+    time, and meshes of one bucket share their programs.
+    """
+
+    rows: jax.Array
+    count: jax.Array
+
+
+def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> TriangleBlocks:
+    """Float64 triangles [F, 3, 3] as `TriangleBlocks`, padded with degenerate triangles
+    whose corners are all `pad`. `layout` maps triangles [F', 3, 3] to their rows
+    [R, F'] (default: the corners' `split_rows`, R = 18;
     `jaxvox._core.geometry.triangle_rows` for distances)."""
+    layout = (lambda t: split_rows(t.reshape(-1, 9).T)) if layout is None else layout
+    count = -(-len(tris) // BRUTE_FORCE_BLOCK)
     extra = -len(tris) % BRUTE_FORCE_BLOCK
-    padded = np.concatenate([tris, np.full((extra, 3, 3), pad)])
-    rows = split_rows(padded.reshape(-1, 9).T) if layout is None else layout(padded)  # [R, F']
-    return jax.device_put(np.ascontiguousarray(rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)))
+    rows = layout(np.concatenate([tris, np.full((extra, 3, 3), pad)]))  # [R, F']
+    filler = layout(np.full((BRUTE_FORCE_BLOCK, 3, 3), pad))  # one block of padding
+    out = np.empty((bucket(count, FEW_BLOCKS), len(filler), BRUTE_FORCE_BLOCK), np.float32)
+    out[:count] = rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)
+    out[count:] = filler
+    return TriangleBlocks(jax.device_put(out), jax.device_put(np.int32(count)))
 
 
 def relative_corners(rows, p):
@@ -419,17 +439,17 @@ def host_winding_numbers(tris: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 @jax.jit
-def _brute_force(blocks, points):
-    """Sum over blocks [n, 18, BRUTE_FORCE_BLOCK] of triangle corners (`split_rows`) at
-    points [P, 3]. The points run along the minor axis ([block, P]; each triangle's rows
-    [block, 1]) and each block is summed over its major axis: XLA's CPU loops then
+def _brute_force(blocks: TriangleBlocks, points):
+    """Sum over the blocks in use of `TriangleBlocks` of triangle corners (`split_rows`)
+    at points [P, 3]. The points run along the minor axis ([block, P]; each triangle's
+    rows [block, 1]) and each block is summed over its major axis: XLA's CPU loops then
     vectorize over points (faster than [P, block] summed over its minor axis)."""
     p = [points[None, :, k] for k in range(3)]
 
-    def step(w, block):
-        return w + jnp.sum(solid_angle_parts(*relative_corners(block[:, :, None], p)), 0), None
+    def step(i, w):
+        return w + jnp.sum(solid_angle_parts(*relative_corners(blocks.rows[i][:, :, None], p)), 0)
 
-    return jax.lax.scan(step, jnp.zeros(points.shape[0], jnp.float32), blocks)[0]
+    return jax.lax.fori_loop(0, blocks.count, step, jnp.zeros(points.shape[0], jnp.float32))
 
 
 def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4) -> Float32[Array, "R R R"]:
