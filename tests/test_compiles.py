@@ -95,3 +95,16 @@ def test_sparse_fields_of_meshes_with_new_holes_compile_nothing(meshes_dir):
             got = field(every)
         assert (np.asarray(got.values[: int(got.count)]) < 0).any()
         assert n[0] == 0, f"{n[0]} programs compiled for spot without every {every}th face"
+
+
+def test_distance_fields_of_a_mesh_without_its_texture_compile_nothing(meshes_dir):
+    """A mesh's colours, uvs and texture are no part of its distance field's programs:
+    spot without them (a mesh of another pytree structure) runs textured spot's."""
+    spot = jv.load_mesh(meshes_dir / "spot.obj")
+    grid = jv.Grid.fit(spot, 16)
+    assert spot.uvs is not None and spot.texture is not None
+    want = jax.block_until_ready(jv.distance_field(spot, grid))
+    with count_compiles() as n:
+        got = jax.block_until_ready(jv.distance_field(jv.Mesh(spot.vertices, spot.faces), grid))
+    assert np.array_equal(np.asarray(got), np.asarray(want))
+    assert n[0] == 0, f"{n[0]} programs compiled for spot without its texture"

@@ -138,8 +138,10 @@ def grid_triangles(mesh: Mesh, grid: Grid):
 def padded_mesh(mesh: Mesh) -> Mesh:
     """`mesh` padded to a power-of-two number of faces with ``(0, 0, 0)`` faces (points at
     vertex 0, on the surface: they change no distance, cross no ray and subtend no solid
-    angle), so that meshes of similar size share compiled code."""
-    return pad_mesh(mesh, mesh.num_vertices, bucket(mesh.num_faces, 256))
+    angle) and of vertices (copies of vertex 0, used by no face), its geometry only (no
+    colours, uvs or texture), so that meshes of similar size share compiled code."""
+    geometry = Mesh(mesh.vertices, mesh.faces)
+    return pad_mesh(geometry, bucket(mesh.num_vertices, 256), bucket(mesh.num_faces, 256))
 
 
 def sign_method(what: str, mesh: Mesh, method: str) -> str:
