@@ -108,3 +108,15 @@ def test_distance_fields_of_a_mesh_without_its_texture_compile_nothing(meshes_di
         got = jax.block_until_ready(jv.distance_field(jv.Mesh(spot.vertices, spot.faces), grid))
     assert np.array_equal(np.asarray(got), np.asarray(want))
     assert n[0] == 0, f"{n[0]} programs compiled for spot without its texture"
+
+
+def test_solid_voxels_of_a_turned_mesh_compile_nothing(meshes_dir):
+    """The parity voxelization's capacity has a voxel list's floor: the cow turned by 35
+    degrees (other column counts) runs the program of the cow."""
+    cow = jv.load_mesh(meshes_dir / "cow.obj")
+    jax.block_until_ready(jv.solid_voxelize(cow, jv.Grid.fit(cow, 32), method="parity"))
+    turned = _rotated(cow, 35.0)
+    with count_compiles() as n:
+        inside = jax.block_until_ready(jv.solid_voxelize(turned, jv.Grid.fit(turned, 32), method="parity"))
+    assert np.asarray(inside).any()
+    assert n[0] == 0, f"{n[0]} programs compiled for the turned cow"

@@ -179,9 +179,13 @@ def parity_boxes(boxes: list) -> list[jax.Array]:
     """The "parity" inside bits of several boxes: [(tris, shape)] (a box's padded
     triangles in its grid units, [nx, ny, nz] voxels) -> [nx, ny, nz] bool each. Every
     box's crossing count, then every box's voxelization, is dispatched before any is
-    waited for (the counts size the voxelizations)."""
+    waited for (the counts size the voxelizations, with the floor of a voxel list: a
+    surface's (triangle, column) pairs number about as many as its voxels, so that the
+    meshes met at one resolution share one program)."""
     counts = [_parity_count(tris, shape=shape) for tris, shape in boxes]
-    return [_parity(tris, shape=shape, capacity=bucket(int(c))) for (tris, shape), c in zip(boxes, counts)]
+    return [
+        _parity(tris, shape=shape, capacity=voxel_bucket(int(c), max(shape))) for (tris, shape), c in zip(boxes, counts)
+    ]
 
 
 def solid_voxelize(mesh: Mesh, grid: Grid, *, method: str = "auto", beta: float = 2.0) -> Bool[Array, "R R R"]:
