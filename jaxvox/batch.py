@@ -65,6 +65,9 @@ from jaxvox.voxelize import (
 )
 
 _OPTIONAL = ("colors", "uvs", "texture")  # optional `Mesh` fields, stacked when all items have them
+# `run_batch`'s largest default capacities so far, per (resolution, mode, dag): later
+# batches start from them, so that a dataset's batches share compiled programs.
+_LARGEST_DEFAULTS: dict[tuple, tuple[Capacities, tuple[int, ...]]] = {}
 
 
 # ----------------------------------------------------------------------------- stacking
@@ -437,7 +440,11 @@ def run_batch(
       grids: one `Grid` for all items or B grids of one resolution.
       origins, directions: [B, ..., 3] float32 rays per item in world coordinates.
       capacities, tree_capacities: the starting capacities (default: `batch_capacities`,
-        which fit every item, so nothing is re-run).
+        which fit every item, so nothing is re-run, raised to the largest default
+        capacities an earlier call in this process ran with at the same resolution,
+        mode and tree kind: the batches of a dataset then run the programs of the
+        batches before them instead of compiling one each, for padding that costs some
+        memory and work; pass capacities to choose them).
       mode, dag, method, max_steps, lanes: as in `voxelize_build_trace`.
       max_tries: runs of the pipeline in all before giving up.
 
@@ -451,15 +458,22 @@ def run_batch(
     meshes = _mesh_list("run_batch", meshes)
     grid_list = _grid_list("run_batch", grids, len(meshes))
     max_tries = check_int("run_batch max_tries", max_tries, minimum=1)
+    remembered = (grid_list[0].resolution, mode, bool(dag)) if capacities is None and tree_capacities is None else None
     if capacities is None or tree_capacities is None:
         found = batch_capacities(meshes, grid_list, mode=mode)
         capacities = found[0] if capacities is None else capacities
         tree_capacities = found[1] if tree_capacities is None else tree_capacities
+    if remembered in _LARGEST_DEFAULTS:
+        before, before_tree = _LARGEST_DEFAULTS[remembered]
+        capacities = Capacities._make(max(a, b) for a, b in zip(capacities, before))
+        tree_capacities = tuple(max(a, b) for a, b in zip(tree_capacities, before_tree))
     capacities = check_capacities("run_batch capacities", capacities)
     depth = grid_list[0].resolution.bit_length() - 1
     tree_capacities = check_level_capacities("run_batch tree_capacities", tree_capacities, depth)
     # Host copies: items are picked with numpy indexing, which compiles nothing.
-    stacked = jax.device_get(stack_meshes(meshes))
+    # (their geometry only: colours, uvs and textures take no part, and would key other programs)
+    geometry = [Mesh(m.vertices, m.faces) if isinstance(m, Mesh) else m for m in meshes]  # (others: refused there)
+    stacked = jax.device_get(stack_meshes(geometry))
     grid_batch = grids if isinstance(grids, Grid) else jax.device_get(stack_grids(grid_list))
     origins, directions = np.asarray(origins, np.float32), np.asarray(directions, np.float32)
     count = len(meshes)
@@ -507,5 +521,7 @@ def run_batch(
             f"({describe(np.bitwise_or.reduce(flags))}) after {max_tries} runs; last capacities "
             f"{tuple(capacities)}, tree capacities {tree_capacities}"
         )
+    if remembered is not None:  # (at least those remembered before: they were raised to them)
+        _LARGEST_DEFAULTS[remembered] = (capacities, tuple(tree_capacities))
     hits = jax.tree.map(lambda *rows: np.stack(rows), *hit_rows)
     return BatchResult(voxels, trees, hits, tuple(retried), capacities, tuple(tree_capacities))

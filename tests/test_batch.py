@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import jaxvox as jv
+from tests.test_compiles import count_compiles
 
 RESOLUTION = 16
 NAMES = ("suzanne", "woody", "beetle", "spot")
@@ -225,6 +226,20 @@ def test_shared_grid_octrees_six_separating():
         ref = host_reference(mesh, grid, *r, mode="6-separating", dag=False)
         assert not result.trees[b].dag
         assert_item_equal(result.voxels[b], result.trees[b], item(result.hits, b), ref)
+    # The next batch of a dataset, smaller meshes (fewer voxels, nodes and work items),
+    # runs this batch's program: run_batch starts from the largest default capacities it
+    # ran with at this resolution, mode and tree kind.
+    smaller = [jv.Mesh(np.asarray(m.vertices) * 0.6, m.faces) for m in meshes]
+    assert any(
+        a < b for a, b in zip(jv.batch_capacities(smaller, grid, mode="6-separating")[0], result.capacities)
+    )  # (counted alone, it would take other capacities: another program)
+    rays = [camera_rays(m, 12, 8) for m in smaller]
+    origins, directions = (np.stack(parts) for parts in zip(*rays))
+    with count_compiles() as n:
+        again = jv.run_batch(smaller, grid, origins, directions, mode="6-separating", dag=False)
+    assert n[0] == 0 and again.capacities == result.capacities
+    for b, mesh in enumerate(smaller):
+        assert np.array_equal(again.voxels[b], jv.voxelize(mesh, grid, mode="6-separating").to_numpy())
 
 
 def test_bad_input_raises():

@@ -206,7 +206,7 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
 
     n = points.shape[0]
     start = (jnp.zeros(n, jnp.float32), jnp.full(n, jnp.inf, jnp.float32), jnp.zeros(n, jnp.float32))
-    w, d2, bound = jax.lax.fori_loop(0, blocks.count, step, start)
+    w, d2, bound = jax.lax.fori_loop(0, blocks.used, step, start)
     return (w, d2, bound) if distance else w
 
 

@@ -283,13 +283,13 @@ class TriangleBlocks(NamedTuple):
     the caps' terms of `jaxvox.distance.band_sign`).
 
     rows: [n, R, BRUTE_FORCE_BLOCK] float32, n on the shape ladder (`bucket`, at least
-    `FEW_BLOCKS`), the blocks in use first, then blocks of padding; count: [] int32 the
+    `FEW_BLOCKS`), the blocks in use first, then blocks of padding; used: [] int32 the
     blocks in use. The kernels loop over those only, so the padding costs memory, not
     time, and meshes of one bucket share their programs.
     """
 
     rows: jax.Array
-    count: jax.Array
+    used: jax.Array
 
 
 def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> TriangleBlocks:
@@ -449,7 +449,7 @@ def _brute_force(blocks: TriangleBlocks, points):
     def step(i, w):
         return w + jnp.sum(solid_angle_parts(*relative_corners(blocks.rows[i][:, :, None], p)), 0)
 
-    return jax.lax.fori_loop(0, blocks.count, step, jnp.zeros(points.shape[0], jnp.float32))
+    return jax.lax.fori_loop(0, blocks.used, step, jnp.zeros(points.shape[0], jnp.float32))
 
 
 def winding_numbers(mesh: Mesh, grid: Grid, *, beta: float = 2.0, block: int = 4) -> Float32[Array, "R R R"]:
