@@ -138,7 +138,7 @@ def _march(field: SparseField, level: float, block: int):
     delta = NUDGE * band
     stride = r + 2  # vertex keys: (lower sample + 1) in [0, R + 1]^3, times 4 kinds
     coords = np.asarray(field.voxel_coords(), np.int64)
-    lookup = _Band(coords, np.asarray(field.values[:n]), r)
+    lookup = _Band(coords, np.asarray(field.values)[:n], r)  # (cut on the host: no program per count)
     keys: list[np.ndarray] = []
     points: list[np.ndarray] = []
     faces: list[np.ndarray] = []
@@ -234,7 +234,7 @@ def field_to_mesh(field: SparseField, *, level: float = 0.0) -> Mesh:
             level,
         )
     n = int(field.count)
-    values = np.asarray(field.values[:n])
+    values = np.asarray(field.values)[:n]
     if not np.isfinite(values).all():
         raise refuse("field_to_mesh field", "values must be finite", values[~np.isfinite(values)][0])
     keys, points, faces = _march(field, level, BLOCK)

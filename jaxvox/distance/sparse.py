@@ -121,7 +121,7 @@ class SparseField:
         """[count, 3] int32 voxel indices of the band voxels in Morton order (host-side):
         ``voxels.coords``, or in a compact field the tree's voxels (`jaxvox.octree.expand`)."""
         voxels = self.voxels if self.voxels is not None else expand(self.tree)
-        return voxels.coords[: int(self.count)]
+        return jax.device_put(np.asarray(voxels.coords)[: int(self.count)])  # cut on the host: no program per count
 
     def memory(self) -> dict[str, float]:
         """Bytes the field holds, by part (host ints; buffers at their capacity, padding
