@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 import jaxvox as jv
 from jaxvox import morton
+from jaxvox._core.shapes import bucket
 from jaxvox.distance.band_sign import (
     CAP_BOUND,
     MOVE,
@@ -291,12 +292,18 @@ def test_pseudo_normals_of_a_box():
 
 
 def test_new_mesh_compiles_nothing():
-    """A second mesh in the same buckets (faces, band voxels) runs the compiled programs."""
+    """A second mesh in the same face bucket runs the compiled programs, its field's
+    sampling too: a smaller sphere, with half the band voxels, whose field's buffers
+    take the band's floor (`band_bucket`) rather than their own power of two."""
     grid = jv.Grid(np.zeros(3), 1 / 16, 16)
-    jv.sparse_distance_field(icosphere(1, 0.3), grid, band=2)
+    points = np.random.default_rng(0).uniform(0, 1, (100, 3)).astype(np.float32)
+    first = jv.sparse_distance_field(icosphere(1, 0.3), grid, band=2)
+    jax.block_until_ready(jv.sample(first, points))
     before = len(_compiles)
-    jv.sparse_distance_field(icosphere(1, 0.31, 0.49), grid, band=2)
+    second = jv.sparse_distance_field(icosphere(1, 0.2, 0.49), grid, band=2)
+    jax.block_until_ready(jv.sample(second, points))
     assert len(_compiles) == before
+    assert bucket(int(second.count)) < bucket(int(first.count))  # (their own buckets differ)
 
 
 @pytest.mark.parametrize("name", ["teapot", "cow"])

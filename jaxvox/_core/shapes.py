@@ -18,6 +18,9 @@ A closed surface at R holds about 0.5-4 R^2 voxels (the shared meshes: 0.5 R^2 f
 woody, 3.3 R^2 for the bunny) and a DAG up to about R^2 / 5 rows (the bunny; woody R^2 / 95); what is larger
 goes up the ladder by powers of two. At 256^3 the floors cost 3 MiB and 4 MiB.
 
+A sparse distance field's band voxels (`band_bucket`) have the floor of a band about
+twice a closed surface's, ``2 (2 band + 1) R^2`` (capped at 2^20), for the same reason.
+
 Widths of packed sort keys go through `key_bits`, which keeps only the widths that
 change how many keys are sorted.
 """
@@ -41,6 +44,14 @@ def voxel_bucket(n: int | np.integer, resolution: int) -> int:
     """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^20;
     `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
     return bucket(n, min(4 * resolution * resolution, 1 << 20) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
+
+
+def band_bucket(n: int | np.integer, resolution: int, band: int) -> int:
+    """Capacity of a list of `n` band voxels of half width `band` in an R^3 grid (or
+    region): `bucket` above ``2 (2 band + 1) R^2``, about twice a closed surface's band
+    (at most 2^20; `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
+    floor = min(2 * (2 * band + 1) * resolution * resolution, 1 << 20)
+    return bucket(n, floor if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
 
 
 def row_bucket(n: int | np.integer, resolution: int) -> int:

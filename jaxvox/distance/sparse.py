@@ -62,7 +62,7 @@ from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, release
 from jaxvox._core.checks import check_int, check_type, refuse
 from jaxvox._core.geometry import rows_dist2, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
-from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
+from jaxvox._core.shapes import band_bucket, bucket, chunk_rows, pad_rows
 from jaxvox.distance.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
@@ -413,7 +413,7 @@ def sparse_distance_field(
         coords, values, closest = ([] if a is None else [a[:n]] for a in out)
     check_count(n, grid, "sparse_distance_field")
     tree = finish_dag(merge_all(stack), grid, size, CONSERVATIVE, n)
-    return _field(grid, band, n, coords, values, closest, tree, compact)
+    return _field(grid, band, n, coords, values, closest, tree, compact, grid.resolution)
 
 
 def sparse_field_regions(
@@ -449,7 +449,7 @@ def sparse_field_regions(
         return finish_dag(merge_all(stack), grid, size, CONSERVATIVE, len(keys))
 
     for ijk, dist, tri, tree in band_regions(mesh, grid, band, signed, size, progress, build):
-        yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result(), compact)
+        yield _field(grid, band, len(ijk), [ijk], [dist], [tri], tree.result(), compact, min(size, grid.resolution))
 
 
 def _checked(caller: str, mesh: Mesh, grid: Grid, band, signed, region, compact) -> int:
@@ -575,12 +575,13 @@ def _start_sides(sides: Sides, started: list, region_lo: np.ndarray, ids: np.nda
 
 
 def _field(
-    grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree, compact: bool
+    grid: Grid, band: int, n: int, coords: list, values: list, closest: list, tree: Octree, compact: bool, extent: int
 ) -> SparseField:
     """The `SparseField` of `n` band voxels given as parts (lists of host arrays, emptied
-    as they are joined into buffers of the shape ladder) and their tree; `compact`: the
-    values and the tree only (coords and closest are dropped)."""
-    capacity = bucket(n)
+    as they are joined into buffers of the shape ladder, `band_bucket` of an `extent`^3
+    grid or region) and their tree; `compact`: the values and the tree only (coords and
+    closest are dropped)."""
+    capacity = band_bucket(n, extent, band)
     put = functools.partial(jax.device_put, may_alias=True)
     field_values = put(_joined(values, (capacity,), UNUSED_VALUE, np.float32))
     if compact:
