@@ -40,24 +40,29 @@ def bucket(n: int | np.integer, minimum: int = FLOOR) -> int:
     return 1 << (max(int(n), int(minimum), 1) - 1).bit_length()
 
 
+def surface_bucket(n: int | np.integer, resolution: int, per_area: int, cap: int) -> int:
+    """`bucket` of `n` above a surface floor: ``per_area R^2`` entries, at most `cap`, for
+    an R^3 grid up to `SURFACE_FLOORS_UP_TO` (`FLOOR` above it)."""
+    return bucket(n, min(per_area * resolution * resolution, cap) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
+
+
 def voxel_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of a list of `n` voxels of an R^3 grid: `bucket` above 4 R^2 (at most 2^20;
-    `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
-    return bucket(n, min(4 * resolution * resolution, 1 << 20) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
+    """Capacity of a list of `n` voxels of an R^3 grid: `surface_bucket` above 4 R^2, at
+    most 2^20."""
+    return surface_bucket(n, resolution, 4, 1 << 20)
 
 
 def band_bucket(n: int | np.integer, resolution: int, band: int) -> int:
     """Capacity of a list of `n` band voxels of half width `band` in an R^3 grid (or
-    region): `bucket` above ``2 (2 band + 1) R^2``, about twice a closed surface's band
-    (at most 2^20; `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
-    floor = min(2 * (2 * band + 1) * resolution * resolution, 1 << 20)
-    return bucket(n, floor if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
+    region): `surface_bucket` above ``2 (2 band + 1) R^2``, about twice a closed
+    surface's band, at most 2^20."""
+    return surface_bucket(n, resolution, 2 * (2 * band + 1), 1 << 20)
 
 
 def row_bucket(n: int | np.integer, resolution: int) -> int:
-    """Capacity of `n` octree table rows of an R^3 grid: `bucket` above R^2 (at most 2^18;
-    `FLOOR` above `SURFACE_FLOORS_UP_TO`)."""
-    return bucket(n, min(resolution * resolution, 1 << 18) if resolution <= SURFACE_FLOORS_UP_TO else FLOOR)
+    """Capacity of `n` octree table rows of an R^3 grid: `surface_bucket` above R^2, at
+    most 2^18."""
+    return surface_bucket(n, resolution, 1, 1 << 18)
 
 
 def key_bits(n: int | np.integer) -> int:

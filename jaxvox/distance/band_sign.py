@@ -495,7 +495,8 @@ class Components:
         self.capped = tri_bound >= CAP_BOUND  # per triangle: the cap term is summed exactly
         pairs = regular_edge_pairs(welded, edges)
         self.pairs = pairs[self.free[pairs].all(1)]
-        self.tree = point_tree(tris)
+        self.tree = point_tree(tris)  # both for every region's winding numbers
+        self.mesh_blocks = triangle_blocks(tris, 0.0)
 
     def cap_terms(self, points: np.ndarray, *, distance: bool, radius: float | None = None):
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
@@ -559,10 +560,10 @@ class Components:
         """The mesh's winding numbers [P] float64 at points [P, 3] (grid units): the fast
         tree, then `exact_winding_numbers` where it lands within `EXACT_BELOW` of 1/2 (the
         tree's error reaches a few 1e-2)."""
-        w = point_winding_numbers(self.tris, points, tree=self.tree).astype(np.float64)
+        w = point_winding_numbers(self.tris, points, tree=self.tree, blocks=self.mesh_blocks).astype(np.float64)
         close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
         if len(close):
-            w[close] = exact_winding_numbers(self.tris, points[close])
+            w[close] = exact_winding_numbers(self.tris, points[close], blocks=self.mesh_blocks)
         return w
 
     def inside(self, ijk, keys, dist, tri, behind, on):
@@ -637,12 +638,12 @@ class Components:
         # W of mesh plus caps (an integer, within the fast tree's error) at the
         # representatives and the lone voxels; a lone voxel's own w is W less its cap term.
         points = np.concatenate([centre(reps), centre(lone)])
-        values = point_winding_numbers(tris, points, tree=self.tree)
+        values = point_winding_numbers(tris, points, tree=self.tree, blocks=self.mesh_blocks)
         caps = self.cap_terms(points, distance=False) if self.has_caps else np.zeros(len(points), np.float32)
         total = np.rint(values + caps)
         wrong = np.flatnonzero(np.abs(values + caps - total) > 0.25)
         if len(wrong):  # the fast value missed by more than its error, or the point is on a cap
-            values[wrong] = brute_force_winding_numbers(tris, points[wrong])
+            values[wrong] = brute_force_winding_numbers(tris, points[wrong], blocks=self.mesh_blocks)
             whole = values[wrong] + caps[wrong]
             total[wrong] = np.where(np.abs(whole - np.rint(whole)) > 0.25, np.nan, np.rint(whole))
         own = total - caps
@@ -659,7 +660,7 @@ class Components:
         result[lone] = own[len(reps) :] > 0.5
         close = np.concatenate([exact[np.abs(w - 0.5) < CLOSE], lone[np.abs(own[len(reps) :] - 0.5) < CLOSE]])
         if len(close):
-            result[close] = exact_winding_numbers(tris, centre(close)) > 0.5
+            result[close] = exact_winding_numbers(tris, centre(close), blocks=self.mesh_blocks) > 0.5
         single = np.flatnonzero(state == 3)  # components whose rounding failed
         if len(single):
             result[single] = self.winding_numbers(centre(single)) > 0.5

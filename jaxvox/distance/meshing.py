@@ -119,8 +119,9 @@ def _blocks(coords: np.ndarray, block: int) -> np.ndarray:
     return np.unique(np.concatenate(out), axis=0)
 
 
-def _march(field: SparseField, level: float, block: int):
-    """Marching cubes on every block, before welding.
+def _march(field: SparseField, values: np.ndarray, level: float, block: int):
+    """Marching cubes on every block, before welding (`values`: the field's [count] band
+    values on the host).
 
     Returns:
       (keys [N] int64 vertex keys, points [N, 3] float64 vertex positions in grid index
@@ -130,7 +131,7 @@ def _march(field: SparseField, level: float, block: int):
     """
     from skimage.measure import marching_cubes
 
-    n = int(field.count)
+    n = len(values)
     r = field.grid.resolution
     h = float(field.grid.voxel_size)
     band = field.band
@@ -138,7 +139,7 @@ def _march(field: SparseField, level: float, block: int):
     delta = NUDGE * band
     stride = r + 2  # vertex keys: (lower sample + 1) in [0, R + 1]^3, times 4 kinds
     coords = np.asarray(field.voxel_coords(), np.int64)
-    lookup = _Band(coords, np.asarray(field.values)[:n], r)  # (cut on the host: no program per count)
+    lookup = _Band(coords, values, r)
     keys: list[np.ndarray] = []
     points: list[np.ndarray] = []
     faces: list[np.ndarray] = []
@@ -234,10 +235,10 @@ def field_to_mesh(field: SparseField, *, level: float = 0.0) -> Mesh:
             level,
         )
     n = int(field.count)
-    values = np.asarray(field.values)[:n]
+    values = np.asarray(field.values)[:n]  # (cut on the host: no program per count)
     if not np.isfinite(values).all():
         raise refuse("field_to_mesh field", "values must be finite", values[~np.isfinite(values)][0])
-    keys, points, faces = _march(field, level, BLOCK)
+    keys, points, faces = _march(field, values, level, BLOCK)
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     faces = inverse.reshape(-1)[faces]
     turn = faces.argmin(1)[:, None]  # rotate each face to start at its lowest vertex (same orientation)

@@ -284,8 +284,9 @@ class TriangleBlocks(NamedTuple):
 
     rows: [n, R, BRUTE_FORCE_BLOCK] float32, n on the shape ladder (`bucket`, at least
     `FEW_BLOCKS`), the blocks in use first, then blocks of padding; used: [] int32 the
-    blocks in use. The kernels loop over those only, so the padding costs memory, not
-    time, and meshes of one bucket share their programs.
+    blocks in use. The kernels loop over those only, so the padding costs memory (and
+    filling it on the host), no kernel time, and meshes of one bucket share their
+    programs.
     """
 
     rows: jax.Array
@@ -360,7 +361,12 @@ def _point_tree_sum(tree: _PointTree, points, *, beta: float):
 
 
 def point_winding_numbers(
-    tris: np.ndarray, points: np.ndarray, *, beta: float = 2.0, tree: _PointTree | None = None
+    tris: np.ndarray,
+    points: np.ndarray,
+    *,
+    beta: float = 2.0,
+    tree: _PointTree | None = None,
+    blocks: TriangleBlocks | None = None,
 ) -> np.ndarray:
     """Fast winding numbers [P] float32 at arbitrary points [P, 3] of triangles [F, 3, 3]
     (same units, float64 in; host-side).
@@ -370,7 +376,8 @@ def point_winding_numbers(
     adds its dipole term, the near ones (at most `NEAR_TOPS`) open into their leaves, a far
     leaf adds its dipole, and the near leaves (at most `NEAR_LEAVES`) add their triangles'
     exact solid angles. A point with more near nodes than that is summed by brute force.
-    `tree`: the `point_tree` of `tris` when the caller has built it already.
+    `tree`, `blocks`: the `point_tree` and `triangle_blocks` (zero-area padding) of `tris`
+    when the caller has built them already (for several calls on one mesh).
     """
     points = np.asarray(points, np.float64)
     if not len(points) or not len(tris):
@@ -384,16 +391,19 @@ def point_winding_numbers(
     out = np.concatenate([np.asarray(w) for w, _ in started])[: len(points)]
     crowded = np.flatnonzero(np.concatenate([np.asarray(c) for _, c in started])[: len(points)])
     if len(crowded):
-        out[crowded] = brute_force_winding_numbers(tris, points[crowded])
+        out[crowded] = brute_force_winding_numbers(tris, points[crowded], blocks=blocks)
     return out
 
 
-def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
+def brute_force_winding_numbers(
+    tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None, blocks: TriangleBlocks | None = None
+) -> np.ndarray:
     """Winding numbers [P] float32 at points [P, 3] by summing every triangle of tris
     [F, 3, 3] (host arrays), `chunk` points per call (default: at most `POINT_CHUNK`, fewer
     for a few points, down to `FEW_POINTS`, on the shape ladder: a few compiled programs
-    per triangle count; a fixed `chunk` keeps one)."""
-    parts = triangle_blocks(np.asarray(tris, np.float64), 0.0)  # zero-area padding
+    per triangle count; a fixed `chunk` keeps one). `blocks`: ``triangle_blocks(tris,
+    0.0)`` when the caller keeps them (built here otherwise)."""
+    parts = triangle_blocks(np.asarray(tris, np.float64), 0.0) if blocks is None else blocks  # zero-area padding
     out = []
     size = chunk or min(bucket(len(points), FEW_POINTS), POINT_CHUNK)  # a few points: a small chunk
     for s in range(0, len(points), size):
@@ -402,18 +412,20 @@ def brute_force_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: 
     return np.concatenate(out) if out else np.zeros(0, np.float32)
 
 
-def exact_winding_numbers(tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None) -> np.ndarray:
+def exact_winding_numbers(
+    tris: np.ndarray, points: np.ndarray, *, chunk: int | None = None, blocks: TriangleBlocks | None = None
+) -> np.ndarray:
     """Winding numbers [P] float64 at points [P, 3] of triangles [F, 3, 3] (host arrays):
     `brute_force_winding_numbers`, then the sum again in float64 on the host where that
     lands within ``F32_CLOSE + F * F32_CLOSE_PER_TRIANGLE`` of 1/2, so that the side of
     1/2 is that of the float64 sum. (The float32 sum of F / `BRUTE_FORCE_BLOCK` block sums
     of order 1 can be off by that many float32 roundings, about F * 2.3e-10: 1.6e-5 for
     the bunny's 69 K triangles.) At most `HOST_POINTS` points are summed in float64 on
-    the host alone: cheaper than a padded chunk of the kernel, and no program. `chunk` as
-    in `brute_force_winding_numbers`."""
+    the host alone: cheaper than a padded chunk of the kernel, and no program. `chunk` and
+    `blocks` as in `brute_force_winding_numbers`."""
     if len(points) <= HOST_POINTS:
         return host_winding_numbers(tris, points)
-    w = brute_force_winding_numbers(tris, points, chunk=chunk).astype(np.float64)
+    w = brute_force_winding_numbers(tris, points, chunk=chunk, blocks=blocks).astype(np.float64)
     close = np.flatnonzero(np.abs(w - 0.5) < F32_CLOSE + len(tris) * F32_CLOSE_PER_TRIANGLE)
     w[close] = host_winding_numbers(tris, np.asarray(points, np.float64)[close])
     return w
