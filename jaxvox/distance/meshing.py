@@ -119,9 +119,9 @@ def _blocks(coords: np.ndarray, block: int) -> np.ndarray:
     return np.unique(np.concatenate(out), axis=0)
 
 
-def _march(field: SparseField, values: np.ndarray, level: float, block: int):
+def _march(field: SparseField, level: float, block: int, values: np.ndarray | None = None):
     """Marching cubes on every block, before welding (`values`: the field's [count] band
-    values on the host).
+    values on the host, when the caller has them).
 
     Returns:
       (keys [N] int64 vertex keys, points [N, 3] float64 vertex positions in grid index
@@ -131,6 +131,7 @@ def _march(field: SparseField, values: np.ndarray, level: float, block: int):
     """
     from skimage.measure import marching_cubes
 
+    values = np.asarray(field.values)[: int(field.count)] if values is None else values  # (cut on the host)
     n = len(values)
     r = field.grid.resolution
     h = float(field.grid.voxel_size)
@@ -238,7 +239,7 @@ def field_to_mesh(field: SparseField, *, level: float = 0.0) -> Mesh:
     values = np.asarray(field.values)[:n]  # (cut on the host: no program per count)
     if not np.isfinite(values).all():
         raise refuse("field_to_mesh field", "values must be finite", values[~np.isfinite(values)][0])
-    keys, points, faces = _march(field, values, level, BLOCK)
+    keys, points, faces = _march(field, level, BLOCK, values)
     _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
     faces = inverse.reshape(-1)[faces]
     turn = faces.argmin(1)[:, None]  # rotate each face to start at its lowest vertex (same orientation)
