@@ -18,8 +18,10 @@ Method (no propagation, so no propagation error):
   from the origin; no division per pair) and keeps the minimum and its triangle (the
   lowest id on ties); the host merges the units of a tile and keeps the cells within
   ``band``. Dense tiles cost no scatter, which XLA's CPU backend runs slowly. The host
-  works in rounds of `GROUP_ITEMS` items, whose arrays are small enough to reuse memory
-  (first touches of fresh memory cost more here than the arithmetic). Cells are numbered
+  works in rounds of at most `ROUND_UNITS` units (whole tiles), whose arrays are small
+  enough to reuse memory (first touches of fresh memory cost more here than the
+  arithmetic) and which fill whole kernel calls (only a round's last call is padded,
+  by less than a tile's units). Cells are numbered
   in Morton order within a tile, so the band voxels come out in global Morton order, no merge needed; all shapes
   are fixed, so a new mesh compiles nothing new.
 * **Sign** (`jaxvox.distance.band_sign`): negative where the generalized winding number exceeds
@@ -73,7 +75,7 @@ from jaxvox.voxelize import CONSERVATIVE, UNUSED, Voxels
 TILE = 4  # edge of a tile of voxels evaluated together (TILE^3 cells)
 SLOTS = 4  # triangles per work unit (a tile overlapped by more takes several); 4 pads less than 8
 UNITS = 1 << 13  # work units per call of the tile kernel
-GROUP_ITEMS = 1 << 17  # (triangle, tile) items per host round: its arrays stay small enough to reuse memory
+ROUND_UNITS = 4 * UNITS  # work units per host round: its arrays stay small enough to reuse memory
 CULL_CHUNK = 1 << 16  # items per call of the cull kernel
 TRIM_ROWS = 1 << 16  # band voxels found between two returns of freed heap memory (`release_free_memory`)
 _REACH = float(np.sqrt(3) * (TILE - 1) / 2)  # farthest cell centre from its tile's centre (voxels)
@@ -272,14 +274,16 @@ def band_pairs(
     if min(len(ijk), len(band_d2), len(band_tri)) < bound:
         raise ValueError(f"band_pairs: out has fewer rows than the {bound} cells of its tiles")
     keys = np.empty(bound, np.int64)
-    item_end = np.cumsum(counts)
+    tile_units = -(-counts // SLOTS)
+    unit_end = np.cumsum(tile_units)
 
     def dispatch(t0: int):
-        """Starts the kernels of the round from tile t0 (about GROUP_ITEMS items, whole
-        tiles): (t0, t1, units per tile, [(kernel outputs, rows)])."""
-        t1 = max(int(np.searchsorted(item_end, item_end[t0] - counts[t0] + GROUP_ITEMS, side="right")), t0 + 1)
+        """Starts the kernels of the round from tile t0 (whole tiles, at most ROUND_UNITS
+        units unless its first tile has more): (t0, t1, units per tile, [(kernel outputs,
+        rows)])."""
+        t1 = max(int(np.searchsorted(unit_end, unit_end[t0] - tile_units[t0] + ROUND_UNITS, side="right")), t0 + 1)
         tiles = np.arange(t0, t1)
-        n_units = -(-counts[tiles] // SLOTS)
+        n_units = tile_units[tiles]
         owner = np.repeat(tiles, n_units)  # each unit's tile
         rank = np.arange(len(owner)) - np.repeat(np.cumsum(n_units) - n_units, n_units)
         item = (starts[owner] + rank * SLOTS)[:, None] + np.arange(SLOTS)
