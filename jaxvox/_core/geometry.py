@@ -139,6 +139,28 @@ def safe_norm(v):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
 
 
+def corner_bounds(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [F, 3]: the per-axis minima and maxima of the corners of triangles
+    [F, 3, 3] (host). The values of ``tris.min(1)`` and ``tris.max(1)``, a few times
+    faster: numpy reduces an axis of 3 slowly."""
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+
+
+def centroids(tris: np.ndarray) -> np.ndarray:
+    """[F, 3] float64 corner means of triangles [F, 3, 3] float64 (host): the values of
+    ``tris.mean(1)`` (the same sums in the same order), a few times faster."""
+    return (tris[:, 0] + tris[:, 1] + tris[:, 2]) / 3
+
+
+def farthest_corners(tris: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """[F] distance from each centre [F, 3] to the farthest corner of its triangle of
+    tris [F, 3, 3] (host): the values of ``np.linalg.norm(tris - centre[:, None],
+    axis=-1).max(1)``, a few times faster."""
+    d = tris - centre[:, None]
+    return np.sqrt((d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]).max(1, initial=0.0))
+
+
 def triangle_rows(tris: np.ndarray) -> np.ndarray:
     """What the tile kernels need of each triangle, computed once in float64 on the host:
     [28, F] float32 rows ``a_hi (3), a_lo (3), ab, ac, bc, u, v, n (3 each), 1/|ab|^2,

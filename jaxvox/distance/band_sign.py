@@ -63,7 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._core.geometry import rows_dist2, solid_angle_parts, triangle_rows
+from jaxvox._core.geometry import centroids, farthest_corners, rows_dist2, solid_angle_parts, triangle_rows
 from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
 from jaxvox.distance.topology import (
     EdgeTable,
@@ -212,7 +212,8 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
 
 def longest_edges(tris: np.ndarray) -> np.ndarray:
     """[F] float64 longest edge of each triangle of tris [F, 3, 3]."""
-    return np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=-1).max(1, initial=0.0)
+    e = tris - np.roll(tris, 1, axis=1)
+    return np.sqrt((e[..., 0] * e[..., 0] + e[..., 1] * e[..., 1] + e[..., 2] * e[..., 2]).max(1, initial=0.0))
 
 
 def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -232,13 +233,13 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     e1 = np.roll(tri, -1, axis=1) - tri  # [F, 3, 3] from each corner to the next
-    e2 = np.roll(tri, -2, axis=1) - tri  # and to the one after
-    cos = np.einsum("fcj,fcj->fc", e1, e2) / np.maximum(np.linalg.norm(e1, axis=2) * np.linalg.norm(e2, axis=2), 1e-300)
+    e2 = np.roll(e1, 1, axis=1)  # minus the vector to the one after (the previous corner's e1)
+    length = np.sqrt(e1[..., 0] * e1[..., 0] + e1[..., 1] * e1[..., 1] + e1[..., 2] * e1[..., 2])
+    cos = -np.einsum("fcj,fcj->fc", e1, e2) / np.maximum(length * np.roll(length, 1, axis=1), 1e-300)
     angle = np.arccos(np.clip(cos, -1, 1))  # [F, 3] corner angles
     vertex_n = _sums(f.T.reshape(-1), (angle.T[..., None] * n).reshape(-1, 3), int(f.max()) + 1 if f.size else 0)
     edges = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1)  # [F, 3, 2]
-    key = np.sort(edges, axis=2)
-    key = key[..., 0] * (len(vertex_n) + 1) + key[..., 1]
+    key = np.minimum(edges[..., 0], edges[..., 1]) * (len(vertex_n) + 1) + np.maximum(edges[..., 0], edges[..., 1])
     uniq, inverse = np.unique(key.reshape(-1), return_inverse=True)
     edge_n = _sums(inverse, np.repeat(n, 3, axis=0), len(uniq))
     out = np.empty((len(f), 7, 3), np.float32)
@@ -469,8 +470,8 @@ class Components:
         (computed when not given)."""
         self.tris = tris
         caps, cap_centre, cap_radius, cap_area = _caps(tris, welded, chain)
-        centroid = tris.mean(1)
-        tri_radius = np.linalg.norm(tris - centroid[:, None], axis=-1).max(1)
+        centroid = centroids(tris)
+        tri_radius = farthest_corners(tris, centroid)
         reach = tri_radius + band  # a triangle's band voxels lie within this of its centroid
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0

@@ -62,7 +62,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Float32, Int32
 from jaxvox import morton
 from jaxvox._core.buffers import aligned_empty, join_rows, progress_off, release_free_memory, reserved_empty
 from jaxvox._core.checks import check_int, check_type, refuse
-from jaxvox._core.geometry import rows_dist2, triangle_rows
+from jaxvox._core.geometry import corner_bounds, rows_dist2, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import band_bucket, bucket, chunk_rows, pad_rows
 from jaxvox.distance.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
@@ -199,8 +199,9 @@ def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     or [3] ints), as the aligned cells of edge `cell` (tiles, or regions) it overlaps:
     (triangle id [n] int64, cell Morton code [n] uint64), ordered by code, then by
     triangle id (`jaxvox.morton.decode_host` gives the cells)."""
-    lo = np.maximum(np.ceil(tris.min(1) - band - 0.5), 0).astype(np.int64)
-    hi = np.minimum(np.floor(tris.max(1) + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
+    lo, hi = corner_bounds(tris)
+    lo = np.maximum(np.ceil(lo - band - 0.5), 0).astype(np.int64)
+    hi = np.minimum(np.floor(hi + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
     return morton.box_cells(ids, lo[ids] // cell, hi[ids] // cell)
 

@@ -12,6 +12,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxvox import morton
+from jaxvox._core.geometry import corner_bounds
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -100,7 +101,7 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
     crossing = np.zeros(f_count, bool)
     if f_count < 2:
         return crossing
-    lo, hi = tris.min(1), tris.max(1)
+    lo, hi = corner_bounds(tris)
     size = max(float(np.percentile((hi - lo).max(1), 90)), 1e-12)
     while True:
         first, last = np.floor(lo / size).astype(np.int64), np.floor(hi / size).astype(np.int64)

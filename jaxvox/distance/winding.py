@@ -42,7 +42,7 @@ from jaxtyping import Array, Float32
 
 from jaxvox import morton
 from jaxvox._core.checks import check_int, check_number, check_type, refuse
-from jaxvox._core.geometry import solid_angle_parts
+from jaxvox._core.geometry import centroids, solid_angle_parts
 from jaxvox._core.shapes import bucket, chunk_rows, expand_counts, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
@@ -244,27 +244,25 @@ def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarra
     triangles' `per_triangle` (area vector [F, 3], its length [F], centroid [F, 3])."""
     area, weight, centroid = (x.reshape(-1, size, *x.shape[1:]) for x in per_triangle)
     total = weight.sum(1)
-    centre = np.where(
-        (total > 0)[:, None],
-        (weight[..., None] * centroid).sum(1) / np.where(total > 0, total, 1.0)[:, None],
-        centroid.mean(1),
-    )
-    corner = tris.reshape(len(centre), -1, 3) - centre[:, None]
-    radius = np.sqrt(np.max((corner * corner).sum(-1), 1))  # (the root of the largest square only)
+    centre = (weight[..., None] * centroid).sum(1) / np.where(total > 0, total, 1.0)[:, None]
+    empty = np.flatnonzero(~(total > 0))  # no area: the mean of the centroids
+    centre[empty] = centroid[empty].mean(1)
+    c = tris.reshape(len(centre), -1, 3) - centre[:, None]
+    radius = np.sqrt(np.max(c[..., 0] * c[..., 0] + c[..., 1] * c[..., 1] + c[..., 2] * c[..., 2], 1))
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
 def point_tree(tris: np.ndarray) -> _PointTree:
     """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder:
     built once for several calls of `point_winding_numbers` on one mesh."""
-    tris = tris[morton.curve_order_host(tris.mean(1))]
+    tris = tris[morton.curve_order_host(centroids(tris))]
     padded = bucket(max(len(tris), TOP * LEAF))
     pad = np.repeat(tris[-1:, :1], padded - len(tris), axis=0).repeat(3, axis=1)  # zero-area, in place
     tris = np.concatenate([tris, pad])
     f32 = lambda x: jax.device_put(np.asarray(x, np.float32))
     rows = jax.device_put(split_rows(tris.reshape(-1, 9).T))
     area = 0.5 * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # [F, 3]
-    per_triangle = area, np.linalg.norm(area, axis=-1), tris.mean(1)
+    per_triangle = area, np.linalg.norm(area, axis=-1), centroids(tris)
     top, leaf = (_dipole_nodes(tris, size, per_triangle) for size in (TOP * LEAF, LEAF))
     return _PointTree(f32(top), f32(leaf), rows)
 
