@@ -143,11 +143,12 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
         keep = (low[i] <= high[j]) & (low[j] <= high[i])
         i, j = i[keep], j[keep]
     corner = [np.ascontiguousarray(faces[:, k]) for k in range(3)]
+    of_j = [c[j] for c in corner]
     shared = np.zeros(len(i), bool)
-    for k in range(3):
-        of_i = corner[k][i]
-        for m in range(3):
-            shared |= of_i == corner[m][j]
+    for c in corner:
+        of_i = c[i]
+        for other in of_j:
+            shared |= of_i == other
     i, j = i[~shared], j[~shared]
     for s in range(0, len(i), 1 << 18):
         ti, tj = tris[i[s : s + (1 << 18)]], tris[j[s : s + (1 << 18)]]
