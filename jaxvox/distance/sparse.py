@@ -203,6 +203,8 @@ def _tile_items(tris: np.ndarray, shape, band: int, cell: int = TILE):
     lo = np.maximum(np.ceil(lo - band - 0.5), 0).astype(np.int64)
     hi = np.minimum(np.floor(hi + band - 0.5), np.asarray(shape) - 1).astype(np.int64)
     ids = np.flatnonzero((hi >= lo).all(1))
+    if cell >= np.max(shape):  # one cell: every box lies in it
+        return ids, np.zeros(len(ids), np.uint64)
     return morton.box_cells(ids, lo[ids] // cell, hi[ids] // cell)
 
 
