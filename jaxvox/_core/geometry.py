@@ -171,28 +171,32 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     and ``q . v`` are the barycentric coordinates of the projection of ``q = p - a``); n
     the unit normal; proper 1 for a triangle of nonzero area (else u, v, n are 0 and only
     its edges count). Per-cell work is then products and sums only, no division."""
-    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    out = np.empty((28, len(tris)), np.float32)
+    a, b, c = (np.ascontiguousarray(tris[:, i].T) for i in range(3))  # [3, F] each: one row per axis
     ab, ac, bc = b - a, c - a, c - b
-    dot = lambda x, y: np.einsum("ij,ij->i", x, y)
-    d00, d11 = dot(ab, ab), dot(ac, ac)
-    normal = np.cross(ab, ac)
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    cross = lambda x, y: np.stack([x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]])
+    normal = cross(ab, ac)
     area2 = dot(normal, normal)
     proper = area2 > 0
     # |ab|^2 |ac|^2 - (ab . ac)^2 by Lagrange's identity: the cross product's norm, without
     # the cancellation that makes the difference 0 for a sliver of nonzero area
-    den = np.where(proper, area2, 1.0)[:, None]
-    keep = proper[:, None]
+    den = np.where(proper, area2, 1.0)
     # u, v: the gradients of b's and c's barycentric coordinates, normal x (the edge
     # opposite) over |normal|^2, as accurate as the normal; the dot-product form
     # ``(|ac|^2 ab - (ab . ac) ac) / den`` cancels to nothing in float64 for a needle
     # across which ab . ac and |ac|^2 round to |ab|^2
-    u = np.where(keep, np.cross(normal, -ac) / den, 0.0)
-    v = np.where(keep, np.cross(normal, ab) / den, 0.0)
-    n = np.where(keep, normal / np.sqrt(np.where(proper, area2, 1.0))[:, None], 0.0)
-    inverse = [np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0)[:, None] for ee in (d00, d11, dot(bc, bc))]
-    a_hi = a.astype(np.float32)
-    rows = [a_hi, (a - a_hi).astype(np.float32), ab, ac, bc, u, v, n, *inverse]
-    return np.concatenate([np.asarray(x, np.float32).T for x in rows + [proper[:, None]]])
+    out[0:3] = a
+    out[3:6] = a - out[0:3]
+    out[6:9], out[9:12], out[12:15] = ab, ac, bc
+    out[15:18] = np.where(proper, cross(normal, -ac) / den, 0.0)
+    out[18:21] = np.where(proper, cross(normal, ab) / den, 0.0)
+    out[21:24] = np.where(proper, normal / np.sqrt(den), 0.0)
+    for row, edge in zip((24, 25, 26), (ab, ac, bc)):
+        ee = dot(edge, edge)
+        out[row] = np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0)
+    out[27] = proper
+    return out
 
 
 def rows_dist2(p, r, o, *, edge_bc: bool = False):
