@@ -289,8 +289,9 @@ class Sides:
     (`start`), then float64 where the float32 closest point may be on the wrong side
     (`finish`)."""
 
-    def __init__(self, mesh: Mesh, tris: np.ndarray):
-        """mesh: the `Mesh`; tris: [F, 3, 3] float64 its triangles in grid units."""
+    def __init__(self, mesh: Mesh, tris: np.ndarray, edge: np.ndarray | None = None):
+        """mesh: the `Mesh`; tris: [F, 3, 3] float64 its triangles in grid units; edge:
+        their `longest_edges` where the caller has them."""
         f = np.asarray(mesh.faces)
         rows = bucket(len(f))
         self.tris = tris
@@ -299,7 +300,7 @@ class Sides:
         self.corners = jax.device_put(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
         # float64 sides where the float32 closest point may be on the wrong side, and for
         # every voxel within ON_SURFACE (its side decides whether it joins a component)
-        edge = longest_edges(tris)
+        edge = longest_edges(tris) if edge is None else edge
         self.limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
 
     def start(self, ijk: np.ndarray, tri: np.ndarray) -> list:

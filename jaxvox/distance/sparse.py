@@ -519,7 +519,8 @@ def band_regions(
 
     with ThreadPoolExecutor(1) as worker:
         signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
-        large = longest_edges(tris) > REFINE_EDGE
+        edge = longest_edges(tris)
+        large = edge > REFINE_EDGE
         ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
         starts = morton.run_starts(codes)
         ends = np.append(starts[1:], len(ids))
@@ -527,7 +528,7 @@ def band_regions(
         # With one region the worker has nothing else to do after the signs' preparation:
         # it decodes the pairs' rounds (and starts their sides) while this thread finds the next.
         decoder = worker if len(starts) == 1 else None
-        sides = Sides(mesh, tris) if signs is not None else None  # beside the worker
+        sides = Sides(mesh, tris, edge) if signs is not None else None  # beside the worker
 
         def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
             """A region's values, in place: ijk global, tri mesh ids, dist signed world units."""
