@@ -251,12 +251,12 @@ def band_pairs(
     # The cull: an item whose triangle lies farther than band + _REACH from its tile's
     # centre has no cell within `band` (about 40% of the bunny's items).
     width = chunk_rows(len(ids), CULL_CHUNK)
-    started = []  # every chunk dispatched before the first is waited for
+    culls = []  # every chunk dispatched before the first is waited for
     for s in range(0, len(ids), width):
         origin = morton.decode_word_host(code[s : s + width]) * TILE
         chunk = pad_rows(ids[s : s + width].astype(np.int32), width, pad_id), pad_rows(origin, width).T
-        started.append(_tile_gaps(rows, *(jax.device_put(np.ascontiguousarray(a)) for a in chunk)))
-    gap2 = np.concatenate([np.asarray(g) for g in started])[: len(ids)]
+        culls.append(_tile_gaps(rows, *(jax.device_put(np.ascontiguousarray(a)) for a in chunk)))
+    gap2 = np.concatenate([np.asarray(g) for g in culls])[: len(ids)]
     keep = np.flatnonzero(gap2 <= np.float32((band + _REACH + CULL_SLACK) ** 2))
     ids, code = ids[keep], code[keep]
     if not len(ids):
