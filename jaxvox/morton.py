@@ -73,7 +73,7 @@ def curve_order_host(points: np.ndarray) -> np.ndarray:
     queries). Non-finite coordinates take some cell of the box."""
     lo, hi = points.min(0), points.max(0)
     q = np.nan_to_num((points - lo) / np.maximum(hi - lo, 1e-30) * WORD_MASK)  # in [0, 1023] where finite
-    return np.argsort(encode_word_host(np.clip(q, 0, WORD_MASK).astype(np.intp)), kind="stable")
+    return stable_order_host(encode_word_host(np.clip(q, 0, WORD_MASK).astype(np.intp)))
 
 
 def encode_host(ijk: np.ndarray) -> np.ndarray:
@@ -93,6 +93,20 @@ def encode_axes_host(i: np.ndarray, j: np.ndarray, k: np.ndarray) -> np.ndarray:
         _SPREAD[(i >> shift) & mask] | (_SPREAD[(j >> shift) & mask] << 1) | (_SPREAD[(k >> shift) & mask] << 2)
     ).astype(np.uint64)
     return (word(WORD_BITS, WORD_MASK) << np.uint64(3 * WORD_BITS)) | word(0, WORD_MASK)
+
+
+def stable_order_host(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` of integer keys [n] (host): int64 [n]. Where
+    the keys are non-negative and fit beside their index in 63 bits, one sort of
+    ``key << bits | index``, several times faster (numpy's sort of plain integers is
+    vectorized, its stable argsort is not)."""
+    keys = np.asarray(keys)
+    bits = max(len(keys) - 1, 1).bit_length()
+    if len(keys) and keys.dtype.kind in "iu" and keys.min() >= 0 and int(keys.max()) < (1 << (63 - bits)):
+        packed = keys.astype(np.int64) << bits | np.arange(len(keys))
+        packed.sort()
+        return packed & ((1 << bits) - 1)
+    return np.argsort(keys, kind="stable")
 
 
 def run_starts(values: np.ndarray) -> np.ndarray:

@@ -54,7 +54,7 @@ def edge_table(faces: np.ndarray) -> EdgeTable:
     lo, hi = directed.min(1), directed.max(1)
     base = int(f.max()) + 1 if len(f) else 1
     key = lo * base + hi
-    order = np.argsort(key, kind="stable")
+    order = morton.stable_order_host(key)
     key = key[order]
     start = morton.run_starts(key)
     return EdgeTable(
@@ -127,7 +127,7 @@ def crossing_faces(tris: np.ndarray, faces: np.ndarray) -> np.ndarray:
         key += (first[owner, k] - base[k] + offset) * scale
         scale *= int(span[k])
         at_first |= (offset == 0).astype(np.uint8) << k
-    order = np.argsort(key, kind="stable")
+    order = morton.stable_order_host(key)
     key, owner, at_first = key[order], owner[order], at_first[order]
     end = np.searchsorted(key, key, side="right")  # one past each entry's run
     later = end - 1 - np.arange(len(key))  # entries after it in its run

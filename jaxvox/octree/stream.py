@@ -233,7 +233,7 @@ def finish_dag(dag: _Partial | None, grid: Grid, region: int, mode: str, voxels:
     levels: list = []
     if depth_above:  # the levels above the regions, over their roots (cells in Morton order)
         codes = morton.encode_host(dag.cells)
-        order = np.argsort(codes, kind="stable")
+        order = morton.stable_order_host(codes)
         roots = Nodes(codes[order], dag.counts[order], dag.roots[order], len(dag.masks[0]))
         levels = levels_above(roots, depth_above, dag=True)
     levels += [(m, c, p) for m, c, p in zip(dag.masks, dag.child + [None], dag.prefix + [None])]

@@ -258,7 +258,7 @@ def _cell_triangles(tris: np.ndarray, slot: np.ndarray, cell: float, resolution:
     k, j, i = local % e[:, 2], local // e[:, 2] % e[:, 1], local // (e[:, 2] * e[:, 1])
     s = slot[((lo[tri, 0] + i) * resolution + lo[tri, 1] + j) * resolution + lo[tri, 2] + k]
     keep = s >= 0
-    order = np.argsort(s[keep], kind="stable")
+    order = morton.stable_order_host(s[keep])
     first = np.concatenate([[0], np.cumsum(np.bincount(s[keep], minlength=slots))])
     return first.astype(np.int32), np.concatenate([tri[keep][order], [0]]).astype(np.int32)
 
