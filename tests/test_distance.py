@@ -151,6 +151,26 @@ def test_triangle_rows_of_needles():
     _check_rows_dist2(triangle_rows(tris), tris, p)
 
 
+@hypothesis.settings(deadline=None, max_examples=25)
+@hypothesis.given(st.lists(st.tuples(*[st.floats(-1e6, 1e6)] * 9), max_size=20), st.integers(0, 2))
+def test_corner_helpers_are_numpys_reductions(corners, repeat):
+    """`corner_bounds`, `centroids` and `farthest_corners` (the sparse field's host
+    geometry) give numpy's reductions over the corner axis bit for bit, equal corners
+    (segments, points) included."""
+    from jaxvox._core.geometry import centroids, corner_bounds, farthest_corners
+
+    tris = np.array(corners, np.float64).reshape(-1, 3, 3)
+    if repeat:  # a corner repeated: a segment, or with equal corners a point
+        tris[:, 2] = tris[:, repeat - 1]
+    lo, hi = corner_bounds(tris)
+    c = centroids(tris)
+    np.testing.assert_array_equal(lo, tris.min(1))
+    np.testing.assert_array_equal(hi, tris.max(1))
+    np.testing.assert_array_equal(c, tris.mean(1))
+    radius = np.linalg.norm(tris - c[:, None], axis=-1).max(1)
+    np.testing.assert_array_equal(farthest_corners(tris, c), radius)
+
+
 @pytest.mark.parametrize("method", list(BOUNDS))
 def test_point_sites_are_the_edt(method):
     """Zero-area triangles at voxel centres: the exact field is scipy's EDT of those voxels."""

@@ -182,7 +182,7 @@ _BOX = st.tuples(*[st.integers(0, 2**20 - 4)] * 3, *[st.integers(0, 3)] * 3)  # 
 def test_box_cells_are_every_cell_in_morton_then_id_order(boxes, small):
     """`jaxvox.morton.box_cells` (the voxelizer's regions, the sparse field's tiles) against
     Python loops over each box's cells, with Python-int Morton codes; `small` keeps the
-    codes below 2^32 (the packed sort), else they may pass it (the stable argsort)."""
+    cells below 1024 per axis (the packed sort), else they may pass it (the stable argsort)."""
     first = np.array([b[:3] for b in boxes], np.int64).reshape(-1, 3) % (16 if small else 2**20 - 4)
     last = first + np.array([b[3:] for b in boxes], np.int64).reshape(-1, 3)
     ids = np.arange(len(boxes), dtype=np.int64) * 3  # ascending, not 0..n-1
@@ -204,6 +204,20 @@ def test_run_starts_are_the_first_index_of_each_run(values):
     expected = [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]]
     got = jv.morton.run_starts(keys)
     assert got.dtype == np.int64 and got.tolist() == expected
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 2**62), max_size=40), st.sampled_from(["int64", "uint64", "int32"]), st.integers(0, 3))
+def test_stable_order_is_numpys_stable_argsort(values, dtype, spread):
+    """`jaxvox.morton.stable_order_host` (edge tables, crossings' cells, curve orders)
+    against ``np.argsort(kind="stable")``: many ties (values folded onto 3 keys), keys
+    too large to pack beside their index, and a negative key (both take the argsort)."""
+    keys = np.array(values, np.uint64) % np.uint64([3, 1000, 2**31 - 1, 2**62][spread])
+    keys = keys.astype(dtype)
+    if spread == 0 and len(keys) and dtype != "uint64":
+        keys[0] = -1
+    got = jv.morton.stable_order_host(keys)
+    assert got.dtype == np.int64 and got.tolist() == np.argsort(keys, kind="stable").tolist()
 
 
 def _ref1(tri, resolution=8, mode=CONSERVATIVE) -> Reference:
