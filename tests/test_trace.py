@@ -282,6 +282,7 @@ def test_sharded_over_four_host_devices(scene, tmp_path):
     np.savez(tmp_path / "rays.npz", ijk=ijk, o=o, d=d)
     script = textwrap.dedent(f"""
         import jax, numpy as np, jaxvox as jv
+        jv.enable_compilation_cache()  # $JAXVOX_CACHE_DIR from the suite: a warm suite compiles nothing here
         assert len(jax.devices()) == 4, jax.devices()
         z = np.load({str(tmp_path / "rays.npz")!r})
         grid = jv.Grid(origin=(0, 0, 0), voxel_size=1.0, resolution=32)
