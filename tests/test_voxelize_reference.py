@@ -655,15 +655,15 @@ def test_huge_triangles_match_up_to_near_ties(tri):
     _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
 
 
-@pytest.mark.xfail(strict=True, reason="known bug, found by hypothesis on 2026-12-07: see the docstring")
 @pytest.mark.parametrize("shift", [0.0, 0.5, 2.0])
 def test_a_corner_1e_10_off_a_long_edge_in_one_projection(shift):
     """A large triangle whose corner c lies 1e-10 voxel off the line of a and b in the xy
-    projection only (found by `test_huge_triangles_match_up_to_near_ties`): the
-    conservative voxels past about y = 9 are missing, with margins up to 0.48 voxel,
-    whether or not the edge bc lies on a voxel plane (`shift`). The same triangle with
-    c's offset 0 or 1e-6 passes. Strict: fixing the voxelizer makes this fail, and the
-    marker goes."""
+    projection only (found by `test_huge_triangles_match_up_to_near_ties`). The compiled
+    setup contracted one product of the projection's 2D crosses into a fused
+    multiply-add, and the other product's rounding (about 4e-6) outweighed the sliver's
+    true cross (2.75e-10) with the wrong sign: the short edge's half-plane turned
+    outwards and the conservative voxels past y = 9 were lost (margins up to 0.48 voxel),
+    whether or not the edge bc lies on a voxel plane (`shift`)."""
     tri = np.array([[0.0, 0.0, 1.0], [2.75, 24.048507690429688, 0.0], [0.0, 1e-10, 0.0]]) + [0.0, 0.0, shift]
     _check_triangle(tri, _unit_grid(R_FLOAT), exact=False)
 

@@ -41,7 +41,8 @@ def _half_planes(qa, qb, six_sep, tol):
 
     The edge normals point inwards by the projected triangle's orientation, taken from
     the same float32 edges: the pair of consecutive edges whose 2D cross product is
-    largest in magnitude (the three are equal in exact arithmetic). The 3D normal's
+    largest in magnitude among those whose sign is certain (beyond their products'
+    rounding). The 3D normal's
     component can round to zero or to the other sign where the projection is a sliver
     (a corner's tiny offset lost beside a large one), which would turn the short edge's
     half-plane outwards.
@@ -58,8 +59,15 @@ def _half_planes(qa, qb, six_sep, tol):
     """
     ea = jnp.roll(qa, -1) - qa
     eb = jnp.roll(qb, -1) - qb
-    cross = ea * jnp.roll(eb, -1) - eb * jnp.roll(ea, -1)  # [3] 2D cross of consecutive edges
-    sigma = jnp.where(cross[jnp.argmax(jnp.abs(cross))] >= 0, 1.0, -1.0)
+    first, second = ea * jnp.roll(eb, -1), eb * jnp.roll(ea, -1)
+    cross = first - second  # [3] 2D cross of consecutive edges
+    # A cross below its products' rounding has no certain sign: XLA may contract one
+    # product into the difference (a fused multiply-add) and leave the other's rounding,
+    # which outweighed a sliver's true cross (a corner 1e-10 off a long edge, found by
+    # hypothesis). Such crosses are passed over while another has a certain sign.
+    certain = jnp.abs(cross) > 2.0**-22 * (jnp.abs(first) + jnp.abs(second))
+    score = jnp.where(certain.any(), jnp.where(certain, jnp.abs(cross), -1.0), jnp.abs(cross))
+    sigma = jnp.where(cross[jnp.argmax(score)] >= 0, 1.0, -1.0)
     na, nb = -eb * sigma, ea * sigma
     l1 = jnp.abs(na) + jnp.abs(nb)
     if six_sep:
