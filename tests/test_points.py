@@ -395,6 +395,7 @@ def test_split_over_two_devices_matches_one(tmp_path, monkeypatch):
 
     code = (
         "import sys, jax; jax.config.update('jax_num_cpu_devices', 2)\n"
+        "import jaxvox; jaxvox.enable_compilation_cache()\n"  # the suite's $JAXVOX_CACHE_DIR: warm runs compile nothing
         "from jaxvox.points import queries; queries.SPLIT_MIN = 1024\n"
         "from tests.test_points import _half_sphere_query; _half_sphere_query(sys.argv[1])"
     )
