@@ -63,7 +63,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox import morton
-from jaxvox._core.geometry import centroids, farthest_corners, rows_dist2, solid_angle_parts, triangle_rows
+from jaxvox._core.geometry import (
+    centroids,
+    farthest_corners,
+    rows_dist2,
+    solid_angle_parts,
+    squared_lengths,
+    triangle_rows,
+)
 from jaxvox._core.shapes import bucket, chunk_rows, pad_rows
 from jaxvox.distance.topology import (
     EdgeTable,
@@ -212,8 +219,7 @@ def _cap_terms(points, blocks, rows, radius, *, distance: bool):
 
 def longest_edges(tris: np.ndarray) -> np.ndarray:
     """[F] float64 longest edge of each triangle of tris [F, 3, 3]."""
-    e = tris - np.roll(tris, 1, axis=1)
-    return np.sqrt((e[..., 0] * e[..., 0] + e[..., 1] * e[..., 1] + e[..., 2] * e[..., 2]).max(1, initial=0.0))
+    return np.sqrt(squared_lengths(tris - np.roll(tris, 1, axis=1)).max(1, initial=0.0))
 
 
 def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -234,19 +240,14 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
     e1 = np.roll(tri, -1, axis=1) - tri  # [F, 3, 3] from each corner to the next
     e2 = np.roll(e1, 1, axis=1)  # minus the vector to the one after (the previous corner's e1)
-    length = np.sqrt(e1[..., 0] * e1[..., 0] + e1[..., 1] * e1[..., 1] + e1[..., 2] * e1[..., 2])
+    length = np.sqrt(squared_lengths(e1))
     cos = -np.einsum("fcj,fcj->fc", e1, e2) / np.maximum(length * np.roll(length, 1, axis=1), 1e-300)
     angle = np.arccos(np.clip(cos, -1, 1))  # [F, 3] corner angles
     vertex_n = _sums(f.T.reshape(-1), (angle.T[..., None] * n).reshape(-1, 3), int(f.max()) + 1 if f.size else 0)
-    edges = np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], 1)  # [F, 3, 2]
-    key = np.minimum(edges[..., 0], edges[..., 1]) * (len(vertex_n) + 1) + np.maximum(edges[..., 0], edges[..., 1])
-    key = key.reshape(-1)
-    order = morton.stable_order_host(key)  # (np.unique's inverse, from numpy's fast sort)
-    new_edge = np.zeros(len(key), np.int64)
-    new_edge[morton.run_starts(key[order])] = 1
-    inverse = np.empty(len(key), np.int64)
-    inverse[order] = np.cumsum(new_edge) - 1
-    edge_n = _sums(inverse, np.repeat(n, 3, axis=0), int(new_edge.sum()))
+    table = edge_table(f)  # each face corner's edge (ab, bc, ca): its run in the table
+    inverse = np.empty(3 * len(f), np.int64)
+    inverse[3 * table.owner + table.side] = np.repeat(np.arange(len(table.start)), table.entries)
+    edge_n = _sums(inverse, np.repeat(n, 3, axis=0), len(table.start))
     out = np.empty((len(f), 7, 3), np.float32)
     out[:, 0] = n
     out[:, 1:4] = edge_n[inverse].reshape(-1, 3, 3)
@@ -294,9 +295,9 @@ class Sides:
     (`start`), then float64 where the float32 closest point may be on the wrong side
     (`finish`)."""
 
-    def __init__(self, mesh: Mesh, tris: np.ndarray, edge: np.ndarray | None = None):
+    def __init__(self, mesh: Mesh, tris: np.ndarray, edge: np.ndarray):
         """mesh: the `Mesh`; tris: [F, 3, 3] float64 its triangles in grid units; edge:
-        their `longest_edges` where the caller has them."""
+        [F] their `longest_edges`."""
         f = np.asarray(mesh.faces)
         rows = bucket(len(f))
         self.tris = tris
@@ -305,7 +306,6 @@ class Sides:
         self.corners = jax.device_put(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
         # float64 sides where the float32 closest point may be on the wrong side, and for
         # every voxel within ON_SURFACE (its side decides whether it joins a component)
-        edge = longest_edges(tris) if edge is None else edge
         self.limit = np.where(edge > REFINE_EDGE, np.inf, np.maximum(SIDE_REFINE * edge, ON_SURFACE)).astype(np.float32)
 
     def start(self, ijk: np.ndarray, tri: np.ndarray) -> list:

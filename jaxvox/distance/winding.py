@@ -42,7 +42,7 @@ from jaxtyping import Array, Float32
 
 from jaxvox import morton
 from jaxvox._core.checks import check_int, check_number, check_type, refuse
-from jaxvox._core.geometry import centroids, solid_angle_parts
+from jaxvox._core.geometry import centroids, solid_angle_parts, squared_lengths
 from jaxvox._core.shapes import bucket, chunk_rows, expand_counts, pad_rows
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
@@ -248,7 +248,7 @@ def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarra
     empty = np.flatnonzero(~(total > 0))  # no area: the mean of the centroids
     centre[empty] = centroid[empty].mean(1)
     c = tris.reshape(len(centre), -1, 3) - centre[:, None]
-    radius = np.sqrt(np.max(c[..., 0] * c[..., 0] + c[..., 1] * c[..., 1] + c[..., 2] * c[..., 2], 1))
+    radius = np.sqrt(np.max(squared_lengths(c), 1))
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
