@@ -73,6 +73,7 @@ def spot(meshes_dir):
     mesh = jv.load_mesh(meshes_dir / "spot.obj")
     grid = jv.Grid.fit(mesh, resolution=32, padding=0.1)
     closest = jv.points.closest_points(mesh, voxel_centres(grid).astype(np.float32))
+    assert (np.asarray(closest.status) == jv.points.PointStatus.OK).all()
     return mesh, grid, np.asarray(closest.distance).reshape((32,) * 3)
 
 
