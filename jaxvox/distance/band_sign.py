@@ -222,11 +222,15 @@ def longest_edges(tris: np.ndarray) -> np.ndarray:
     return np.sqrt(squared_lengths(tris - np.roll(tris, 1, axis=1)).max(1, initial=0.0))
 
 
-def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def pseudo_normals(
+    vertices: np.ndarray, faces: np.ndarray, welded: np.ndarray | None = None, edges: EdgeTable | None = None
+) -> np.ndarray:
     """Angle-weighted pseudo-normals per face corner feature (host, float64 in, float32 out).
 
     Args:
       vertices: [V, 3] float; faces: [F, 3] int (consistently oriented, watertight).
+      welded: `welded_faces(vertices, faces)`, and edges its `edge_table` (each computed
+        when not given).
 
     Returns:
       [F, 7, 3] float32: the unit face normal, the edge normals of ab, bc, ca (sum of the
@@ -234,7 +238,7 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
       faces' unit normals weighted by their corner angles). Vertices are welded by position.
     """
     v = np.asarray(vertices, np.float64)
-    f = welded_faces(v, faces)
+    f = welded_faces(v, faces) if welded is None else welded
     tri = v[np.asarray(faces, np.int64)]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
@@ -244,7 +248,7 @@ def pseudo_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     cos = -np.einsum("fcj,fcj->fc", e1, e2) / np.maximum(length * np.roll(length, 1, axis=1), 1e-300)
     angle = np.arccos(np.clip(cos, -1, 1))  # [F, 3] corner angles
     vertex_n = _sums(f.T.reshape(-1), (angle.T[..., None] * n).reshape(-1, 3), int(f.max()) + 1 if f.size else 0)
-    table = edge_table(f)  # each face corner's edge (ab, bc, ca): its run in the table
+    table = edge_table(f) if edges is None else edges  # each face corner's edge (ab, bc, ca): its run
     inverse = np.empty(3 * len(f), np.int64)
     inverse[3 * table.owner + table.side] = np.repeat(np.arange(len(table.start)), table.entries)
     edge_n = _sums(inverse, np.repeat(n, 3, axis=0), len(table.start))
@@ -295,13 +299,13 @@ class Sides:
     (`start`), then float64 where the float32 closest point may be on the wrong side
     (`finish`)."""
 
-    def __init__(self, mesh: Mesh, tris: np.ndarray, edge: np.ndarray):
+    def __init__(self, mesh: Mesh, tris: np.ndarray, edge: np.ndarray, welded: np.ndarray, edges: EdgeTable):
         """mesh: the `Mesh`; tris: [F, 3, 3] float64 its triangles in grid units; edge:
-        [F] their `longest_edges`."""
+        [F] their `longest_edges`; welded: its `welded_faces`, edges their `edge_table`."""
         f = np.asarray(mesh.faces)
         rows = bucket(len(f))
         self.tris = tris
-        self.feature_normals = pseudo_normals(np.asarray(mesh.vertices), f)  # [F, 7, 3] float32
+        self.feature_normals = pseudo_normals(np.asarray(mesh.vertices), f, welded, edges)  # [F, 7, 3] float32
         self.normals = jax.device_put(pad_rows(self.feature_normals, rows).reshape(-1, 3).T)
         self.corners = jax.device_put(pad_rows(tris.astype(np.float32), rows).reshape(rows, 9).T)
         # float64 sides where the float32 closest point may be on the wrong side, and for
@@ -333,14 +337,14 @@ class Sides:
         return behind, on
 
 
-def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.ndarray]:
+def prepare_signs(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, band: int) -> Callable[..., np.ndarray]:
     """The inside test of a mesh's band voxels (module docstring for the methods): what
     depends on the mesh alone (crossings, caps, free triangles, the winding tree)
     is computed here, once, so that the voxels can come in parts (regions).
 
     Args:
-      mesh: the `Mesh` (its faces); tris: [F, 3, 3] float64 its triangles in grid units;
-        band: the half width.
+      tris: [F, 3, 3] float64 the mesh's triangles in grid units; welded: [F, 3] its
+        `welded_faces`, edges their `edge_table`; band: the half width.
 
     Returns:
       ``inside(ijk, keys, dist, tri, behind, on)``: whether each is inside ([n] bool) at
@@ -349,17 +353,10 @@ def prepare_signs(mesh: Mesh, tris: np.ndarray, band: int) -> Callable[..., np.n
       (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
       their sides (`Sides.finish`).
     """
-    welded, suspect, chain, edges = _sign_topology(np.asarray(mesh.vertices), np.asarray(mesh.faces), tris)
+    suspect, chain = _suspect_faces(tris, welded, edges), boundary_chain(welded, edges)
     if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
         return lambda ijk, keys, dist, tri, behind, on: behind
     return Components(tris, welded, suspect, chain, band, edges).inside
-
-
-def _sign_topology(vertices: np.ndarray, faces: np.ndarray, tris: np.ndarray):
-    """(welded faces, `_suspect_faces`, the boundary chain, the `EdgeTable`)."""
-    welded = welded_faces(vertices, faces)
-    edges = edge_table(welded)
-    return welded, _suspect_faces(tris, welded, edges), boundary_chain(welded, edges), edges
 
 
 def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable) -> np.ndarray:

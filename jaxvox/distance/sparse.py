@@ -66,6 +66,7 @@ from jaxvox._core.geometry import corner_bounds, rows_dist2, triangle_rows
 from jaxvox._core.pytree import pytree_dataclass
 from jaxvox._core.shapes import band_bucket, bucket, chunk_rows, pad_rows
 from jaxvox.distance.band_sign import REFINE_EDGE, Sides, exact_closest, longest_edges, prepare_signs
+from jaxvox.distance.topology import edge_table, welded_faces
 from jaxvox.grid import Grid
 from jaxvox.mesh import Mesh, host_triangles, validate_mesh
 from jaxvox.octree import Octree, expand, voxel_index
@@ -518,7 +519,11 @@ def band_regions(
     from tqdm.auto import tqdm
 
     with ThreadPoolExecutor(1) as worker:
-        signs = worker.submit(prepare_signs, mesh, tris, band) if signed and len(tris) else None
+        signs = sides = None
+        if signed and len(tris):  # the welded faces and their edges serve both threads
+            welded = welded_faces(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+            edges = edge_table(welded)
+            signs = worker.submit(prepare_signs, tris, welded, edges, band)
         edge = longest_edges(tris)
         large = edge > REFINE_EDGE
         ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
@@ -528,7 +533,8 @@ def band_regions(
         # With one region the worker has nothing else to do after the signs' preparation:
         # it decodes the pairs' rounds (and starts their sides) while this thread finds the next.
         decoder = worker if len(starts) == 1 else None
-        sides = Sides(mesh, tris, edge) if signs is not None else None  # beside the worker
+        if signs is not None:
+            sides = Sides(mesh, tris, edge, welded, edges)  # beside the worker
 
         def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
             """A region's values, in place: ijk global, tri mesh ids, dist signed world units."""
