@@ -132,6 +132,31 @@ def test_triangle_rows_of_slivers():
     _check_rows_dist2(rows, tris, p)
 
 
+def test_triangle_rows_of_edges_too_short_for_float32():
+    """Triangles with an edge of 1e-30..1e-20 grid units near the origin (nonzero in
+    float64; its inverse squared length, and for the thinnest the dual basis, beyond
+    float32) and points square to that edge, at its ends included: finite rows, and
+    `rows_dist2` equals the float64 distance. The inverse was inf, and such a point's
+    projection onto the edge 0 * inf = NaN: a sparse field lost those voxels."""
+    from jaxvox._core.geometry import triangle_rows
+
+    rng = np.random.default_rng(3)
+    n = 600
+    axis = rng.integers(0, 3, n)
+    tiny = np.zeros((n, 3))
+    tiny[np.arange(n), axis] = 10.0 ** rng.uniform(-30, -20, n) * rng.choice([-1.0, 1.0], n)
+    a = np.zeros((n, 3))
+    c = rng.integers(-4, 5, (n, 3)).astype(np.float64)
+    tris = np.stack([a, a + tiny, c], 1)
+    tris = np.where(rng.random((n, 1, 1)) < 0.5, tris, tris[:, [1, 2, 0]])  # the short edge as ab or bc
+    square = rng.uniform(-3, 3, (n, 3))
+    square[np.arange(n), axis] = 0.0  # x . edge = 0 from either end
+    p = np.where(rng.random((n, 1)) < 0.2, 0.0, square)
+    rows = triangle_rows(tris)
+    assert np.isfinite(rows).all()
+    _check_rows_dist2(rows, tris, p)
+
+
 def test_triangle_rows_of_needles():
     """Needles along the grid's axes (integer corners, a short edge bc across the needle,
     1e-13..1e-9 of its length) and points on the needle's line beyond either end. Found by

@@ -175,8 +175,9 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     ``a = a_hi + a_lo`` (so that ``(a_hi - o) + a_lo`` keeps float64 precision relative to
     a tile origin o); u, v the dual basis of (ab, ac) in the triangle's plane (``q . u``
     and ``q . v`` are the barycentric coordinates of the projection of ``q = p - a``); n
-    the unit normal; proper 1 for a triangle of nonzero area (else u, v, n are 0 and only
-    its edges count). Per-cell work is then products and sums only, no division."""
+    the unit normal; proper 1 for a triangle of nonzero area whose u and v fit float32
+    (else u, v, n are 0 and only its edges count). Every row is finite. Per-cell work is
+    then products and sums only, no division."""
     out = np.empty((28, len(tris)), np.float32)
     a, b, c = (np.ascontiguousarray(tris[:, i].T) for i in range(3))  # [3, F] each: one row per axis
     ab, ac, bc = b - a, c - a, c - b
@@ -192,15 +193,22 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     # opposite) over |normal|^2, as accurate as the normal; the dot-product form
     # ``(|ac|^2 ab - (ab . ac) ac) / den`` cancels to nothing in float64 for a needle
     # across which ab . ac and |ac|^2 round to |ab|^2
+    u, v = cross(normal, -ac) / den, cross(normal, ab) / den
+    # a sliver whose u or v exceeds float32 (thinner than about 1e-38 of its edges) counts
+    # by its edges alone, which are as close to every point as it (no inf in the rows)
+    largest = np.finfo(np.float32).max
+    proper &= (np.abs(u) <= largest).all(0) & (np.abs(v) <= largest).all(0)
     out[0:3] = a
     out[3:6] = a - out[0:3]
     out[6:9], out[9:12], out[12:15] = ab, ac, bc
-    out[15:18] = np.where(proper, cross(normal, -ac) / den, 0.0)
-    out[18:21] = np.where(proper, cross(normal, ab) / den, 0.0)
+    out[15:18] = np.where(proper, u, 0.0)
+    out[18:21] = np.where(proper, v, 0.0)
     out[21:24] = np.where(proper, normal / np.sqrt(den), 0.0)
     for row, edge in zip((24, 25, 26), (ab, ac, bc)):
         ee = dot(edge, edge)
-        out[row] = np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0)
+        # at most float32's largest: an edge shorter than about 5e-20 would give inf, and
+        # a point square to it 0 * inf = NaN (the clamp moves the point by under |edge|)
+        out[row] = np.minimum(np.divide(1.0, ee, out=np.zeros_like(ee), where=ee > 0), largest)
     out[27] = proper
     return out
 
