@@ -4,12 +4,14 @@ of the mesh exceeds 1/2, negative inside.
 Two methods, both exact (the float64 brute-force winding number is the reference):
 
 * **Pseudo-normals.** For a watertight mesh whose triangles neither cross one another
-  (`jaxvox.distance.topology.crossing_faces`) nor have an irregular edge, a pinched vertex, zero
-  area or a fold (two faces at an edge within `FOLD` of facing each other, where the
-  float32 kernel cannot tell which sheet is closer), and none of whose shells winds
-  around another (`nested_shells`: between two nested spheres of the same orientation
-  the winding number is 1, but the closest surface is the inner sphere, seen from
-  outside): the side of the angle-weighted
+  (`jaxvox.distance.topology.crossing_faces`) nor have an irregular edge, a pinched
+  vertex, zero area, a sliver (`SLIVER`, the sides of a thin slab) or a fold (two faces
+  at an edge within `FOLD` of facing each other), and none of whose shells winds around
+  another (`nested_shells`: between two nested spheres of the same orientation the
+  winding number is 1, but the closest surface is the inner sphere, seen from outside).
+  Where two sheets of the surface come closer than the float32 kernel's rounding, as at
+  a fold or across a thin slab, it cannot tell which is closer, and the two face opposite
+  ways. The sign is the side of the angle-weighted
   pseudo-normal (Baerentzen & Aanaes 2005) of the closest feature of the voxel's closest
   triangle (the face normal when the closest point is interior to the face, the sum of
   the two face normals for an edge, the angle-weighted normal sum for a vertex; vertices
@@ -107,6 +109,7 @@ REFINE_EDGE = 128.0  # voxels whose closest triangle is longer (grid units) get 
 F32_ERROR = 5e-7  # measured error of the float32 distance kernel per grid unit of the closest triangle's longest edge
 SIDE_REFINE = 8 * F32_ERROR  # sides in float64 where the distance is below this times that edge
 FOLD = 1e-3  # faces at an edge with 1 + n1 . n2 below this (within about 2.6 degrees) are suspect
+SLIVER = 1e-4  # faces whose altitude is below this times their longest edge are suspect
 BLOCK_BITS = (2, 1)  # cap terms and distances are bounded by aligned blocks of 4^3 voxels, then 2^3
 _FAR = np.float32(1e9)  # corner of the padding cap triangles (zero area, far away)
 
@@ -363,13 +366,17 @@ def prepare_signs(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, band: 
 
 
 def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable) -> np.ndarray:
-    """[F] bool faces that may make pseudo-normal sides wrong: zero area, crossings,
+    """[F] bool faces that may make pseudo-normal sides wrong: zero area, slivers (an
+    altitude below `SLIVER` of the longest edge: the sides of a slab thinner than the
+    float32 kernel's rounding, whose two large faces it cannot tell apart), crossings,
     irregular edges, pinched vertices, folds (triangles [F, 3, 3], welded faces and their
     edges)."""
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     area2 = squared_lengths(cross)
+    longest2 = squared_lengths(tris - np.roll(tris, 1, axis=1)).max(1)
     return (
         (area2 == 0)
+        | (area2 < SLIVER * SLIVER * longest2 * longest2)
         | crossing_faces(tris, welded)
         | irregular_edge_faces(welded, edges)
         | pinched_vertex_faces(welded, edges)
@@ -395,7 +402,7 @@ def _folded_faces(normals: np.ndarray, edges: EdgeTable) -> np.ndarray:
 def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """Whether the pseudo-normal side of every point's closest feature is the side of the
     winding number (module docstring: watertight, no crossings, irregular edges, pinched
-    vertices, zero-area faces, folds or nested shells). Host, float64; the boundary is checked
+    vertices, zero-area faces, slivers, folds or nested shells). Host, float64; the boundary is checked
     first, so an open mesh costs no crossing test."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces)
