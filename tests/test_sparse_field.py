@@ -287,8 +287,8 @@ def test_an_edge_too_short_for_float32_loses_no_voxel(tiny):
     """A triangle with an edge of `tiny` world units at the grid's origin (voxel edge 1/2:
     1e-44 is float32's subnormal range): every band voxel, with its float64 distance and
     sign. The edge's inverse squared length was inf in the tile kernel's rows, the
-    distance of a cell square to the edge NaN, and the field lost its voxels (none of 20
-    at 1e-44 and 1e-40, 8 at 1e-38)."""
+    distance of a cell square to the edge NaN, and the field lost those voxels (it kept
+    none of the 20 at 1e-44 and 1e-40, 12 at 1e-38)."""
     mesh = jv.Mesh(np.array([[0, 0, 0], [tiny, 0, 0], [0.5, 1, 0.25]], np.float32), np.array([[0, 1, 2]], np.int32))
     grid = jv.Grid(np.zeros(3), 0.5, 4)
     check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2))
