@@ -323,16 +323,16 @@ def flat_tetrahedron() -> jv.Mesh:
 
 
 @pytest.mark.parametrize(
-    "make, resolution, pseudo",
+    "make, grid_of, band, pseudo",
     [
-        (lambda: wedge(1e-1), 64, True),
-        (lambda: wedge(1e-6), 64, False),
-        (lambda: slab(1e-6), 64, False),
-        (flat_tetrahedron, 4, False),
+        (lambda: wedge(1e-1), lambda mesh: jv.Grid.fit(mesh, resolution=64), 3, True),
+        (lambda: wedge(1e-6), lambda mesh: jv.Grid.fit(mesh, resolution=64), 3, False),
+        (lambda: slab(1e-6), lambda mesh: jv.Grid.fit(mesh, resolution=64), 3, False),
+        (flat_tetrahedron, lambda mesh: jv.Grid(np.zeros(3), 0.5, 4), 2, False),
     ],
     ids=["wedge-1e-1", "wedge-1e-6", "slab-1e-6", "flat-tetrahedron"],
 )
-def test_thin_sheets_are_signed_by_winding_numbers(make, resolution, pseudo):
+def test_thin_sheets_are_signed_by_winding_numbers(make, grid_of, band, pseudo):
     """Closed meshes where two sheets of the surface come closer than the float32 kernel's
     rounding, so that it cannot tell which is closer and the two face opposite ways: a
     wedge of 1e-6 rad (a fold), a slab 1e-6 thick (its sides are slivers), a tetrahedron
@@ -341,8 +341,8 @@ def test_thin_sheets_are_signed_by_winding_numbers(make, resolution, pseudo):
     rad keeps pseudo-normals. Every voxel, value and sign against float64."""
     mesh = make()
     assert pseudonormal_sides_exact(mesh.vertices, mesh.faces) == pseudo
-    grid = jv.Grid.fit(mesh, resolution=resolution) if resolution > 4 else jv.Grid(np.zeros(3), 0.5, 4)
-    check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=3 if resolution > 4 else 2))
+    grid = grid_of(mesh)
+    check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=band))
 
 
 def test_pseudo_normals_of_a_box():

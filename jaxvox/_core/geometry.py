@@ -195,7 +195,8 @@ def triangle_rows(tris: np.ndarray) -> np.ndarray:
     # across which ab . ac and |ac|^2 round to |ab|^2
     u, v = cross(normal, -ac) / den, cross(normal, ab) / den
     # a sliver whose u or v exceeds float32 (thinner than about 1e-38 of its edges) counts
-    # by its edges alone, which are as close to every point as it (no inf in the rows)
+    # by its edges alone, whose distance from any point exceeds its own by less than its
+    # width (no inf in the rows)
     largest = np.finfo(np.float32).max
     proper &= (np.abs(u) <= largest).all(0) & (np.abs(v) <= largest).all(0)
     out[0:3] = a

@@ -343,14 +343,17 @@ class Sides:
         return behind, on
 
 
-def prepare_signs(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, band: int) -> Callable[..., np.ndarray]:
+def prepare_signs(
+    tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, edge: np.ndarray, band: int
+) -> Callable[..., np.ndarray]:
     """The inside test of a mesh's band voxels (module docstring for the methods): what
     depends on the mesh alone (crossings, caps, free triangles, the winding tree)
     is computed here, once, so that the voxels can come in parts (regions).
 
     Args:
       tris: [F, 3, 3] float64 the mesh's triangles in grid units; welded: [F, 3] its
-        `welded_faces`, edges their `edge_table`; band: the half width.
+        `welded_faces`, edges their `edge_table`; edge: [F] the triangles'
+        `longest_edges`; band: the half width.
 
     Returns:
       ``inside(ijk, keys, dist, tri, behind, on)``: whether each is inside ([n] bool) at
@@ -359,24 +362,23 @@ def prepare_signs(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, band: 
       (grid units, at most `band`), tri [n] int closest triangle, behind and on [n] bool
       their sides (`Sides.finish`).
     """
-    suspect, chain = _suspect_faces(tris, welded, edges), boundary_chain(welded, edges)
+    suspect, chain = _suspect_faces(tris, welded, edges, edge), boundary_chain(welded, edges)
     if not len(chain) and not suspect.any() and not nested_shells(tris, welded):
         return lambda ijk, keys, dist, tri, behind, on: behind
     return Components(tris, welded, suspect, chain, band, edges).inside
 
 
-def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable) -> np.ndarray:
+def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, edge: np.ndarray) -> np.ndarray:
     """[F] bool faces that may make pseudo-normal sides wrong: zero area, slivers (an
     altitude below `SLIVER` of the longest edge: the sides of a slab thinner than the
     float32 kernel's rounding, whose two large faces it cannot tell apart), crossings,
     irregular edges, pinched vertices, folds (triangles [F, 3, 3], welded faces and their
-    edges)."""
+    edges, and the triangles' `longest_edges` [F])."""
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     area2 = squared_lengths(cross)
-    longest2 = squared_lengths(tris - np.roll(tris, 1, axis=1)).max(1)
     return (
         (area2 == 0)
-        | (area2 < SLIVER * SLIVER * longest2 * longest2)
+        | (np.sqrt(area2) < SLIVER * edge * edge)  # |cross| / edge^2 is the altitude over the edge
         | crossing_faces(tris, welded)
         | irregular_edge_faces(welded, edges)
         | pinched_vertex_faces(welded, edges)
@@ -410,7 +412,7 @@ def pseudonormal_sides_exact(vertices: np.ndarray, faces: np.ndarray) -> bool:
     if len(boundary_chain(welded, edges)):
         return False
     tris = vertices[faces]
-    return not _suspect_faces(tris, welded, edges).any() and not nested_shells(tris, welded)
+    return not _suspect_faces(tris, welded, edges, longest_edges(tris)).any() and not nested_shells(tris, welded)
 
 
 NESTED_WORK = 1 << 26  # (point, triangle) pairs `nested_shells` sums at most

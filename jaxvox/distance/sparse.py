@@ -519,13 +519,14 @@ def band_regions(
     from tqdm.auto import tqdm
 
     with ThreadPoolExecutor(1) as worker:
-        signs = sides = None
-        if signed and len(tris):  # the welded faces and their edges serve both threads
-            welded = welded_faces(np.asarray(mesh.vertices), np.asarray(mesh.faces))
-            edges = edge_table(welded)
-            signs = worker.submit(prepare_signs, tris, welded, edges, band)
         edge = longest_edges(tris)
         large = edge > REFINE_EDGE
+        signs = sides = None
+        if signed and len(tris):  # the welded faces, their edges and the longest edges serve both threads
+            welded = welded_faces(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+            edges = edge_table(welded)
+            signs = worker.submit(prepare_signs, tris, welded, edges, edge, band)
+            sides = Sides(mesh, tris, edge, welded, edges)  # beside the worker
         ids, codes = _tile_items(tris, grid.resolution, band, cell=size)
         starts = morton.run_starts(codes)
         ends = np.append(starts[1:], len(ids))
@@ -533,8 +534,6 @@ def band_regions(
         # With one region the worker has nothing else to do after the signs' preparation:
         # it decodes the pairs' rounds (and starts their sides) while this thread finds the next.
         decoder = worker if len(starts) == 1 else None
-        if signs is not None:
-            sides = Sides(mesh, tris, edge, welded, edges)  # beside the worker
 
         def finish(ijk, dist, tri, keys, region_lo, code, mine, started):
             """A region's values, in place: ijk global, tri mesh ids, dist signed world units."""
