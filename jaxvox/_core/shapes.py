@@ -110,12 +110,12 @@ def expand_counts(counts: jax.Array, capacity: int, start=0):
 SMALL_CHUNKS = 16  # a job smaller than one chunk runs in chunks this many times smaller
 
 
-def chunk_rows(n: int | np.integer, size: int) -> int:
+def chunk_rows(n: int | np.integer, size: int, fewer: int = SMALL_CHUNKS) -> int:
     """Rows per call for a host loop over `n` rows in fixed chunks of `size`: `size`, or
-    ``size // SMALL_CHUNKS`` when the whole job is smaller than one chunk (a small mesh,
-    or one small region, would otherwise pay a full chunk of padding per call). Two
-    programs per kernel at most, whatever `n`."""
-    return size if n >= size else max(size // SMALL_CHUNKS, 1)
+    ``size // fewer`` when the whole job is smaller than one chunk (a small mesh, or one
+    small region, would otherwise pay a full chunk of padding per call). Two programs
+    per kernel at most, whatever `n`."""
+    return size if n >= size else max(size // fewer, 1)
 
 
 def pad_rows(a: np.ndarray, rows: int, fill=0) -> np.ndarray:

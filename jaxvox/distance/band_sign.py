@@ -99,8 +99,10 @@ from jaxvox.distance.winding import (
 from jaxvox.mesh import Mesh
 
 POINT_CHUNK = 1 << 16  # band voxels per call of the sign kernels (fewer dispatches than 2^14)
+FEWER_POINTS = 64  # a job below POINT_CHUNK runs in chunks this many times smaller (a region's cap terms: a few dozen)
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
+CAP_BLOCK = 32  # cap triangles per step of the caps' kernel (a mesh's holes often have a few dozen)
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
 MOVE = 1.0 + 1e-3  # d(a) + d(b) beyond this certifies that a 6-neighbour move crosses nothing
 ON_SURFACE = 1e-3  # voxels this close (grid units) to the caps are evaluated alone; to the mesh, sides in float64
@@ -276,7 +278,7 @@ def _start_chunks(fn, rows, *rest) -> list:
     array, or a tuple of arrays with the same first axis; smaller chunks for a small job,
     `chunk_rows`) without waiting: [(result, rows in the chunk)], for `_join_chunks`."""
     rows = rows if isinstance(rows, tuple) else (rows,)
-    width = chunk_rows(len(rows[0]), POINT_CHUNK)
+    width = chunk_rows(len(rows[0]), POINT_CHUNK, FEWER_POINTS)
     started = []
     for s in range(0, len(rows[0]), width):
         parts = [r[s : s + width] for r in rows]
@@ -508,8 +510,8 @@ class Components:
         tri_gap, tri_bound, tri_slope = _cap_gaps(centroid, reach, cap_centre, cap_radius, cap_area)
         self.has_caps = len(caps) > 0
         self.caps = caps  # [C, 3, 3] float64 fan triangles (centre, b, a) over the boundary edges a -> b
-        self.blocks = triangle_blocks(caps, float(_FAR))  # padding far away: it must not be the nearest
-        self.rows = triangle_blocks(caps, float(_FAR), triangle_rows)  # the same blocks, for distances
+        self.blocks = triangle_blocks(caps, float(_FAR), block=CAP_BLOCK)  # padding far away: never the nearest
+        self.rows = triangle_blocks(caps, float(_FAR), triangle_rows, CAP_BLOCK)  # the same blocks, for distances
         # Where the balls about the caps do not settle it: the exact cap term and distance
         # at the centroid, with the term's largest change within the reach.
         doubt = np.flatnonzero((tri_bound >= CAP_BOUND) | (tri_gap <= MOVE))

@@ -221,7 +221,7 @@ F32_CLOSE_PER_TRIANGLE = 3e-10  # and this much closer per triangle (`exact_wind
 HOST_POINTS = 4  # `exact_winding_numbers` of at most this many points: float64 on the host, not a padded kernel chunk
 FEW_POINTS = 32  # smallest chunk of `brute_force_winding_numbers` (a few points: not padded to the ladder's floor)
 BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
-FEW_BLOCKS = 16  # `TriangleBlocks` hold at least this many blocks: one program below 4096 triangles (or caps)
+FEW_TRIANGLES = 4096  # `TriangleBlocks` hold at least this many triangles: one program below it
 
 
 class _PointTree(NamedTuple):
@@ -280,8 +280,9 @@ class TriangleBlocks(NamedTuple):
     """Triangles as device blocks of rows for the brute-force kernels (`_brute_force`,
     the caps' terms of `jaxvox.distance.band_sign`).
 
-    rows: [n, R, BRUTE_FORCE_BLOCK] float32, n on the shape ladder (`bucket`, at least
-    `FEW_BLOCKS`), the blocks in use first, then blocks of padding; used: [] int32 the
+    rows: [n, R, block] float32 (block: `BRUTE_FORCE_BLOCK`, or the caps' narrower
+    blocks), n on the shape ladder (`bucket`, at least `FEW_TRIANGLES` / block), the
+    blocks in use first, then blocks of padding; used: [] int32 the
     blocks in use. The kernels loop over those only, so the padding costs memory (and
     filling it on the host), no kernel time, and meshes of one bucket share their
     programs.
@@ -291,18 +292,18 @@ class TriangleBlocks(NamedTuple):
     used: jax.Array
 
 
-def triangle_blocks(tris: np.ndarray, pad: float, layout=None) -> TriangleBlocks:
-    """Float64 triangles [F, 3, 3] as `TriangleBlocks`, padded with degenerate triangles
-    whose corners are all `pad`. `layout` maps triangles [F', 3, 3] to their rows
-    [R, F'] (default: the corners' `split_rows`, R = 18;
+def triangle_blocks(tris: np.ndarray, pad: float, layout=None, block: int = BRUTE_FORCE_BLOCK) -> TriangleBlocks:
+    """Float64 triangles [F, 3, 3] as `TriangleBlocks` of `block` triangles, padded with
+    degenerate triangles whose corners are all `pad`. `layout` maps triangles [F', 3, 3]
+    to their rows [R, F'] (default: the corners' `split_rows`, R = 18;
     `jaxvox._core.geometry.triangle_rows` for distances)."""
     layout = (lambda t: split_rows(t.reshape(-1, 9).T)) if layout is None else layout
-    count = -(-len(tris) // BRUTE_FORCE_BLOCK)
-    extra = -len(tris) % BRUTE_FORCE_BLOCK
+    count = -(-len(tris) // block)
+    extra = -len(tris) % block
     rows = layout(np.concatenate([tris, np.full((extra, 3, 3), pad)]))  # [R, F']
-    filler = layout(np.full((BRUTE_FORCE_BLOCK, 3, 3), pad))  # one block of padding
-    out = np.empty((bucket(count, FEW_BLOCKS), len(filler), BRUTE_FORCE_BLOCK), np.float32)
-    out[:count] = rows.reshape(len(rows), -1, BRUTE_FORCE_BLOCK).transpose(1, 0, 2)
+    filler = layout(np.full((block, 3, 3), pad))  # one block of padding
+    out = np.empty((bucket(count, FEW_TRIANGLES // block), len(filler), block), np.float32)
+    out[:count] = rows.reshape(len(rows), -1, block).transpose(1, 0, 2)
     out[count:] = filler
     return TriangleBlocks(jax.device_put(out), jax.device_put(np.int32(count)))
 
