@@ -529,7 +529,13 @@ class Components:
         self.tri_gap32 = np.where(gap32 > tri_gap, np.nextafter(gap32, np.float32(-np.inf)), gap32)
         self.capped = tri_bound >= CAP_BOUND  # per triangle: the cap term is summed exactly
         pairs = regular_edge_pairs(welded, edges)
-        self.pairs = pairs[self.free[pairs].all(1)]
+        pairs = pairs[self.free[pairs].all(1)]
+        # The (triangle, side) nodes joined through the free triangles' regular edges, once
+        # for every region: a region's components are these, joined by its voxels' moves.
+        u, v = 2 * pairs, 2 * pairs + 1
+        self.side_label = connected_components(
+            2 * len(tris), np.concatenate([u[:, 0], v[:, 0]]), np.concatenate([u[:, 1], v[:, 1]])
+        )
         self.tree = point_tree(tris)  # both for every region's winding numbers
         self.mesh_blocks = triangle_blocks(tris, 0.0)
 
@@ -628,12 +634,23 @@ class Components:
         bounded_w = self.blocked_cap_terms(ijk[bounded], keys[bounded], np.full(len(bounded), np.inf))[0]
         alone = on[loose] | (gap < ON_SURFACE)  # [loose]
 
-        # Nodes: (triangle, side) groups 0 .. 2F - 1, then the loose voxels.
+        # Nodes: the (triangle, side) groups of these voxels, numbered in the order of
+        # 2 triangle + side, then the loose voxels; the groups that the mesh's regular
+        # edges join (`side_label`) start joined, so no node of the whole mesh is visited.
         index = np.int32 if 2 * faces + len(loose) < (1 << 31) else np.int64
-        node = 2 * tri.astype(index) + behind
-        node[loose] = 2 * faces + np.arange(len(loose), dtype=index)
-        u = [2 * self.pairs[:, 0], 2 * self.pairs[:, 0] + 1]
-        v = [2 * self.pairs[:, 1], 2 * self.pairs[:, 1] + 1]
+        side = 2 * tri.astype(index) + behind
+        present = np.zeros(2 * faces, bool)
+        present[np.delete(side, loose)] = True  # the groups of the tied voxels
+        groups = np.flatnonzero(present)
+        grouped = len(groups)
+        number = np.zeros(2 * faces, index)
+        number[groups] = np.arange(grouped, dtype=index)
+        node = number[side]
+        node[loose] = grouped + np.arange(len(loose), dtype=index)
+        first = np.zeros(2 * faces, index)
+        first[self.side_label[groups[::-1]]] = np.arange(grouped, dtype=index)[::-1]  # each label's first group
+        u = [np.arange(grouped, dtype=index)]
+        v = [first[self.side_label[groups]]]
         movers = np.flatnonzero(~alone)  # rows of loose
         mover = loose[movers]
         for axis in range(3):
@@ -650,7 +667,7 @@ class Components:
                 ok = found & (dist[mover] + dist[at] > MOVE) & (gap[movers] + at_gap > MOVE)
                 u.append(node[mover[ok]])
                 v.append(node[at[ok]])
-        nodes = 2 * faces + len(loose)
+        nodes = grouped + len(loose)
         label = connected_components(nodes, np.concatenate(u), np.concatenate(v))
 
         # One winding number per component, at its voxel farthest from mesh and caps:
@@ -658,12 +675,12 @@ class Components:
         node_best = np.full(nodes, -1.0, np.float32)
         dist = dist.astype(np.float32, copy=False)  # compared with node_best below
         np.maximum.at(node_best, node, dist)
-        node_best[2 * faces :] = np.where(alone, np.float32(-1), np.minimum(dist[loose], gap))
+        node_best[grouped:] = np.where(alone, np.float32(-1), np.minimum(dist[loose], gap))
         best = np.full(len(label), -1.0, np.float32)
         np.maximum.at(best, label, node_best)
         winner = (node_best == best[label]) & (node_best >= 0.5)
         hit = np.flatnonzero(winner[node])
-        hit = hit[(dist[hit] == node_best[node[hit]]) | (node[hit] >= 2 * faces)]  # a loose node has one voxel
+        hit = hit[(dist[hit] == node_best[node[hit]]) | (node[hit] >= grouped)]  # a loose node has one voxel
         rep = np.full(len(label), -1)
         rep[label[node[hit]]] = hit
         has_rep = rep >= 0
