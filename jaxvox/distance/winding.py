@@ -215,7 +215,8 @@ LEAF = 8  # triangles per leaf of the point tree (`point_winding_numbers`)
 TOP = 8  # leaves per top node of the point tree
 NEAR_TOPS = 96  # top nodes opened per point; more near ones send the point to brute force
 NEAR_LEAVES = 96  # leaves evaluated exactly per point; likewise
-POINT_CHUNK = 1 << 12  # points per call of the point tree kernel
+POINT_CHUNK = 1 << 12  # points per call of `brute_force_winding_numbers`
+TREE_CHUNK = 1 << 8  # points per call of the point tree kernel: its [P, nodes] temporaries stay in cache
 F32_CLOSE = 1e-5  # float32 brute-force winding numbers this close to 1/2 are summed in float64,
 F32_CLOSE_PER_TRIANGLE = 3e-10  # and this much closer per triangle (`exact_winding_numbers`)
 HOST_POINTS = 4  # `exact_winding_numbers` of at most this many points: float64 on the host, not a padded kernel chunk
@@ -382,7 +383,7 @@ def point_winding_numbers(
     if not len(points) or not len(tris):
         return np.zeros(len(points), np.float32)
     tree = point_tree(np.asarray(tris, np.float64)) if tree is None else tree
-    width = chunk_rows(len(points), POINT_CHUNK)
+    width = chunk_rows(len(points), TREE_CHUNK)
     started = []  # every chunk dispatched before the first is waited for: their kernels overlap
     for s in range(0, len(points), width):
         chunk = jax.device_put(pad_rows(points[s : s + width].astype(np.float32), width))
