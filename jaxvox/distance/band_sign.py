@@ -647,10 +647,10 @@ class Components:
         number[groups] = np.arange(grouped, dtype=index)
         node = number[side]
         node[loose] = grouped + np.arange(len(loose), dtype=index)
-        first = np.zeros(2 * faces, index)
-        first[self.side_label[groups[::-1]]] = np.arange(grouped, dtype=index)[::-1]  # each label's first group
+        star = np.zeros(2 * faces, index)  # per label, one of its groups (any): joined to the others
+        star[self.side_label[groups]] = np.arange(grouped, dtype=index)
         u = [np.arange(grouped, dtype=index)]
-        v = [first[self.side_label[groups]]]
+        v = [star[self.side_label[groups]]]
         movers = np.flatnonzero(~alone)  # rows of loose
         mover = loose[movers]
         for axis in range(3):
