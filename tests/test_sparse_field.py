@@ -294,16 +294,21 @@ def test_an_edge_too_short_for_float32_loses_no_voxel(tiny):
     check_field(mesh, grid, jv.sparse_distance_field(mesh, grid, band=2))
 
 
+def _turned(vertices: np.ndarray, faces: list) -> jv.Mesh:
+    """A mesh of vertices [V, 3] turned off the axes (0.2 rad about x, then 0.3 about z)
+    and moved by 0.1."""
+    c, s, c2, s2 = np.cos(0.3), np.sin(0.3), np.cos(0.2), np.sin(0.2)
+    turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, c2, -s2], [0, s2, c2]])
+    return jv.Mesh((vertices @ turn.T + 0.1).astype(np.float32), np.array(faces, np.int32))
+
+
 def wedge(theta: float) -> jv.Mesh:
     """A closed triangular prism whose cross-section is a wedge of angle `theta` (a knife
     edge 0.6 deep, 0.8 long), turned off the axes."""
     h = 0.6 * np.tan(theta / 2)
     section = [(0.0, 0.0), (0.6, -h), (0.6, h)]
     v = np.array([(x, y, z) for z in (0.0, 0.8) for x, y in section])
-    c, s, c2, s2 = np.cos(0.3), np.sin(0.3), np.cos(0.2), np.sin(0.2)
-    turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, c2, -s2], [0, s2, c2]])
-    faces = [[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5]]
-    return jv.Mesh((v @ turn.T + 0.1).astype(np.float32), np.array(faces, np.int32))
+    return _turned(v, [[0, 2, 1], [3, 4, 5], [0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4], [2, 0, 3], [2, 3, 5]])
 
 
 def slab(thickness: float) -> jv.Mesh:
@@ -311,9 +316,7 @@ def slab(thickness: float) -> jv.Mesh:
     corners = np.array([(x, y, z) for x in (0.0, 0.8) for y in (0.0, 0.8) for z in (0.0, thickness)])
     faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
     faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    c, s, c2, s2 = np.cos(0.3), np.sin(0.3), np.cos(0.2), np.sin(0.2)
-    turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ np.array([[1, 0, 0], [0, c2, -s2], [0, s2, c2]])
-    return jv.Mesh((corners @ turn.T + 0.1).astype(np.float32), np.array(faces, np.int32))
+    return _turned(corners, faces)
 
 
 def flat_tetrahedron() -> jv.Mesh:

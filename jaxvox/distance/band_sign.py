@@ -384,21 +384,20 @@ def _suspect_faces(tris: np.ndarray, welded: np.ndarray, edges: EdgeTable, edge:
         | crossing_faces(tris, welded)
         | irregular_edge_faces(welded, edges)
         | pinched_vertex_faces(welded, edges)
-        | _folded_faces(cross / np.sqrt(np.where(area2 > 0, area2, 1.0))[:, None], edges)
+        | _folded_faces(cross / np.sqrt(np.where(area2 > 0, area2, 1.0))[:, None], regular_edge_pairs(welded, edges))
     )
 
 
-def _folded_faces(normals: np.ndarray, edges: EdgeTable) -> np.ndarray:
-    """[F] bool the two faces of each edge whose sheets fold onto each other: unit normals
-    [F, 3] (0 for zero area) with ``1 + n1 . n2 < FOLD``. Near such an edge the other
-    sheet's triangle lies within the tile kernel's float32 rounding of the closest one
-    and faces the other way, so the kernel may give a voxel the wrong one of the two
-    (docs/design-history.md, "Two sheets closer than float32")."""
-    pair = edges.start[edges.entries == 2]
-    first, second = edges.owner[pair], edges.owner[pair + 1]
-    fold = 1 + np.einsum("ij,ij->i", normals[first], normals[second]) < FOLD
+def _folded_faces(normals: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """[F] bool the two faces of each regular edge (pairs [P, 2], `regular_edge_pairs`)
+    whose sheets fold onto each other: unit normals [F, 3] (0 for zero area) with
+    ``1 + n1 . n2 < FOLD``. Near such an edge the other sheet's triangle lies within the
+    tile kernel's float32 rounding of the closest one and faces the other way, so the
+    kernel may give a voxel the wrong one of the two (docs/design-history.md, "Two
+    sheets closer than float32")."""
+    fold = 1 + np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]]) < FOLD
     out = np.zeros(len(normals), bool)
-    out[first[fold]] = out[second[fold]] = True
+    out[pairs[fold].reshape(-1)] = True
     return out
 
 
