@@ -3,9 +3,15 @@
 The search keeps, level by level, the nodes that may hold a block's closest triangle:
 every point of a block is within ``U`` of the surface, ``U`` the smallest distance from
 the block's farthest corner to a node's surface point (``rep``), so a node whose box is
-farther than ``U`` from the block's box holds no block point's closest triangle. The
-leaves kept are evaluated exactly per point (`jaxvox._core.geometry.rows_dist2`, 8 triangles a
-leaf). Ties between triangles at the same float32 distance go to the smallest face id.
+farther than ``U`` from the block's box holds no block point's closest triangle. Each
+point also keeps its own bound, its smallest distance to the ``rep`` of the nodes its
+block visits (and, from the level above the leaves, to a few leaves' triangles): a node
+farther than that from every point of the block is dropped too. Where points are few
+and a block of Morton-consecutive points spans much of the mesh's box, the block's
+``U`` keeps most of the nodes near the block, and the points' own bounds only those
+near one of its points. The leaves kept are evaluated exactly per point
+(`jaxvox._core.geometry.rows_dist2`, 8 triangles a leaf). Ties between triangles at the
+same float32 distance go to the smallest face id.
 """
 
 from __future__ import annotations
@@ -20,6 +26,10 @@ from jaxvox.points import search
 from jaxvox.points.index import FAN_OUT, MeshIndex
 
 _NO_FACE = jnp.iinfo(jnp.int32).max
+# The points' own bounds are tightened at a level when its pairs hold at most this many
+# (pair, point) entries: a level of many pairs is one of many points, whose blocks are
+# small, and there the block's bound prunes as well at less cost.
+POINT_BOUNDS_MAX = 1 << 22
 
 
 class Found(NamedTuple):
@@ -38,18 +48,19 @@ def closest_slots(index: MeshIndex, blocks: search.Blocks, caps: tuple[int, ...]
     then the leaf rows (`row_depths`). ``Found.needs`` says what each needed.
     """
     nb = blocks.p.shape[1]
-    bound = [jnp.full(nb, jnp.inf, jnp.float32)]  # the blocks' bounds, as the walk tightens them
-    seeds: list[tuple[search.Rows, jax.Array]] = []
+    # The bounds, as the walk tightens them: the blocks' [nb] and each point's [nb, BLOCK].
+    bound = [jnp.full(nb, jnp.inf, jnp.float32), jnp.full(blocks.p.shape[1:], jnp.inf, jnp.float32)]
+    seeds: list[search.Rows] = []
 
     def select(pairs, depth):
-        keep, bound[0], seed = _select(index, blocks, pairs, bound[0], depth, seeds[0][1] if seeds else None)
+        keep, bound[0], bound[1], seed = _select(index, blocks, pairs, bound[0], bound[1], depth)
         seeds.extend([] if seed is None else [seed])
         return keep
 
     pairs, keep, lost, needs = search.descend(select, nb, index.levels, caps[:-1])
     rows, dropped = search.make_rows(pairs, keep, caps[-1], nb)
     if seeds:  # the seed's leaves are evaluated again with the rest: one kernel
-        rows = search.join_rows([seeds[0][0], rows], nb)
+        rows = search.join_rows([seeds[0], rows], nb)
     d2, face = search.eval_rows(rows, blocks, lambda p, leaves: _leaf_minima(index, p, leaves), (jnp.inf, _NO_FACE))
     owner = rows.block
     best = jax.ops.segment_min(d2, owner, nb)
@@ -66,30 +77,37 @@ def row_depths(index: MeshIndex) -> tuple[int, ...]:
     return (0,)
 
 
-def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, depth: int, u):
+def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, u, depth: int):
     """The pairs of a level that may hold a block point's closest triangle ([capacity]
-    bool), the blocks' tightened bounds [nb] (squared), and at depth 1 the `_seed`
-    values. With `u` ([nb, BLOCK] squared distances each point has already found, or the
-    seed's), a pair is kept only if it may be closer than that to one of the block's points."""
+    bool), the tightened bounds (squared: the blocks' [nb] and each point's ``u`` [nb,
+    BLOCK]) and at depth 1 the `_seed` rows. Above the leaves, every pair's ``rep``
+    tightens the bounds of its block's points (points spread over a large block, as few
+    points in a large box are, each keep only the nodes near them); a pair is kept only
+    if it may be closer than its block's bound to the block's box and closer than a
+    point's bound to one of the block's points."""
     nb = blocks.p.shape[1]
     node = index.nodes[index.levels[depth][0] + pairs.node]  # [capacity, 24]
     used = pairs.block < nb
     b = jnp.minimum(pairs.block, nb - 1)
     box = blocks.bounds[b]  # [capacity, 6]
+    p = tuple(blocks.p[k][b] for k in range(3))  # [capacity, BLOCK]
     ub = jnp.where(used, search.far_corner2(box, node[:, 6:9]), jnp.inf)
     bound = jnp.minimum(bound, jax.ops.segment_min(ub, pairs.block, nb, indices_are_sorted=True))
-    found = None
+    seed = None
+    if depth >= 1 and pairs.block.shape[0] * search.BLOCK <= POINT_BOUNDS_MAX:
+        to_rep = sum((p[k] - node[:, 6 + k, None]) ** 2 for k in range(3))  # [capacity, BLOCK]
+        to_rep = jnp.where(used[:, None], to_rep, jnp.inf)
+        u = jnp.minimum(u, jax.ops.segment_min(to_rep, pairs.block, nb, indices_are_sorted=True))
     if depth == 1:  # exact distances to the leaves of each block's most promising nodes
-        found = _seed(index, blocks, pairs, ub)
-        bound = jnp.minimum(bound, found[1].max(1))
-        u = found[1]
+        seed, found = _seed(index, blocks, pairs, ub)
+        u = jnp.minimum(u, found)
+    bound = jnp.minimum(bound, u.max(1))
     oriented = jnp.maximum(search.frame_gap(box, node[:, 9:]), 0.0)
     lb = jnp.maximum(search.box_gap2(box, node), oriented * oriented * (1.0 - 1e-5))
     keep = used & (lb <= bound[b] * search.SLACK)
-    if u is not None:
-        p = tuple(blocks.p[k][b] for k in range(3))  # [capacity, BLOCK]
+    if depth <= 1:
         keep &= jnp.any(search.point_gap2(p, node) <= u[b] * search.SLACK, axis=1)
-    return keep, bound, found
+    return keep, bound, u, seed
 
 
 def _seed(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, ub):
