@@ -143,6 +143,9 @@ def box_cells(ids: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[np.
     small = len(first) and first.min() >= 0 and last.max() < len(_SPREAD16)  # (the boxes bound their cells)
     code = _encode16(*cell) if small else encode_axes_host(*cell)
     ids = np.asarray(ids, np.int64)
+    if len(code) and code.max() < (1 << 16):  # (small grids) numpy's stable sort of 16-bit keys is a radix sort
+        order = np.argsort(code.astype(np.uint16), kind="stable")
+        return np.repeat(ids, counts)[order], code[order]
     if len(code) and last.max() < (1 << WORD_BITS) and ids.max() < (1 << 32):
         # One sort of packed keys, code high, id low: written and read as uint32 halves
         # (little-endian), fewer passes than shifts and masks.

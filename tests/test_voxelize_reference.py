@@ -178,12 +178,13 @@ _BOX = st.tuples(*[st.integers(0, 2**20 - 4)] * 3, *[st.integers(0, 3)] * 3)  # 
 
 
 @settings(max_examples=50, deadline=None)
-@given(st.lists(_BOX, max_size=12), st.booleans())
-def test_box_cells_are_every_cell_in_morton_then_id_order(boxes, small):
+@given(st.lists(_BOX, max_size=12), st.sampled_from([16, 1000, 2**20 - 4]))
+def test_box_cells_are_every_cell_in_morton_then_id_order(boxes, span):
     """`jaxvox.morton.box_cells` (the voxelizer's regions, the sparse field's tiles) against
-    Python loops over each box's cells, with Python-int Morton codes; `small` keeps the
-    cells below 1024 per axis (the packed sort), else they may pass it (the stable argsort)."""
-    first = np.array([b[:3] for b in boxes], np.int64).reshape(-1, 3) % (16 if small else 2**20 - 4)
+    Python loops over each box's cells, with Python-int Morton codes; the first cells lie
+    below `span` per axis: 16 keeps the codes below 2^16 (the radix sort of 16-bit keys),
+    1000 the cells below 1024 (the packed sort), else they may pass it (the stable argsort)."""
+    first = np.array([b[:3] for b in boxes], np.int64).reshape(-1, 3) % span
     last = first + np.array([b[3:] for b in boxes], np.int64).reshape(-1, 3)
     ids = np.arange(len(boxes), dtype=np.int64) * 3  # ascending, not 0..n-1
     expected = sorted(
