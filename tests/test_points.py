@@ -144,12 +144,12 @@ def test_the_points_own_bounds_keep_every_closest_triangle(meshes_dir, monkeypat
     index = jp.mesh_index(mesh)
     v = np.asarray(mesh.vertices)
     p = np.random.default_rng(3).uniform(v.min(0), v.max(0), (1024, 3)).astype(np.float32)
-    blocks = search.make_blocks(index, jnp.asarray(p))
     caps = (1 << 17, 1 << 16, 1 << 13, 1 << 10, 1 << 8, 1 << 13)  # room for what either search needs
+    search_all = lambda q: closest.closest_slots(index, search.make_blocks(index, q), caps)
     found = []
     for limit in (closest.POINT_BOUNDS_MAX, 0):
         monkeypatch.setattr(closest, "POINT_BOUNDS_MAX", limit)
-        found.append(jax.jit(lambda b: closest.closest_slots(index, b, caps))(blocks))  # (a new function: traced anew)
+        found.append(jax.jit(lambda q: search_all(q))(p))  # (a new function each time: traced anew)
     own, block_only = found
     assert not np.asarray(own.lost).any() and not np.asarray(block_only.lost).any()
     np.testing.assert_array_equal(np.asarray(own.slot), np.asarray(block_only.slot))
