@@ -80,8 +80,9 @@ def row_depths(index: MeshIndex) -> tuple[int, ...]:
 def _select(index: MeshIndex, blocks: search.Blocks, pairs: search.Pairs, bound, u, depth: int):
     """The pairs of a level that may hold a block point's closest triangle ([capacity]
     bool), the tightened bounds (squared: the blocks' [nb] and each point's ``u`` [nb,
-    BLOCK]) and at depth 1 the `_seed` rows. Above the leaves, every pair's ``rep``
-    tightens the bounds of its block's points (points spread over a large block, as few
+    BLOCK]) and at depth 1 the `_seed` rows. Above the leaves, where the level's pairs
+    are few enough (`POINT_BOUNDS_MAX`), every pair's ``rep`` tightens the bounds of its
+    block's points (points spread over a large block, as few
     points in a large box are, each keep only the nodes near them); a pair is kept only
     if it may be closer than its block's bound to the block's box and closer than a
     point's bound to one of the block's points."""

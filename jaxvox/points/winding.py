@@ -26,12 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxvox._core.geometry import solid_angle_parts
+from jaxvox._core.shapes import chunk_rows
 from jaxvox.points import search
 from jaxvox.points.index import MeshIndex
 
 FLOAT_MARGIN = 1e-4  # float32 rounding allowance added to every error bound
 EXACT_MIN = 256  # points per exact sum (padded): one program per face capacity
-EXACT_FEW = 16  # points per exact sum where fewer than EXACT_MIN are asked: a second program
 
 
 def winding_sums(index: MeshIndex, blocks: search.Blocks, beta: float, caps: tuple[int, ...]):
@@ -129,10 +129,10 @@ def tree_triangles(index: MeshIndex) -> np.ndarray:
 def exact_winding(index: MeshIndex, points) -> np.ndarray:
     """Exact winding numbers [n] float64 (host) of points [n, 3] over every triangle of the
     index (`jaxvox.distance.winding.exact_winding_numbers`: float64 near 1/2), in chunks
-    of `EXACT_MIN` points (the last one padded there), or of `EXACT_FEW` where fewer
-    points than one chunk are asked (often a handful, those the fast sum left near 1/2):
-    sets of any size share two compiled programs per face capacity."""
+    of `EXACT_MIN` points (the last one padded there), or of a sixteenth of that where
+    fewer points than one chunk are asked (`chunk_rows`: often a handful, those the fast
+    sum left near 1/2): sets of any size share two compiled programs per face capacity."""
     from jaxvox.distance.winding import exact_winding_numbers
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    return exact_winding_numbers(tree_triangles(index), p, chunk=EXACT_MIN if len(p) >= EXACT_MIN else EXACT_FEW)
+    return exact_winding_numbers(tree_triangles(index), p, chunk=chunk_rows(len(p), EXACT_MIN))
