@@ -110,11 +110,12 @@ def fast_sweep(u, free, iterations: int):
     """`iterations` rounds of fast sweeping in all 8 diagonal orders; only `free` voxels change."""
     u = jnp.where(free, u, -u)  # the sign bit marks fixed voxels (u >= 0; -0.0 has it too)
 
-    def iteration(_, u):
-        for axes in ((), (0,), (1,), (2,)):
-            flip = lambda a: jnp.flip(a, axes) if axes else a
-            u = flip(_sweep_pair(flip(u)))
-        return u
+    # The four pairs of orders flip no axis, then axis 0, 1 or 2 (a flip undoes itself).
+    flips = [lambda a: a] + [lambda a, axis=axis: jnp.flip(a, axis) for axis in range(3)]
 
-    # a loop, not unrolled: one iteration's code, compiled once whatever `iterations` is
-    return jnp.abs(jax.lax.fori_loop(0, iterations, iteration, u))
+    def pair(n, u):
+        flip = lambda a: jax.lax.switch(n % 4, flips, a)
+        return flip(_sweep_pair(flip(u)))
+
+    # loops, not unrolled: one sweep pair's code, compiled once whatever `iterations` is
+    return jnp.abs(jax.lax.fori_loop(0, 4 * iterations, pair, u))
