@@ -64,7 +64,8 @@ class Clipmap:
     moves gives bit for bit the cascade of a build from scratch. With a `distance_field`
     method (e.g. "jfa+sweep", the seed's pipeline) each slab is a *scissor volume*: the
     pipeline runs on the slab grown by ``truncation + 1`` voxels on every side, from the
-    faces near it (every face within the clamp of a slab voxel is in the grown box), and
+    faces near it (every face within the clamp of a slab voxel is in the grown box), with
+    its axes ordered by length (slabs across x, y and z share one compiled pipeline), and
     the sign is the same solid voxelization of the slab. A build from scratch is the
     same computation on the whole window. With ``"band"`` the pipeline is the narrow
     band alone, ``truncation + 1`` passes from the surface voxels of the grown box only:
@@ -168,7 +169,8 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
     The scissor volume: `clip.method`'s pipeline runs on the box grown by the truncation
     plus one voxel on every side, from the faces near that grown box only (a farther face
     is beyond the clamp from every voxel of the box); the sign is the solid voxelization
-    of the box itself from the whole mesh. Box sides go through `_side`.
+    of the box itself from the whole mesh. Box sides go through `_side`, and the
+    pipeline sees the box's axes sorted by length.
     """
     origin = np.asarray(clip.origin, np.float64)
     size: tuple[int, int, int] = tuple(int(n) for n in hi - lo)  # type: ignore[assignment]
@@ -182,16 +184,20 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
         d = np.full(size, limit)
     else:
         band = margin if clip.method == "band" else int(clip.method == "jfa+sweep")
+        # The box's axes in order of length, so that slabs across x, y and z share one
+        # program: the distance does not depend on the order of the axes.
+        order = np.argsort(shape, kind="stable")
         field = box_distance(
-            near,
-            box_grid(corner, h, shape),
-            shape,
+            Mesh(np.asarray(near.vertices)[:, order], near.faces),
+            box_grid(corner[order], h, tuple(shape[a] for a in order)),
+            tuple(int(shape[a]) for a in order),
             method=clip.method,
             band=band,
             sweeps=3,
             clamped=clip.method != "band",
         )
-        cut = np.asarray(field)[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
+        field = np.asarray(field).transpose(np.argsort(order))
+        cut = field[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
         d = np.minimum(cut * np.float32(h), limit)
     sign_shape: tuple[int, int, int] = tuple(_side(n, r, 0) for n in size)  # type: ignore[assignment]
     grid = box_grid(origin + lo * h, h, sign_shape)
