@@ -297,6 +297,34 @@ def test_lost_blocks_are_retried_on_the_host_and_reported_inside_jit(sphere):
         queries._PLANS[key] = saved
 
 
+def test_the_first_plan_holds_a_thousand_points_on_the_bunny(meshes_dir, monkeypatch):
+    """The first plan (`queries.FIRST_PAIRS`, `queries.FIRST_ROWS`) holds what both
+    searches need for a thousand points on the bunny (69 K faces), spread over its box or
+    near its surface: one run and one program each, no retry (the defaults alone had
+    every search here run twice)."""
+    mesh = jv.load_mesh(meshes_dir / "stanford-bunny.obj")
+    index = jp.mesh_index(mesh)
+    v = np.asarray(mesh.vertices)
+    rng = np.random.default_rng(11)
+    spread = rng.uniform(v.min(0), v.max(0), (1000, 3))
+    near = v[rng.integers(0, len(v), 1000)] + rng.normal(0, 0.01 * np.ptp(v, 0).max(), (1000, 3))
+    program, runs = queries._program, []
+
+    def counted(body, index, points, **static):
+        out = program(body, index, points, **static)
+        runs.append((body.__name__, bool(np.asarray(out[1]).any())))
+        return out
+
+    monkeypatch.setattr(queries, "_program", counted)
+    monkeypatch.setattr(queries, "_PLANS", {})
+    for p in (spread, near):
+        queries._PLANS.clear()
+        runs.clear()
+        jp.closest_points(index, p.astype(np.float32))
+        jp.winding_number(index, p.astype(np.float32))
+        assert runs == [("_closest_body", False), ("_winding_body", False)], runs
+
+
 def test_grown_scales_what_lies_below_an_overflowed_level():
     """A pair level that overflowed by r passed on only 1/r of its pairs, so the needs
     below it (deeper pairs, rows of its depth and deeper) grow by r as well; the levels

@@ -52,8 +52,17 @@ from jaxvox.points.index import MeshIndex, mesh_index
 
 Sign = Literal["winding", "pseudonormal"]
 SIGNS = ("winding", "pseudonormal")
-DEFAULT_PAIRS = {"closest": 256, "winding": 512}  # first plan: pairs per block
-DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block
+DEFAULT_PAIRS = {"closest": 256, "winding": 512}  # first plan: pairs per block at least
+DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block at least
+# First plan: a block of points meets about c sqrt(s) nodes of a level of s nodes, c
+# growing as the blocks get fewer (and so wider): c = C (PLAN_BLOCKS / blocks) ** E.
+# (C, E) of the pairs (at the leaves, above them) and of the rows (the far rows at each
+# depth, then the near leaf rows; "closest": its one row capacity), fitted so that the
+# first plan holds what the searches needed with a quarter to spare on meshes of 1,000
+# to 280,000 faces at 1,000 and 10,000 points, uniform in the box or near the surface.
+PLAN_BLOCKS = 313  # the blocks of 10,000 points
+FIRST_PAIRS = {"closest": ((5.5, 0.25), (9.0, 0.4)), "winding": ((20.0, 0.25), (20.0, 0.25))}
+FIRST_ROWS = {"closest": ((0.2, 0.25),), "winding": ((0.8, 0.125), (0.3, 0.6))}
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
 SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
@@ -144,12 +153,18 @@ _PLANS: dict[tuple, tuple[int, ...]] = {}  # (what, face capacity, blocks) -> ca
 
 def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
     """The capacities of a search: the largest any earlier call of this shape needed, or the
-    defaults (pairs per block by depth, `DEFAULT_PAIRS`; rows per block, `DEFAULT_ROWS`)."""
+    first plan (pairs and rows per block by depth from `FIRST_PAIRS` and `FIRST_ROWS`, at
+    least `DEFAULT_PAIRS` and `DEFAULT_ROWS`; pairs at most the level's nodes)."""
     key = (what, index.capacity, nb)  # (beta changes the program, not its capacities)
     if key not in _PLANS:
-        pairs = tuple(bucket(nb * min(size, DEFAULT_PAIRS[what])) for _, size in index.levels[:-1])
-        rows = bucket(nb * DEFAULT_ROWS[what])
-        _PLANS[key] = pairs + (rows,) * len(_ROW_DEPTHS[what](index))
+        sizes = [size for _, size in index.levels]
+        per_block = lambda fit, size: fit[0] * np.sqrt(size) * (PLAN_BLOCKS / nb) ** fit[1]
+        pair_fits = FIRST_PAIRS[what]
+        pairs = [min(s, max(DEFAULT_PAIRS[what], per_block(pair_fits[d > 0], s))) for d, s in enumerate(sizes[:-1])]
+        depths = _ROW_DEPTHS[what](index)
+        row_fits = [FIRST_ROWS[what][0]] * (len(depths) - 1) + [FIRST_ROWS[what][-1]]
+        rows = [max(DEFAULT_ROWS[what], per_block(fit, sizes[d])) for fit, d in zip(row_fits, depths)]
+        _PLANS[key] = tuple(bucket(int(np.ceil(nb * n))) for n in pairs + rows)
     return _PLANS[key]
 
 
