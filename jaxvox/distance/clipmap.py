@@ -187,17 +187,18 @@ def _scissor_values(mesh: Mesh, padded: Mesh, bounds, lo, hi, h: float, clip: Cl
         # The box's axes in order of length, so that slabs across x, y and z share one
         # program: the distance does not depend on the order of the axes.
         order = np.argsort(shape, kind="stable")
+        sorted_shape: tuple[int, int, int] = tuple(int(shape[a]) for a in order)  # type: ignore[assignment]
         field = box_distance(
             Mesh(np.asarray(near.vertices)[:, order], near.faces),
-            box_grid(corner[order], h, tuple(shape[a] for a in order)),
-            tuple(int(shape[a]) for a in order),
+            box_grid(corner[order], h, sorted_shape),
+            sorted_shape,
             method=clip.method,
             band=band,
             sweeps=3,
             clamped=clip.method != "band",
         )
-        field = np.asarray(field).transpose(np.argsort(order))
-        cut = field[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
+        box = np.asarray(field).transpose(np.argsort(order))
+        cut = box[margin : margin + size[0], margin : margin + size[1], margin : margin + size[2]]
         d = np.minimum(cut * np.float32(h), limit)
     sign_shape: tuple[int, int, int] = tuple(_side(n, r, 0) for n in size)  # type: ignore[assignment]
     grid = box_grid(origin + lo * h, h, sign_shape)
