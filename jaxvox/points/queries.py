@@ -58,8 +58,10 @@ DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block at le
 # growing as the blocks get fewer (and so wider): c = C (PLAN_BLOCKS / blocks) ** E.
 # (C, E) of the pairs (at the leaves, above them) and of the rows (the far rows at each
 # depth, then the near leaf rows; "closest": its one row capacity), fitted so that the
-# first plan holds what the searches needed with a quarter to spare on meshes of 1,000
-# to 280,000 faces at 1,000 and 10,000 points, uniform in the box or near the surface.
+# first plan holds what the searches needed, with room to spare, on meshes of 1,000 to
+# 280,000 faces at 1,000 and 10,000 points, uniform in the box or near the surface; the
+# closest search's pairs above the leaves with little room, so that they stay where its
+# points' own bounds apply (`closest.POINT_BOUNDS_MAX`; docs/design-history.md).
 PLAN_BLOCKS = 313  # the blocks of 10,000 points
 FIRST_PAIRS = {"closest": ((5.5, 0.25), (9.0, 0.4)), "winding": ((20.0, 0.25), (20.0, 0.25))}
 FIRST_ROWS = {"closest": ((0.2, 0.25),), "winding": ((0.8, 0.125), (0.3, 0.6))}
