@@ -59,12 +59,13 @@ DEFAULT_ROWS = {"closest": 8, "winding": 16}  # first plan: rows per block at le
 # (C, E) of the pairs (at the leaves, above them) and of the rows (the far rows at each
 # depth, then the near leaf rows; "closest": its one row capacity), fitted so that the
 # first plan holds what the searches needed, with room to spare, on meshes of 1,000 to
-# 280,000 faces at 1,000 and 10,000 points, uniform in the box or near the surface; the
-# closest search's pairs above the leaves with little room, so that they stay where its
-# points' own bounds apply (`closest.POINT_BOUNDS_MAX`; docs/design-history.md).
+# 280,000 faces at 1,000 and 10,000 points, uniform in the box or near the surface. The
+# closest search's pairs above the leaves take the tighter `CLOSE_PAIRS` where that keeps
+# them within its points' own bounds (`closest.POINT_BOUNDS_MAX`; docs/design-history.md).
 PLAN_BLOCKS = 313  # the blocks of 10,000 points
-FIRST_PAIRS = {"closest": ((5.5, 0.25), (9.0, 0.4)), "winding": ((20.0, 0.25), (20.0, 0.25))}
-FIRST_ROWS = {"closest": ((0.2, 0.25),), "winding": ((0.8, 0.125), (0.3, 0.6))}
+FIRST_PAIRS = {"closest": ((4.2, 0.45), (10.0, 0.3)), "winding": ((20.0, 0.25), (20.0, 0.25))}
+CLOSE_PAIRS = (9.0, 0.4)  # the closest search's pairs above the leaves where that keeps the points' own bounds
+FIRST_ROWS = {"closest": ((0.12, 0.45),), "winding": ((0.8, 0.125), (0.3, 0.6))}
 REFINE = 0.1  # fast winding numbers this close to 1/2 are summed again (host API)
 WINDING_BLOCK = 32  # points per block of the winding-number search
 SPLIT_MIN = 1 << 14  # points per device at least, for a query to be split over devices
@@ -163,6 +164,10 @@ def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
         per_block = lambda fit, size: fit[0] * np.sqrt(size) * (PLAN_BLOCKS / nb) ** fit[1]
         pair_fits = FIRST_PAIRS[what]
         pairs = [min(s, max(DEFAULT_PAIRS[what], per_block(pair_fits[d > 0], s))) for d, s in enumerate(sizes[:-1])]
+        if what == "closest":  # the tighter fit where it keeps the points' own bounds
+            bounded = lambda n: bucket(int(np.ceil(nb * n))) * search.BLOCK <= closest.POINT_BOUNDS_MAX
+            close = [min(s, max(DEFAULT_PAIRS[what], per_block(CLOSE_PAIRS, s))) for s in sizes[1:-1]]
+            pairs[1:] = [c if bounded(c) and not bounded(n) else n for n, c in zip(pairs[1:], close)]
         depths = _ROW_DEPTHS[what](index)
         row_fits = [FIRST_ROWS[what][0]] * (len(depths) - 1) + [FIRST_ROWS[what][-1]]
         rows = [max(DEFAULT_ROWS[what], per_block(fit, sizes[d])) for fit, d in zip(row_fits, depths)]
