@@ -162,16 +162,17 @@ def _plan(what: str, index: MeshIndex, nb: int) -> tuple[int, ...]:
     if key not in _PLANS:
         sizes = [size for _, size in index.levels]
         per_block = lambda fit, size: fit[0] * np.sqrt(size) * (PLAN_BLOCKS / nb) ** fit[1]
-        pair_fits = FIRST_PAIRS[what]
-        pairs = [min(s, max(DEFAULT_PAIRS[what], per_block(pair_fits[d > 0], s))) for d, s in enumerate(sizes[:-1])]
+        pair_count = lambda fit, size: min(size, max(DEFAULT_PAIRS[what], per_block(fit, size)))
+        capacity = lambda per: bucket(int(np.ceil(nb * per)))
+        pairs = [capacity(pair_count(FIRST_PAIRS[what][d > 0], s)) for d, s in enumerate(sizes[:-1])]
         if what == "closest":  # the tighter fit where it keeps the points' own bounds
-            bounded = lambda n: bucket(int(np.ceil(nb * n))) * search.BLOCK <= closest.POINT_BOUNDS_MAX
-            close = [min(s, max(DEFAULT_PAIRS[what], per_block(CLOSE_PAIRS, s))) for s in sizes[1:-1]]
+            bounded = lambda cap: cap * search.BLOCK <= closest.POINT_BOUNDS_MAX
+            close = [capacity(pair_count(CLOSE_PAIRS, s)) for s in sizes[1:-1]]
             pairs[1:] = [c if bounded(c) and not bounded(n) else n for n, c in zip(pairs[1:], close)]
         depths = _ROW_DEPTHS[what](index)
         row_fits = [FIRST_ROWS[what][0]] * (len(depths) - 1) + [FIRST_ROWS[what][-1]]
-        rows = [max(DEFAULT_ROWS[what], per_block(fit, sizes[d])) for fit, d in zip(row_fits, depths)]
-        _PLANS[key] = tuple(bucket(int(np.ceil(nb * n))) for n in pairs + rows)
+        rows = [capacity(max(DEFAULT_ROWS[what], per_block(fit, sizes[d]))) for fit, d in zip(row_fits, depths)]
+        _PLANS[key] = tuple(pairs + rows)
     return _PLANS[key]
 
 
