@@ -18,7 +18,11 @@ For each mesh and resolution R (default the bunny at 256 and 1024), on
   the same voxel size and half width, run by the system ``/usr/bin/python3`` (Debian
   ``python3-openvdb``) in a subprocess, timed there (first call and median of repeats);
   its sign is a flood fill from the outside, not a winding number; its bytes
-  (``memUsage``) and the subprocess's peak resident memory;
+  (``memUsage``) and the subprocess's peak resident memory. Up to R = `COMPARE_MAX` its
+  values are compared with jaxvox's exact ones at jaxvox's band voxels (the mesh is
+  shifted so that OpenVDB's voxel centres are jaxvox's): the largest and 99th-percentile
+  error of its unsigned distance, the share of voxels off by more than 0.1 voxel, and the
+  voxels whose sign differs from the winding number's;
 * Open3D: ``RaycastingScene.compute_distance`` (exact unsigned distance through a BVH,
   multi-threaded) and ``compute_signed_distance`` at jaxvox's band voxel centres (the same
   set of points), scene construction included; the largest difference from jaxvox's
@@ -38,13 +42,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
+import tempfile
 import textwrap
 import time
 
 import _common
 
 SYSTEM_PYTHON = "/usr/bin/python3"
+COMPARE_MAX = 256  # largest R whose OpenVDB values are compared with jaxvox's (a dense R^3 copy)
 _OPENVDB = textwrap.dedent(
     """
     import json, resource, sys, time
@@ -63,7 +70,7 @@ _OPENVDB = textwrap.dedent(
             idx = [int(x.split("/")[0]) for x in p[1:]]
             idx = [i - 1 if i > 0 else len(v) + i for i in idx]
             f += [[idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1)]
-    v = np.asarray(v, np.float32)
+    v = np.asarray(np.asarray(v) - spec["shift"], np.float32)  # jaxvox's voxel centres on OpenVDB's
     f = np.asarray(f, np.int32)
     xform = vdb.createLinearTransform(voxelSize=spec["voxel_size"])
     times = []
@@ -74,7 +81,25 @@ _OPENVDB = textwrap.dedent(
     median = float(np.median(times[1:])) if len(times) > 1 else times[0]
     voxels, nbytes = int(grid.activeVoxelCount()), int(grid.memUsage())
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps(dict(first_s=times[0], median_s=median, voxels=voxels, bytes=nbytes, peak_rss_mib=peak)))
+    out = dict(first_s=times[0], median_s=median, voxels=voxels, bytes=nbytes, peak_rss_mib=peak)
+    if spec.get("compare"):  # jaxvox's band voxels and exact values (voxels), from its worker
+        want = np.load(spec["compare"])
+        ijk, exact = want["ijk"], want["values"].astype(np.float64)
+        dense = np.zeros((spec["resolution"],) * 3, np.float32)
+        grid.copyToArray(dense, ijk=(0, 0, 0))
+        got = dense[tuple(ijk.T)].astype(np.float64) / spec["voxel_size"]
+        active = np.abs(got) < spec["band"] * (1 - 1e-6)  # inactive voxels hold the background, +-band
+        error = np.abs(np.abs(got) - np.abs(exact))[active]
+        wrong = active & (np.abs(exact) > 1e-3) & ((got < 0) != (exact < 0))
+        out["compared"] = dict(
+            voxels=int(active.sum()),
+            missing=int((~active).sum()),
+            max_error_voxels=float(error.max(initial=0.0)),
+            p99_error_voxels=float(np.percentile(error, 99)) if error.size else 0.0,
+            share_over_tenth=float(np.mean(error > 0.1)) if error.size else 0.0,
+            sign_disagreements=int(wrong.sum()) if spec["signed"] else None,
+        )
+    print(json.dumps(out))
     """
 )
 
@@ -132,7 +157,11 @@ def worker(spec: dict) -> dict:
             environment=_common.environment(),
         ),
         voxel_size=float(grid.voxel_size),
+        shift=(np.asarray(grid.origin, np.float64) + 0.5 * float(grid.voxel_size)).tolist(),  # voxel 0's centre
     )
+    h = float(grid.voxel_size)
+    if field is not None and spec.get("compare"):  # band voxels and values (voxels) for OpenVDB's comparison
+        np.savez(spec["compare"], ijk=np.asarray(field.voxel_coords()), values=np.asarray(field.values[:n]) / h)
     if field is None or spec["skip_open3d"] or spec["compact"]:  # (a compact field has the same values)
         return out
     try:
@@ -140,7 +169,6 @@ def worker(spec: dict) -> dict:
     except ImportError as e:
         out["open3d"] = {"error": str(e)}
         return out
-    h = float(grid.voxel_size)
     ijk = np.asarray(field.voxel_coords(), np.float64)
     points = (np.asarray(grid.origin, np.float64) + (ijk + 0.5) * h).astype(np.float32)
     values = np.asarray(field.values[:n], np.float64)
@@ -198,7 +226,9 @@ def main() -> None:
     resolutions = args.resolutions or ([64] if args.smoke else [256, 1024])
     mesh = str(_common.MESH_DIR / "stanford-bunny.obj")
     cases = []
+    scratch = tempfile.TemporaryDirectory()  # jaxvox's values, for OpenVDB's comparison
     for r in _common.progress(resolutions, desc="resolutions"):
+        compare = f"{scratch.name}/values_{r}.npz" if r <= COMPARE_MAX and r not in args.stream else None
         case = dict(resolution=r, mesh="stanford-bunny")
         for layout in args.layouts:  # each in a fresh process (its own peak memory)
             spec = dict(
@@ -210,13 +240,16 @@ def main() -> None:
                 stream=r in args.stream,
                 skip_open3d=args.skip_open3d or layout != "full",
                 compact=layout == "compact",
+                compare=compare if layout == "full" else None,
             )
             run = _common.run_worker(__file__, spec, timeout=args.timeout, plain=layout == "plain")
             key = {"full": "jaxvox", "compact": "jaxvox_compact", "plain": "jaxvox_plain"}[layout]
             case[key] = run.get("jaxvox", run)  # (or its error)
-            case.update({name: run[name] for name in ("voxel_size", "open3d") if name in run})
+            case.update({name: run[name] for name in ("voxel_size", "shift", "open3d") if name in run})
         if "voxel_size" in case:
             peer = dict(mesh=mesh, voxel_size=case["voxel_size"], band=args.band, repeats=args.repeats)
+            peer.update(shift=case.pop("shift"), resolution=r, signed=not args.unsigned)
+            peer["compare"] = compare if compare and os.path.exists(compare) else None
             case["openvdb"] = _openvdb(peer, args.timeout)
         cases.append(case)
         print(json.dumps(case))
@@ -236,6 +269,7 @@ PACKAGES = ["jax", "jaxlib", "numpy", "open3d"]
 
 def _rows(case: dict) -> list[dict]:
     vdb, o3d = case.get("openvdb", {}), case.get("open3d", {})
+    cmp = vdb.get("compared")
     fmt = lambda x: f"{x:.3g}" if isinstance(x, float) else "-"
     per_voxel = lambda nbytes, voxels: fmt(nbytes / voxels) if nbytes and voxels else "-"
     rows = []
@@ -268,6 +302,16 @@ def _rows(case: dict) -> list[dict]:
                 vdb_peak=fmt(vdb.get("peak_rss_mib")),
                 o3d=fmt(o3d.get("signed", {}).get("median_s")) + " / " + fmt(o3d.get("unsigned", {}).get("median_s")),
                 diff=fmt(o3d.get("unsigned", {}).get("max_diff_voxels")),
+                vdb_error=" / ".join(
+                    [fmt(cmp["max_error_voxels"]), fmt(cmp["p99_error_voxels"]), f"{cmp['share_over_tenth']:.2%}"]
+                )
+                if cmp
+                else "-",
+                vdb_signs=(
+                    f"{cmp['sign_disagreements']:,} ({100 * cmp['sign_disagreements'] / max(cmp['voxels'], 1):.1f}%)"
+                    if cmp and cmp.get("sign_disagreements") is not None
+                    else "-"
+                ),
                 signs=str(o3d.get("signed", {}).get("sign_disagreements", "-")),
             )
         )
@@ -290,6 +334,8 @@ def write_report(result: dict, stem) -> None:
         ("vdb", "OpenVDB warm (s)"),
         ("vdb_per_voxel", "OpenVDB bytes per voxel (memUsage)"),
         ("vdb_peak", "OpenVDB peak RSS (MiB)"),
+        ("vdb_error", "OpenVDB unsigned error vs jaxvox's exact (voxels): max / p99 / share > 0.1"),
+        ("vdb_signs", "OpenVDB signs unlike the winding number's"),
         ("o3d", "Open3D signed / unsigned (s)"),
         ("diff", "max abs diff vs Open3D (voxels)"),
         ("signs", "sign disagreements with Open3D"),
