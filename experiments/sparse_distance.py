@@ -342,7 +342,7 @@ def write_report(result: dict, stem) -> None:
     ]
     rows = _common.case_rows(result["cases"], _rows)
     stem.with_suffix(".md").write_text(_common.markdown_table(rows, columns) + "\n")
-    fig, ax = _common.new_figure(1)
+    fig, (ax, trade) = _common.new_figure(2)
     series = [
         ("jaxvox first call", lambda c: c.get("jaxvox", {}).get("first_s")),
         ("jaxvox warm", lambda c: c.get("jaxvox", {}).get("median_s")),
@@ -361,6 +361,29 @@ def write_report(result: dict, stem) -> None:
     ax.set_ylabel("seconds")
     ax.set_title("signed narrow band" if result["signed"] else "unsigned narrow band")
     ax.legend()
+    # Speed against accuracy where OpenVDB's values were compared: jaxvox's error is its
+    # largest difference from Open3D's exact (float32) distances, OpenVDB's from jaxvox's.
+    compared = [c for c in result["cases"] if c.get("openvdb", {}).get("compared")]
+    errors = (
+        ("jaxvox", "o", lambda c: (c.get("open3d", {}).get("unsigned", {}).get("max_diff_voxels"), c["jaxvox"])),
+        ("OpenVDB", "s", lambda c: (c["openvdb"]["compared"]["max_error_voxels"], c["openvdb"])),
+    )
+    for label, marker, get in errors:
+        pts = [(*get(c), c["resolution"]) for c in compared]
+        pts = [(x, run["median_s"], r) for x, run, r in pts if isinstance(x, float) and "median_s" in run]
+        if pts:
+            trade.scatter([p[0] for p in pts], [p[1] for p in pts], marker=marker, label=label)
+            for x, y, r in pts:
+                trade.annotate(f"{r}^3", (x, y), fontsize=7)
+    trade.set(
+        xscale="log",
+        yscale="log",
+        xlabel="largest unsigned distance error at the band voxels (voxels)",
+        ylabel="warm seconds",
+        title="speed vs distance error (bunny, band 3)",
+    )
+    if trade.collections:
+        trade.legend()
     _common.save_figure(fig, stem.with_suffix(".png"))
 
 
