@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 import jaxvox as jv
 from jaxvox import morton
 from jaxvox._core.shapes import bucket
+from jaxvox.distance import band_sign
 from jaxvox.distance.band_sign import (
     CAP_BOUND,
     MOVE,
@@ -31,6 +32,7 @@ from jaxvox.distance.band_sign import (
 )
 from jaxvox.distance.sparse import SLOTS, TILE, UNUSED_VALUE
 from jaxvox.distance.topology import boundary_chain, welded_faces
+from jaxvox.distance.winding import point_tree
 from tests.reference import mesh_distance, winding_number
 
 TOL = 1e-4  # voxels
@@ -141,6 +143,22 @@ def test_every_test_mesh(meshes_dir, name, resolution):
     grid = jv.Grid.fit(mesh, resolution, padding=0.1)
     field = jv.sparse_distance_field(mesh, grid, band=2)
     check_field(mesh, grid, field)
+
+
+def test_components_signed_by_the_fast_tree(meshes_dir, monkeypatch):
+    """The components' winding numbers come from a brute-force sum when they are few (the
+    test meshes' grids here) and from the fast tree otherwise (`band_sign.TREE_PAIRS`):
+    with the tree forced, the field is the brute-force one (which `test_every_test_mesh`
+    checks against the float64 references, on the same grid)."""
+    mesh = jv.load_mesh(meshes_dir / "teapot.obj")  # crossing triangles: signed by components
+    grid = jv.Grid.fit(mesh, TEST_MESHES["teapot"], padding=0.1)
+    summed = jv.sparse_distance_field(mesh, grid, band=2)
+    trees = []
+    monkeypatch.setattr(band_sign, "TREE_PAIRS", 0)
+    monkeypatch.setattr(band_sign, "point_tree", lambda tris: trees.append(len(tris)) or point_tree(tris))
+    field = jv.sparse_distance_field(mesh, grid, band=2)
+    assert trees == [mesh.num_faces]  # built once, for the components
+    np.testing.assert_array_equal(np.asarray(field.values), np.asarray(summed.values))
 
 
 def test_open_meshes_signed_by_winding_numbers():

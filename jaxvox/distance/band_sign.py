@@ -35,8 +35,10 @@ Two methods, both exact (the float64 brute-force winding number is the reference
     and every point within ``band`` of the triangle lies more than a move (1 voxel) from
     every cap.
 
-  One fast winding number per component (`jaxvox.distance.winding.point_winding_numbers`, at its
-  voxel farthest from mesh and caps) plus the exact cap term, rounded, gives its ``W``.
+  One winding number per component (at its voxel farthest from mesh and caps: the fast
+  tree's `jaxvox.distance.winding.point_winding_numbers`, or a brute-force sum when the
+  components are few, below `TREE_PAIRS` point-triangle pairs) plus the exact cap term,
+  rounded, gives its ``W``.
   Each voxel then takes ``w = W - w_caps``: the cap term is summed exactly (brute force
   over the cap triangles) unless a bound keeps it below `CAP_BOUND`, in which case
   ``w = W``. The bound, per triangle: a cap of area A_k inside the ball of radius r_k
@@ -101,6 +103,8 @@ from jaxvox.mesh import Mesh
 POINT_CHUNK = 1 << 16  # band voxels per call of the sign kernels (fewer dispatches than 2^14)
 FEWER_POINTS = 64  # a job below POINT_CHUNK runs in chunks this many times smaller (a region's cap terms: a few dozen)
 EXACT_BELOW = 0.1  # fast winding numbers this close to 1/2 are summed again by brute force
+TREE_PAIRS = 1 << 23  # (point, triangle) pairs below which a job's winding numbers are summed by brute force
+BRUTE_CHUNK = 256  # points per call of that brute force (one program per mesh size, as the tree's)
 CLOSE = 1e-3  # exact winding numbers (W minus the cap term) this close to 1/2 likewise
 CAP_BLOCK = 32  # cap triangles per step of the caps' kernel (a mesh's holes often have a few dozen)
 CAP_BOUND = 0.45  # the cap term is summed exactly unless its bound stays below this (< 1/2)
@@ -535,8 +539,19 @@ class Components:
         self.side_label = connected_components(
             2 * len(tris), np.concatenate([u[:, 0], v[:, 0]]), np.concatenate([u[:, 1], v[:, 1]])
         )
-        self.tree = point_tree(tris)  # both for every region's winding numbers
+        self.tree = None  # the fast winding tree, built for the first job too large for brute force
         self.mesh_blocks = triangle_blocks(tris, 0.0)
+
+    def _mesh_winding_numbers(self, points: np.ndarray) -> np.ndarray:
+        """The mesh's winding numbers [P] float32 at points [P, 3] (grid units): summed by
+        brute force when the (point, triangle) pairs are below `TREE_PAIRS` (a small grid's
+        few components: cheaper than building the tree), else by the fast tree (its error
+        reaches a few 1e-2), built at the first such job and kept for the next regions'."""
+        if len(points) * len(self.tris) < TREE_PAIRS:
+            return brute_force_winding_numbers(self.tris, points, chunk=BRUTE_CHUNK, blocks=self.mesh_blocks)
+        if self.tree is None:
+            self.tree = point_tree(self.tris)
+        return point_winding_numbers(self.tris, points, tree=self.tree, blocks=self.mesh_blocks)
 
     def cap_terms(self, points: np.ndarray, *, distance: bool, radius: float | None = None):
         """The caps' winding number [P] at points [P, 3] (grid units), and with `distance`
@@ -600,7 +615,7 @@ class Components:
         """The mesh's winding numbers [P] float64 at points [P, 3] (grid units): the fast
         tree, then `exact_winding_numbers` where it lands within `EXACT_BELOW` of 1/2 (the
         tree's error reaches a few 1e-2)."""
-        w = point_winding_numbers(self.tris, points, tree=self.tree, blocks=self.mesh_blocks).astype(np.float64)
+        w = self._mesh_winding_numbers(points).astype(np.float64)
         close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
         if len(close):
             w[close] = exact_winding_numbers(self.tris, points[close], blocks=self.mesh_blocks)
@@ -689,7 +704,7 @@ class Components:
         # W of mesh plus caps (an integer, within the fast tree's error) at the
         # representatives and the lone voxels; a lone voxel's own w is W less its cap term.
         points = np.concatenate([centre(reps), centre(lone)])
-        values = point_winding_numbers(tris, points, tree=self.tree, blocks=self.mesh_blocks)
+        values = self._mesh_winding_numbers(points)
         caps = self.cap_terms(points, distance=False) if self.has_caps else np.zeros(len(points), np.float32)
         total = np.rint(values + caps)
         wrong = np.flatnonzero(np.abs(values + caps - total) > 0.25)
