@@ -90,7 +90,7 @@ from jaxvox.distance.topology import (
     welded_faces,
 )
 from jaxvox.distance.winding import (
-    _PointTree,
+    PointTree,
     brute_force_winding_numbers,
     exact_winding_numbers,
     host_winding_numbers,
@@ -540,7 +540,7 @@ class Components:
         self.side_label = connected_components(
             2 * len(tris), np.concatenate([u[:, 0], v[:, 0]]), np.concatenate([u[:, 1], v[:, 1]])
         )
-        self.tree: _PointTree | None = None  # the fast winding tree, built for the first job too large for brute force
+        self.tree: PointTree | None = None  # the fast winding tree, built for the first job too large for brute force
         self.mesh_blocks = triangle_blocks(tris, 0.0)
 
     def _mesh_winding_numbers(self, points: np.ndarray) -> np.ndarray:

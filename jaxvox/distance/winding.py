@@ -225,7 +225,7 @@ BRUTE_FORCE_BLOCK = 256  # triangles per step of `brute_force_winding_numbers`
 FEW_TRIANGLES = 4096  # `TriangleBlocks` hold at least this many triangles: one program below it
 
 
-class _PointTree(NamedTuple):
+class PointTree(NamedTuple):
     """Two levels of dipoles over Morton-ordered triangles (grid units, float32, one row
     per component: XLA's CPU code for a minor axis of 3 is slow).
 
@@ -253,8 +253,8 @@ def _dipole_nodes(tris: np.ndarray, size: int, per_triangle: tuple) -> np.ndarra
     return np.concatenate([centre.T, radius[None], area.sum(1).T])
 
 
-def point_tree(tris: np.ndarray) -> _PointTree:
-    """The `_PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder:
+def point_tree(tris: np.ndarray) -> PointTree:
+    """The `PointTree` of float64 triangles [F, 3, 3], F >= 1, padded to the shape ladder:
     built once for several calls of `point_winding_numbers` on one mesh."""
     tris = tris[morton.curve_order_host(centroids(tris))]
     padded = bucket(max(len(tris), TOP * LEAF))
@@ -265,7 +265,7 @@ def point_tree(tris: np.ndarray) -> _PointTree:
     area = 0.5 * np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])  # [F, 3]
     per_triangle = area, np.linalg.norm(area, axis=-1), centroids(tris)
     top, leaf = (_dipole_nodes(tris, size, per_triangle) for size in (TOP * LEAF, LEAF))
-    return _PointTree(f32(top), f32(leaf), rows)
+    return PointTree(f32(top), f32(leaf), rows)
 
 
 def split_rows(rows: np.ndarray) -> np.ndarray:
@@ -342,7 +342,7 @@ def _nearest(ratio, k: int):
 
 
 @functools.partial(jax.jit, static_argnames="beta")
-def _point_tree_sum(tree: _PointTree, points, *, beta: float):
+def _point_tree_sum(tree: PointTree, points, *, beta: float):
     """Winding numbers [P] of the tree at points [P, 3], and [P] bool: too many near nodes
     (the value is then incomplete)."""
     p = [points[:, k, None] for k in range(3)]
@@ -365,7 +365,7 @@ def point_winding_numbers(
     points: np.ndarray,
     *,
     beta: float = 2.0,
-    tree: _PointTree | None = None,
+    tree: PointTree | None = None,
     blocks: TriangleBlocks | None = None,
 ) -> np.ndarray:
     """Fast winding numbers [P] float32 at arbitrary points [P, 3] of triangles [F, 3, 3]
