@@ -613,9 +613,10 @@ class Components:
         return w, gap
 
     def winding_numbers(self, points: np.ndarray) -> np.ndarray:
-        """The mesh's winding numbers [P] float64 at points [P, 3] (grid units): the fast
-        tree, then `exact_winding_numbers` where it lands within `EXACT_BELOW` of 1/2 (the
-        tree's error reaches a few 1e-2)."""
+        """The mesh's winding numbers [P] float64 at points [P, 3] (grid units):
+        `_mesh_winding_numbers` (brute force or the fast tree), then
+        `exact_winding_numbers` where it lands within `EXACT_BELOW` of 1/2 (the tree's
+        error reaches a few 1e-2)."""
         w = self._mesh_winding_numbers(points).astype(np.float64)
         close = np.flatnonzero(np.abs(w - 0.5) < EXACT_BELOW)
         if len(close):
@@ -702,7 +703,7 @@ class Components:
         roots = np.flatnonzero(has_rep)
         reps = rep[roots]
         lone = np.flatnonzero(~has_rep[label][node])  # components without a representative
-        # W of mesh plus caps (an integer, within the fast tree's error) at the
+        # W of mesh plus caps (an integer, within the fast tree's error if it was used) at the
         # representatives and the lone voxels; a lone voxel's own w is W less its cap term.
         points = np.concatenate([centre(reps), centre(lone)])
         values = self._mesh_winding_numbers(points)
